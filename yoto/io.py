@@ -1,0 +1,221 @@
+"""File input and output shared by every stage: atomic writes, PLY point clouds, JSON, npz archives.
+
+Writes go to a temporary file in the destination folder and are renamed into place, so an interrupted
+run never leaves a half-written file under the final name.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import io
+import json
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from yoto.errors import InputError
+
+# ---------------------------------------------------------------------------------------------------------
+# Atomic writes
+
+
+@contextlib.contextmanager
+def atomic_open(path: str | Path, mode: str = "wb") -> Iterator[Any]:
+    """Open a temporary file next to `path`; on success it replaces `path`, on error it is removed."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, mode) as handle:
+            yield handle
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp_name, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp_name)
+        raise
+
+
+def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
+    with atomic_open(path, "wb") as handle:
+        handle.write(data)
+    return Path(path)
+
+
+def write_text_atomic(path: str | Path, text: str) -> Path:
+    return write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def _to_jsonable(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"cannot write {type(value).__name__} to JSON")
+
+
+def write_json_atomic(path: str | Path, payload: Any) -> Path:
+    return write_text_atomic(path, json.dumps(payload, indent=2, default=_to_jsonable) + "\n")
+
+
+def read_json(path: str | Path) -> Any:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("file not found", path)
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"not a valid JSON file ({exc})", path) from exc
+
+
+def save_npz_atomic(path: str | Path, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> Path:
+    """Save arrays and a JSON metadata dict (stored as the `meta_json` entry) into one npz file."""
+    buffer = io.BytesIO()
+    meta_entry = np.frombuffer(json.dumps(meta, default=_to_jsonable).encode("utf-8"), dtype=np.uint8)
+    np.savez(buffer, meta_json=meta_entry, **arrays)
+    return write_bytes_atomic(path, buffer.getvalue())
+
+
+def load_npz(path: str | Path, kind: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Load an npz written by `save_npz_atomic`; `kind` names what the file should be, for errors."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{kind} file not found", path)
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            arrays = {key: archive[key] for key in archive.files}
+    except Exception as exc:  # numpy raises several unrelated types for corrupt archives
+        raise InputError(f"not a readable {kind} file ({exc})", path) from exc
+    if "meta_json" not in arrays:
+        raise InputError(f"not a YOTO {kind} file (no metadata entry)", path)
+    meta = json.loads(arrays.pop("meta_json").tobytes().decode("utf-8"))
+    return arrays, meta
+
+
+def sha256_of_file(path: str | Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for chunk in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+# ---------------------------------------------------------------------------------------------------------
+# PLY point clouds (vertex element only). Written as binary little-endian float32; read in any PLY flavour.
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+
+
+def write_ply_points(path: str | Path, points: np.ndarray, normals: np.ndarray | None = None) -> Path:
+    """Write an (N, 3) point cloud (and optional (N, 3) normals) as a binary little-endian PLY."""
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {points.shape}")
+    names = ["x", "y", "z"]
+    columns = [points]
+    if normals is not None:
+        normals = np.asarray(normals, dtype=np.float64)
+        if normals.shape != points.shape:
+            raise ValueError(f"normals {normals.shape} do not match points {points.shape}")
+        names += ["nx", "ny", "nz"]
+        columns.append(normals)
+    data = np.ascontiguousarray(np.hstack(columns).astype("<f4"))
+    header = "ply\nformat binary_little_endian 1.0\ncomment written by yoto\n"
+    header += f"element vertex {len(points)}\n"
+    header += "".join(f"property float {name}\n" for name in names)
+    header += "end_header\n"
+    return write_bytes_atomic(path, header.encode("ascii") + data.tobytes())
+
+
+def read_ply_points(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read the vertices of a PLY file: (N, 3) float64 points and (N, 3) normals or None.
+
+    Supports ascii, binary_little_endian and binary_big_endian files. Elements after the vertex element
+    (faces, say) are ignored. Raises InputError naming the file for anything malformed.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("point cloud file not found", path)
+    raw = path.read_bytes()
+    if not raw.startswith(b"ply"):
+        raise InputError("not a PLY file (it does not start with 'ply')", path)
+    end = raw.find(b"end_header")
+    if end < 0:
+        raise InputError("PLY header has no 'end_header' line", path)
+    body_start = raw.find(b"\n", end) + 1
+    header_lines = raw[:end].decode("ascii", errors="replace").splitlines()
+
+    fmt = None
+    elements: list[tuple[str, int, list[tuple[str, str]]]] = []
+    for line in header_lines:
+        words = line.split()
+        if not words:
+            continue
+        if words[0] == "format" and len(words) >= 2:
+            fmt = words[1]
+        elif words[0] == "element" and len(words) == 3:
+            elements.append((words[1], int(words[2]), []))
+        elif words[0] == "property" and elements:
+            if words[1] == "list":
+                elements[-1][2].append((words[-1], "list"))
+            elif words[1] in _PLY_TYPES:
+                elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
+            else:
+                raise InputError(f"unknown PLY property type '{words[1]}'", path)
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise InputError(f"unsupported PLY format '{fmt}'", path)
+    if not elements or elements[0][0] != "vertex":
+        raise InputError("PLY file has no leading 'vertex' element", path)
+    _, count, properties = elements[0]
+    names = [name for name, _ in properties]
+    if any(kind == "list" for _, kind in properties):
+        raise InputError("PLY vertex element has list properties, which a point cloud cannot have", path)
+    for axis in ("x", "y", "z"):
+        if axis not in names:
+            raise InputError(f"PLY vertices have no '{axis}' property", path)
+
+    if fmt == "ascii":
+        text = raw[body_start:].decode("ascii", errors="replace").split("\n")
+        rows = [row.split() for row in text[:count]]
+        if len(rows) < count or any(len(row) < len(names) for row in rows):
+            raise InputError(f"PLY file is truncated (expected {count} vertex rows)", path)
+        try:
+            table = np.array([[float(value) for value in row[: len(names)]] for row in rows], dtype=np.float64)
+        except ValueError as exc:
+            raise InputError(f"PLY vertex data is not numeric ({exc})", path) from exc
+        table = table.reshape(count, len(names))
+        column = {name: table[:, i] for i, name in enumerate(names)}
+    else:
+        order = "<" if fmt == "binary_little_endian" else ">"
+        dtype = np.dtype([(name, order + kind) for name, kind in properties])
+        if len(raw) - body_start < dtype.itemsize * count:
+            raise InputError(f"PLY file is truncated (expected {count} vertices)", path)
+        records = np.frombuffer(raw, dtype=dtype, count=count, offset=body_start)
+        column = {name: records[name].astype(np.float64) for name in names}
+
+    points = np.stack([column["x"], column["y"], column["z"]], axis=1)
+    normals = None
+    if all(axis in column for axis in ("nx", "ny", "nz")):
+        normals = np.stack([column["nx"], column["ny"], column["nz"]], axis=1)
+    return points, normals
+
+
+def check_finite(array: np.ndarray, what: str, path: str | Path | None = None) -> np.ndarray:
+    """Raise InputError naming `what` (and the file) if `array` holds NaN or infinite values."""
+    bad = ~np.isfinite(array)
+    if bad.any():
+        raise InputError(f"{what} contains {int(bad.sum())} NaN or infinite values", path)
+    return array

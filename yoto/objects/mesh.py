@@ -1,0 +1,154 @@
+"""Loading object meshes (CAD or scan) in any common format and unit, and repairing what scans break."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from yoto.errors import InputError
+
+log = logging.getLogger("yoto")
+
+MESH_SUFFIXES = (".ply", ".obj", ".stl", ".glb", ".gltf", ".off")
+UNIT_SCALES_TO_M = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
+
+# A GelSight-graspable object is larger than a few millimetres and smaller than a couple of metres.
+PLAUSIBLE_EXTENT_M = (0.01, 1.0)
+IMPOSSIBLE_EXTENT_M = (0.002, 2.0)
+
+
+@dataclass
+class RepairReport:
+    """What `repair_mesh` changed, for the user and for the object model's metadata."""
+
+    merged_duplicate_vertices: int = 0
+    removed_degenerate_faces: int = 0
+    removed_duplicate_faces: int = 0
+    removed_small_components: int = 0
+    fixed_winding: bool = False
+    flipped_inside_out: bool = False
+    filled_holes: bool = False
+    non_manifold_edges: int = 0
+    watertight: bool = False
+
+    def summary(self) -> str:
+        parts = []
+        if self.merged_duplicate_vertices:
+            parts.append(f"merged {self.merged_duplicate_vertices} duplicate vertices")
+        if self.removed_degenerate_faces:
+            parts.append(f"removed {self.removed_degenerate_faces} degenerate (sliver) faces")
+        if self.removed_duplicate_faces:
+            parts.append(f"removed {self.removed_duplicate_faces} duplicate faces")
+        if self.removed_small_components:
+            parts.append(f"removed {self.removed_small_components} tiny disconnected pieces")
+        if self.fixed_winding:
+            parts.append("made face winding consistent")
+        if self.flipped_inside_out:
+            parts.append("turned the inside-out mesh outward")
+        if self.filled_holes:
+            parts.append("filled small holes")
+        if self.non_manifold_edges:
+            parts.append(f"{self.non_manifold_edges} non-manifold edges remain")
+        if not self.watertight:
+            parts.append("the mesh is not watertight (open scan?): inside/outside tests use winding order")
+        return "; ".join(parts) if parts else "nothing to repair"
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def load_mesh(path: str | Path, units: str = "m") -> tuple[trimesh.Trimesh, RepairReport, float]:
+    """Read a mesh file, convert it to metres and repair it.
+
+    `units` is "m", "cm", "mm" or "auto" (millimetres if the mesh is larger than a metre, else metres).
+    Returns the repaired mesh in metres (in the file's own frame), the repair report and the scale
+    that was applied. Raises InputError naming the file for unreadable, empty or implausibly sized meshes.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("mesh file not found", path)
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise InputError(f"unsupported mesh format '{path.suffix}' (use one of {', '.join(MESH_SUFFIXES)})", path)
+    try:
+        loaded = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many unrelated types for broken files
+        raise InputError(f"could not read the mesh ({type(exc).__name__}: {exc})", path) from exc
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0 or len(loaded.vertices) == 0:
+        raise InputError("the file holds no triangles (empty mesh, or a point cloud rather than a mesh)", path)
+    vertices = np.asarray(loaded.vertices, dtype=np.float64)
+    if not np.all(np.isfinite(vertices)):
+        raise InputError(f"mesh has {int((~np.isfinite(vertices)).any(axis=1).sum())} vertices with NaN or inf", path)
+    scale = _unit_scale(path, float(np.ptp(vertices, axis=0).max()), units)
+    mesh = trimesh.Trimesh(vertices=vertices * scale, faces=np.asarray(loaded.faces), process=False)
+    mesh, report = repair_mesh(mesh, path)
+    return mesh, report, scale
+
+
+def _unit_scale(path: Path, extent: float, units: str) -> float:
+    if units == "auto":
+        units = "mm" if extent > 1.0 else "m"
+    if units not in UNIT_SCALES_TO_M:
+        raise InputError(f"unknown unit '{units}' (use m, cm, mm or auto)")
+    scale = UNIT_SCALES_TO_M[units]
+    extent_m = extent * scale
+    if extent_m <= 0.0:
+        raise InputError("mesh has zero extent (all vertices coincide)", path)
+    hint = ""
+    for other, other_scale in UNIT_SCALES_TO_M.items():
+        if other != units and PLAUSIBLE_EXTENT_M[0] <= extent * other_scale <= PLAUSIBLE_EXTENT_M[1]:
+            hint = f"; it looks like {other} (pass --units {other})"
+            break
+    if not IMPOSSIBLE_EXTENT_M[0] <= extent_m <= IMPOSSIBLE_EXTENT_M[1]:
+        raise InputError(
+            f"read in {units}, the mesh is {extent_m * 1000:.4g} mm across, which no GelSight-graspable object is{hint}",
+            path,
+        )
+    if not PLAUSIBLE_EXTENT_M[0] <= extent_m <= PLAUSIBLE_EXTENT_M[1]:
+        log.warning("%s: read in %s, the mesh is %.4g mm across%s", path, units, extent_m * 1000, hint)
+    return scale
+
+
+def repair_mesh(mesh: trimesh.Trimesh, path: str | Path | None = None, min_component_area_fraction: float = 0.01):
+    """Fix what scans typically break; returns the repaired mesh and a RepairReport."""
+    report = RepairReport()
+    vertex_count = len(mesh.vertices)
+    mesh.merge_vertices()
+    report.merged_duplicate_vertices = vertex_count - len(mesh.vertices)
+
+    face_count = len(mesh.faces)
+    mesh.update_faces(mesh.nondegenerate_faces(height=1e-9))
+    report.removed_degenerate_faces = face_count - len(mesh.faces)
+    face_count = len(mesh.faces)
+    mesh.update_faces(mesh.unique_faces())
+    report.removed_duplicate_faces = face_count - len(mesh.faces)
+    mesh.remove_unreferenced_vertices()
+    if len(mesh.faces) == 0:
+        raise InputError("every face of the mesh is degenerate (zero area)", path)
+
+    components = mesh.split(only_watertight=False)
+    if len(components) > 1:
+        total_area = sum(component.area for component in components)
+        kept = [c for c in components if c.area >= min_component_area_fraction * total_area]
+        report.removed_small_components = len(components) - len(kept)
+        if report.removed_small_components:
+            mesh = trimesh.util.concatenate(kept)
+
+    faces_before = mesh.faces.copy()
+    trimesh.repair.fix_winding(mesh)
+    report.fixed_winding = bool(len(faces_before) == len(mesh.faces) and np.any(faces_before != mesh.faces))
+    if not mesh.is_watertight:
+        report.filled_holes = bool(trimesh.repair.fill_holes(mesh)) and mesh.is_watertight
+    # An outward mesh has positive signed volume; for open meshes the volume is still a useful vote.
+    if mesh.volume < 0:
+        mesh.invert()
+        report.flipped_inside_out = True
+
+    edges = np.sort(mesh.edges, axis=1).astype(np.int64)
+    _, edge_use = np.unique(edges[:, 0] * len(mesh.vertices) + edges[:, 1], return_counts=True)
+    report.non_manifold_edges = int((edge_use > 2).sum())
+    report.watertight = bool(mesh.is_watertight)
+    return mesh, report
