@@ -1,0 +1,44 @@
+"""Shared test helpers: one seeded RNG factory, one tolerance table, the shared-data location."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+# Where `../shared/data` lives relative to the repository (CI has it there; a user's clone may not).
+SHARED_DATA = Path(os.environ.get("YOTO_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+
+# Tolerances, in one place. Float-precision recoveries are compared with FLOAT; metric tolerances carry units.
+TOL = {
+    "float": 1e-9,  # float64 round trips of exact math
+    "float32": 1e-5,  # values that passed through float32 storage, metres
+    "pose_exact_m": 1e-9,  # noise-free pose recovery, translation
+    "pose_exact_rad": 1e-9,  # noise-free pose recovery, rotation
+}
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    """The one seeded generator tests draw from (same seed every test: failures reproduce)."""
+    return np.random.default_rng(12345)
+
+
+def shared_data(*parts: str) -> Path:
+    """Path under ../shared/data, or skip the test with a reason when it is absent."""
+    path = SHARED_DATA.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"needs the shared data at {path} (not part of a user's clone)")
+    return path
+
+
+@pytest.fixture(scope="session")
+def builtin_models(tmp_path_factory):
+    """Object models of the built-in objects, built once per test session at a reduced cloud size."""
+    from yoto.objects.builtin import builtin_mesh
+    from yoto.objects.model import ObjectModelConfig, build_object_model
+
+    config = ObjectModelConfig(num_points=40_000)
+    return {name: build_object_model(builtin_mesh(name), name, config) for name in ("tool", "fruit", "figurine")}
