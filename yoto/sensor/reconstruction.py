@@ -1,0 +1,379 @@
+"""GelSight image -> surface gradients -> height map -> contact mask -> tactile point cloud (sensor frame).
+
+Steps, for one 320x240 RGB frame:
+1. checks and the touched region: the frame's colour change against the calibration's background is
+   averaged over 8x8 blocks; a frame that differs from the background almost everywhere (another sensor,
+   changed lighting) or is saturated raises InputError. Blocks whose mean colour changed are "touched";
+   their bounding box plus a margin is the only region where gradients are computed. Elsewhere the gel is
+   flat to within the sensor noise and its gradient is set to zero (the fitted model would only add its
+   small bias there, which integrates into a spurious tilt).
+2. gradients inside the box: colour change (int16, 3x3 binomial smoothing), then the calibration's lookup
+   table and per-pixel gain maps (models.GradientModel).
+3. height map by Poisson integration over the whole frame: the Laplacian of z equals the divergence of the
+   gradients, solved with a discrete cosine transform (free border: a press cut by the frame's edge is not
+   forced to zero there) using precomputed eigenvalues, float32. The undetermined constant is fixed so that
+   the untouched blocks sit at z = 0; heights are then clamped to z <= 0.
+4. contact mask: if at least `min_area_px` pixels changed colour by `colour_threshold`, the pixels pressed
+   at least half as deep as the deepest point (and at least `min_depth_m`). Depth, not colour: the middle
+   of a contact is flat, so its colour barely changes.
+5. points: the masked pixels' sensor-frame (x, y, z) in metres (SPEC: z <= 0 where the gel is pressed).
+
+Bad input never yields a silent garbage cloud: a wrong size or dtype, a saturated frame or a frame that
+does not look like the calibration's background raise InputError; a frame without contact gives an
+explicit empty result (`contact` False, `reason`, (0, 3) points).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import scipy.fft
+
+from yoto.errors import InputError
+from yoto.sensor.calibration import MaskConfig, SensorCalibration, model_colour_change
+from yoto.sensor.presses import check_image
+from yoto.sensor.spec import GelSightSpec
+
+# A frame whose median block colour change against the background exceeds this (0-255 levels) is from
+# another sensor, or the lighting or a camera setting changed: the calibration does not apply.
+MAX_BACKGROUND_CHANGE = 10.0
+# A frame with more than this fraction of saturated pixels (any channel at 255) is overexposed.
+MAX_SATURATED_FRACTION = 0.005
+# Touched-region detection: block size (pixels), the block-mean colour change (levels, largest channel)
+# that marks a block as touched (the noise of an 8x8 mean is about 0.3 levels), and the margin (pixels)
+# added around the touched blocks.
+BLOCK_PX = 8
+TOUCHED_LEVEL = 3.0
+BOX_MARGIN_PX = 8
+
+
+@dataclass
+class Reconstruction:
+    """One frame's reconstruction."""
+
+    height_map_m: np.ndarray  # (rows, cols) float32, gel surface z (metres), <= 0 where pressed
+    mask: np.ndarray  # (rows, cols) bool, contact pixels
+    points_sensor: np.ndarray  # (N, 3) float64, contact points in the sensor frame, metres; (0, 3) if none
+    contact: bool  # False: no contact found (points empty); `reason` says why
+    reason: str = ""  # why there is no contact, or ""
+    box: tuple[int, int, int, int] | None = None  # (row0, row1, col0, col1) where gradients were computed
+    gradients: tuple[np.ndarray, np.ndarray] | None = None  # (gx, gy) maps when asked for, else None
+
+    @property
+    def max_depth_m(self) -> float:
+        return float(-self.points_sensor[:, 2].min()) if len(self.points_sensor) else 0.0
+
+    @property
+    def touches_border(self) -> bool:
+        """The contact reaches the frame's edge: part of it is unseen, its depth is less reliable."""
+        m = self.mask
+        return bool(m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any())
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Poisson integration
+
+
+# One axis of the separable Poisson solve. Boundary condition at each end of the axis: "free" (zero normal
+# slope, Neumann) or "fixed" (zero height half a pixel outside, Dirichlet). Each pair has its real
+# trigonometric transform (orthonormal; scipy.fft type, DCT or DST) and Laplacian eigenvalue offset:
+# lambda_k = 2 cos(pi (k + offset) / n) - 2.
+_AXIS_TRANSFORMS = {
+    (True, True): ("dct", 2, 0.0),
+    (False, False): ("dst", 2, 1.0),
+    (True, False): ("dct", 4, 0.5),
+    (False, True): ("dst", 4, 0.5),
+}
+
+
+@lru_cache(maxsize=64)
+def _eigenvalues(rows: int, cols: int, free: tuple[bool, bool, bool, bool]) -> np.ndarray:
+    """Eigenvalues of the 5-point Laplacian for the edge conditions (top, bottom, left, right), float32.
+
+    With all four edges free, the (0, 0) entry (the undetermined constant) is set to 1; its coefficient is
+    zeroed by the solver.
+    """
+    _, _, row_offset = _AXIS_TRANSFORMS[free[0], free[1]]
+    _, _, col_offset = _AXIS_TRANSFORMS[free[2], free[3]]
+    eig_rows = 2 * np.cos(np.pi * (np.arange(rows) + row_offset) / rows) - 2
+    eig_cols = 2 * np.cos(np.pi * (np.arange(cols) + col_offset) / cols) - 2
+    eig = eig_rows[:, None] + eig_cols[None, :]
+    if all(free):
+        eig[0, 0] = 1.0
+    return eig.astype(np.float32)
+
+
+def divergence(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+    """d(gx)/dx + d(gy)/dy (pixel units), from gradients averaged onto the half-pixel edges.
+
+    f[n] = (g[n+1] - g[n-1]) / 2 inside; at the first and last pixel the edge half a pixel outside has zero
+    normal gradient (f[0] = (g[0] + g[1]) / 2), which is exact for a free edge and, for a fixed edge,
+    holds where the gel is flat (the touched box has a flat margin).
+    """
+    f = np.empty_like(gx)
+    f[:, 1:-1] = gx[:, 2:]
+    f[:, 1:-1] -= gx[:, :-2]
+    f[:, 0] = gx[:, 0] + gx[:, 1]
+    f[:, -1] = -gx[:, -1] - gx[:, -2]
+    f[1:-1, :] += gy[2:, :]
+    f[1:-1, :] -= gy[:-2, :]
+    f[0, :] += gy[0, :] + gy[1, :]
+    f[-1, :] -= gy[-1, :] + gy[-2, :]
+    f *= 0.5
+    return f
+
+
+def poisson_integrate(
+    gx: np.ndarray,
+    gy: np.ndarray,
+    spacing: float = 1.0,
+    free: tuple[bool, bool, bool, bool] = (True, True, True, True),
+) -> np.ndarray:
+    """Height map whose gradients best match (gx, gy), by a fast Poisson solve.
+
+    gx = dz/dx along columns, gy = dz/dy along rows (dimensionless); `spacing` is the pixel size, so the
+    result has the unit of `spacing`. `free` gives, for the (top, bottom, left, right) edges, whether the
+    surface is free there (zero normal slope) or fixed (zero height half a pixel outside). With all edges
+    free the result has zero mean (the constant is the caller's to fix). Solves the 5-point Poisson
+    equation exactly with separable DCT/DST transforms (scipy.fft) and precomputed eigenvalues, float32,
+    O(n log n).
+    """
+    f = divergence(np.asarray(gx, dtype=np.float32), np.asarray(gy, dtype=np.float32))
+    free = tuple(bool(v) for v in free)
+    row_kind, row_type, _ = _AXIS_TRANSFORMS[free[0], free[1]]
+    col_kind, col_type, _ = _AXIS_TRANSFORMS[free[2], free[3]]
+    forward = {"dct": scipy.fft.dct, "dst": scipy.fft.dst}
+    inverse = {"dct": scipy.fft.idct, "dst": scipy.fft.idst}
+    coefficients = forward[col_kind](f, type=col_type, axis=1, norm="ortho", overwrite_x=True)
+    coefficients = forward[row_kind](coefficients, type=row_type, axis=0, norm="ortho", overwrite_x=True)
+    coefficients /= _eigenvalues(*f.shape, free)
+    if all(free):
+        coefficients[0, 0] = 0.0
+    z = inverse[row_kind](coefficients, type=row_type, axis=0, norm="ortho", overwrite_x=True)
+    z = inverse[col_kind](z, type=col_type, axis=1, norm="ortho", overwrite_x=True)
+    if spacing != 1.0:
+        z *= np.float32(spacing)
+    return z
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Checks and the touched region
+
+
+def block_change(image: np.ndarray, background_i16: np.ndarray, block: int = BLOCK_PX) -> np.ndarray:
+    """(rows // block, cols // block) largest-channel |mean colour change| of each block, float32 levels."""
+    diff = np.subtract(image, background_i16, dtype=np.int16)
+    rows = (diff.shape[0] // block) * block
+    cols = (diff.shape[1] // block) * block
+    strips = diff[0:rows:block, :cols].astype(np.int32)  # row sums by strided adds: fast, contiguous rows
+    for k in range(1, block):
+        strips += diff[k:rows:block, :cols]
+    sums = np.add.reduceat(strips, np.arange(0, cols, block), axis=1)
+    np.abs(sums, out=sums)
+    level = np.maximum(np.maximum(sums[..., 0], sums[..., 1]), sums[..., 2]).astype(np.float32)
+    level *= np.float32(1.0 / (block * block))
+    return level
+
+
+def check_frame(
+    image: np.ndarray, calibration: SensorCalibration, source: str | Path | None = None
+) -> np.ndarray:
+    """Raise InputError for a frame the calibration cannot reconstruct; return its block colour change.
+
+    Checks: size and dtype, saturation, and that the frame shows the calibration's background where it is
+    not touched (the median block changed by at most MAX_BACKGROUND_CHANGE levels).
+    """
+    check_image(image, calibration.spec, source, "frame")
+    if image.max() >= 255:
+        saturated = float((image == 255).any(axis=2).mean())
+        if saturated > MAX_SATURATED_FRACTION:
+            raise InputError(
+                f"frame is saturated: {saturated:.1%} of the pixels have a channel at 255 (limit "
+                f"{MAX_SATURATED_FRACTION:.1%}); lower the camera exposure or the LED brightness",
+                source,
+            )
+    blocks = block_change(image, calibration.background_i16)
+    level = float(np.median(blocks))
+    if level > MAX_BACKGROUND_CHANGE:
+        raise InputError(
+            f"frame differs from the calibration's background almost everywhere (median change {level:.0f} "
+            f"levels, limit {MAX_BACKGROUND_CHANGE:.0f}): another sensor, or the lighting or a camera setting "
+            "changed; recalibrate, or give a background taken with this sensor now",
+            source,
+        )
+    return blocks
+
+
+def touched_box(
+    blocks: np.ndarray, shape: tuple[int, int], block: int = BLOCK_PX, margin: int = BOX_MARGIN_PX
+) -> tuple[int, int, int, int] | None:
+    """(row0, row1, col0, col1) pixel box around the touched blocks, or None when nothing is touched."""
+    touched = blocks > TOUCHED_LEVEL
+    rows = np.nonzero(touched.any(axis=1))[0]
+    if len(rows) == 0:
+        return None
+    cols = np.nonzero(touched.any(axis=0))[0]
+    row0 = max(0, rows[0] * block - margin)
+    row1 = min(shape[0], (rows[-1] + 1) * block + margin)
+    col0 = max(0, cols[0] * block - margin)
+    col1 = min(shape[1], (cols[-1] + 1) * block + margin)
+    if shape[0] - row1 < block:  # blocks do not reach a ragged last strip; extend into it
+        row1 = shape[0]
+    if shape[1] - col1 < block:
+        col1 = shape[1]
+    return int(row0), int(row1), int(col0), int(col1)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Reconstruction
+
+
+def reconstruct(
+    image: np.ndarray,
+    calibration: SensorCalibration,
+    *,
+    source: str | Path | None = None,
+    keep_gradients: bool = False,
+) -> Reconstruction:
+    """Reconstruct one (rows, cols, 3) uint8 RGB frame into a height map, contact mask and point cloud.
+
+    `source` names the frame in error messages. Raises InputError for frames the calibration cannot
+    reconstruct (module docstring); a frame without contact returns `contact=False` and no points.
+    """
+    spec = calibration.spec
+    blocks = check_frame(image, calibration, source)
+    shape = (spec.height_px, spec.width_px)
+    box = touched_box(blocks, shape)
+    if box is None:
+        empty = Reconstruction(
+            np.zeros(shape, np.float32),
+            np.zeros(shape, bool),
+            np.zeros((0, 3)),
+            False,
+            f"no contact: no 8x8 block changed colour by more than {TOUCHED_LEVEL:g} levels",
+        )
+        if keep_gradients:
+            empty.gradients = (np.zeros(shape, np.float32), np.zeros(shape, np.float32))
+        return empty
+    gx, gy, changed = box_gradients(image, calibration, box)
+    height = integrate_box(gx, gy, box, blocks, spec.pixel_size_m)
+    mask, reason = contact_mask(changed, height, calibration.mask)
+    if mask is None:
+        points = np.zeros((0, 3))
+        mask = np.zeros(shape, dtype=bool)
+    else:
+        x, y = _pixel_xy(spec)
+        points = np.empty((int(np.count_nonzero(mask)), 3))
+        points[:, 0] = x[mask]
+        points[:, 1] = y[mask]
+        points[:, 2] = height[mask]
+    return Reconstruction(height, mask, points, mask.any(), reason, box, (gx, gy) if keep_gradients else None)
+
+
+def box_gradients(
+    image: np.ndarray, calibration: SensorCalibration, box: tuple[int, int, int, int]
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Full-frame gradient maps, zero outside `box`, and the number of pixels whose colour changed by at
+    least the mask's colour threshold."""
+    row0, row1, col0, col1 = box
+    rows, cols = image.shape[:2]
+    # One extra pixel around the box so the 3x3 smoothing inside it matches a full-frame smoothing.
+    r0, r1, c0, c1 = max(0, row0 - 1), min(rows, row1 + 1), max(0, col0 - 1), min(cols, col1 + 1)
+    change = model_colour_change(
+        image[r0:r1, c0:c1], calibration.background_i16[r0:r1, c0:c1], calibration.smooth
+    )
+    change = change[row0 - r0 : row1 - r0, col0 - c0 : col1 - c0]
+    box_gx, box_gy = calibration.gradient_model.predict(change, origin=(row0, col0))
+    gx = np.zeros((rows, cols), np.float32)
+    gy = np.zeros((rows, cols), np.float32)
+    gx[row0:row1, col0:col1] = box_gx
+    gy[row0:row1, col0:col1] = box_gy
+    threshold = np.float32(calibration.mask.colour_threshold**2)
+    changed = int(np.count_nonzero(colour_distance2(change) >= threshold))
+    return gx, gy, changed
+
+
+def integrate_box(
+    gx: np.ndarray, gy: np.ndarray, box: tuple[int, int, int, int], blocks: np.ndarray, pixel_size_m: float
+) -> np.ndarray:
+    """Full-frame height map, z <= 0: the Poisson solution inside the touched box, zero outside.
+
+    The box's edges inside the frame lie on flat gel: fixed at zero height. Edges on the frame's border
+    are free (a contact cut by the border is not forced to zero there). When all four are on the border
+    (the box is the whole frame), the level comes from the untouched blocks (`level_height`).
+    """
+    row0, row1, col0, col1 = box
+    rows, cols = gx.shape
+    free = (row0 == 0, row1 == rows, col0 == 0, col1 == cols)
+    inside = (slice(row0, row1), slice(col0, col1))
+    height = np.zeros((rows, cols), np.float32)
+    height[inside] = poisson_integrate(gx[inside], gy[inside], pixel_size_m, free)
+    if all(free):
+        level_height(height, blocks)
+    np.minimum(height, 0.0, out=height)
+    return height
+
+
+def level_height(height: np.ndarray, blocks: np.ndarray, block: int = BLOCK_PX) -> None:
+    """Shift a height map in place so that the untouched gel sits at z = 0.
+
+    The reference is the median height at the centres of blocks that are neither touched nor next to a
+    touched block. When almost every block is touched (an object covering the pad), the 95th percentile of
+    those block-centre heights is used instead.
+    """
+    touched = blocks > TOUCHED_LEVEL
+    near = touched.copy()
+    near[1:] |= touched[:-1]
+    near[:-1] |= touched[1:]
+    near[:, 1:] |= near[:, :-1].copy()
+    near[:, :-1] |= near[:, 1:].copy()
+    centres = height[block // 2 :: block, block // 2 :: block][: blocks.shape[0], : blocks.shape[1]]
+    reference = centres[~near]
+    level = np.median(reference) if reference.size >= 20 else np.percentile(centres, 95)
+    height -= np.float32(level)
+
+
+def colour_distance2(change: np.ndarray) -> np.ndarray:
+    """Squared RGB distance of each pixel's colour change, (rows, cols) float32."""
+    c = change.astype(np.float32)
+    distance2 = c[..., 0] * c[..., 0]
+    distance2 += c[..., 1] * c[..., 1]
+    distance2 += c[..., 2] * c[..., 2]
+    return distance2
+
+
+def contact_mask(changed_px: int, height_m: np.ndarray, config: MaskConfig) -> tuple[np.ndarray | None, str]:
+    """Contact pixels, or None and the reason when the frame shows no contact.
+
+    A frame shows contact when at least `min_area_px` pixels changed colour by `colour_threshold` levels.
+    The contact pixels are those pressed at least `relative_depth` as deep as the deepest point and at
+    least `min_depth_m` (a ball's contact edge lies at half its indentation (Hertz); measured best on the
+    real presses, docs/sensor.md).
+    """
+    if changed_px < config.min_area_px:
+        return None, (
+            f"no contact: {changed_px} pixels changed colour by {config.colour_threshold:g} levels or more, "
+            f"fewer than {config.min_area_px}"
+        )
+    deepest = float(-height_m.min())
+    threshold = max(config.min_depth_m, config.relative_depth * deepest)
+    mask = height_m <= -np.float32(threshold)
+    count = int(np.count_nonzero(mask))
+    if count < config.min_area_px:
+        return None, (
+            f"no contact: {count} pixels are pressed {threshold * 1e3:.3f} mm deep or more (deepest "
+            f"{deepest * 1e3:.3f} mm), fewer than {config.min_area_px}"
+        )
+    return mask, ""
+
+
+@lru_cache(maxsize=4)
+def _pixel_xy(spec: GelSightSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Cached sensor-frame x and y of every pixel (read-only), as GelSightSpec.pixel_xy_sensor."""
+    x, y = spec.pixel_xy_sensor()
+    x.setflags(write=False)
+    y.setflags(write=False)
+    return x, y
