@@ -310,6 +310,30 @@ class SensorCalibration:
         return save_npz_atomic(path, arrays, meta)
 
 
+def with_background(
+    calibration: SensorCalibration, background: np.ndarray, path: str | Path | None = None,
+    max_change: float = 10.0,
+) -> SensorCalibration:
+    """The calibration with a fresh background image of the same sensor (lighting drifts over a day).
+
+    Raises InputError when the new background is not of this sensor: wrong size, or its colours differ from
+    the calibrated background by more than `max_change` levels (median over pixels, largest channel).
+    """
+    check_image(background, calibration.spec, path, "background")
+    change = np.abs(background.astype(np.int16) - calibration.background_i16).max(axis=2)
+    level = float(np.median(change))
+    if level > max_change:
+        raise InputError(
+            f"background differs from the calibration's background by {level:.0f} levels (median; limit "
+            f"{max_change:.0f}): it is from another sensor, or the lighting changed too much; recalibrate",
+            path,
+        )
+    meta = {**calibration.meta, "background_replaced_from": str(path) if path else "array"}
+    return SensorCalibration(calibration.spec, np.ascontiguousarray(background), calibration.gradient_model,
+                             calibration.image_model, calibration.mask, calibration.smooth, calibration.noise_std,
+                             calibration.render_blur_px, meta)
+
+
 def background_hash(background: np.ndarray) -> str:
     """SHA-256 of a background image's pixels (uint8, row-major RGB)."""
     return hashlib.sha256(np.ascontiguousarray(background, dtype=np.uint8).tobytes()).hexdigest()
@@ -544,7 +568,7 @@ def calibrate(
     return calibration, report
 
 
-DEFAULT_RENDER_BLUR_PX = 1.5
+DEFAULT_RENDER_BLUR_PX = 2.0
 
 
 def _config_json(config: CalibrationConfig) -> dict[str, Any]:
