@@ -88,9 +88,10 @@ def press_height_map(
 ) -> np.ndarray:
     """Gel surface (metres, <= 0) of a ball pressed into an elastic half-space (Hertz), contact radius a.
 
-    Indentation depth d = a^2 / R. Inside the contact the gel follows the sphere, whose lowest point is at
-    -d; outside, the Hertz surface displacement -(d / pi) [(2 - r^2/a^2) asin(a/r) + sqrt(r^2/a^2 - 1)]
-    returns the gel to flat (it equals -d/2 at the contact edge, as does the sphere).
+    Hertz: with d = a^2 / R, the gel at the contact edge is pressed d / 2 deep, and outside the contact the
+    surface displacement -(d / pi) [(2 - r^2/a^2) asin(a/r) + sqrt(r^2/a^2 - 1)] returns it to flat (it is
+    -d/2 at the edge). Inside, the gel follows the sphere exactly, so the deepest point is
+    (R - sqrt(R^2 - a^2)) + d / 2 deep (about d for a << R).
     """
     pixel = spec.pixel_size_m
     a = contact_radius_px * pixel

@@ -1,0 +1,285 @@
+"""The whole sensor pipeline on a synthetic GelSight (no shared data needed): calibrate from rendered ball
+presses, reconstruct held-out presses, the calibration file, the optical round trip, and bad input."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from yoto.errors import InputError
+from yoto.sensor.calibration import (
+    SensorCalibration,
+    calibrate,
+    load_calibration,
+    model_colour_change,
+    press_height_map,
+    with_background,
+)
+from yoto.sensor.optical import height_gradients, render_image
+from yoto.sensor.reconstruction import reconstruct
+from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
+from yoto.sensor.validation import evaluate_press, find_press_circle
+
+SPEC = GELSIGHT_MINI
+BALL_RADIUS_M = 3.155e-3
+BALL_RADIUS_PX = BALL_RADIUS_M / SPEC.pixel_size_m
+
+
+def synthetic_background() -> np.ndarray:
+    """A smooth, uneven illumination like the Mini's (teal corners, a brighter middle)."""
+    y, x = np.mgrid[: SPEC.height_px, : SPEC.width_px] / np.array([SPEC.height_px, SPEC.width_px])[:, None, None]
+    glow = np.exp(-((x - 0.5) ** 2 + (y - 0.5) ** 2) / 0.08)
+    background = np.stack([70 + 50 * glow, 90 + 10 * glow, 100 + 20 * glow - 10 * x], axis=2)
+    return np.clip(background, 0, 255).astype(np.uint8)
+
+
+def synthetic_sensor_image(height_m: np.ndarray, background: np.ndarray, rng=None) -> np.ndarray:
+    """The synthetic sensor's optics: three lights whose response to the slope varies across the pad."""
+    gx, gy = height_gradients(height_m, SPEC.pixel_size_m)
+    x = np.linspace(-1, 1, SPEC.width_px)[None, :]
+    gain = 1.0 + 0.25 * x
+    change = np.stack([110 * gain * gx + 40 * gx * gx, 100 * gy - 20 * gy * gy,
+                       -(70 * gx + 60 * gy) * (1.1 - 0.2 * x) + 30 * (gx * gx + gy * gy)], axis=2)
+    change = ndimage.gaussian_filter(change, (1.0, 1.0, 0))
+    image = background + change
+    if rng is not None:
+        image = image + rng.normal(0, 2.0, image.shape)
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+def _press_circles(rng, count):
+    circles = []
+    for _ in range(count):
+        a = rng.uniform(22, 30)
+        circles.append((rng.uniform(a + 4, SPEC.width_px - a - 4), rng.uniform(a + 4, SPEC.height_px - a - 4), a))
+    return circles
+
+
+@pytest.fixture(scope="module")
+def synthetic():
+    """A calibration of the synthetic sensor from 16 presses, and 6 held-out presses with their truth."""
+    rng = np.random.default_rng(7)
+    background = synthetic_background()
+    circles = _press_circles(rng, 22)
+    images = [synthetic_sensor_image(press_height_map(cx, cy, a, BALL_RADIUS_M), background, rng)
+              for cx, cy, a in circles]
+    calibration, report = calibrate(background, images[:16], 2 * BALL_RADIUS_M)
+    return {"calibration": calibration, "report": report, "background": background, "circles": circles,
+            "images": images}
+
+
+def test_calibration_recovers_the_contact_circles(synthetic):
+    """Self-calibration lands on the true centres and near the true contact radii of the training presses."""
+    report = synthetic["report"]
+    assert all(p.used for p in report.presses)
+    for press, (cx, cy, a) in zip(report.presses, synthetic["circles"][:16], strict=False):
+        assert np.hypot(press.contact_x_px - cx, press.contact_y_px - cy) < 1.0
+        assert abs(press.contact_radius_px - a) < 0.12 * a
+    assert report.gradient_rmse < 0.05
+
+
+def test_held_out_presses_give_the_ball_radius(synthetic):
+    """Held-out presses reconstruct to spheres of the ball's radius (median within 3%, each within 8%)."""
+    radii = []
+    for k in range(16, 22):
+        result, recon = evaluate_press(synthetic["images"][k], synthetic["calibration"], BALL_RADIUS_M, str(k), 0)
+        assert result.found and recon.contact
+        cx, cy, a = synthetic["circles"][k]
+        assert np.hypot(result.centre_x_px - cx, result.centre_y_px - cy) < 1.0
+        radii.append(result.fitted_radius_mm)
+        assert result.profile_rmse_mm < 0.03  # shape error of the height profile inside the contact
+    errors = np.array(radii) / (BALL_RADIUS_M * 1e3) - 1
+    assert abs(np.median(errors)) < 0.03
+    assert np.abs(errors).max() < 0.08
+
+
+def test_reconstruction_fields_and_frame(synthetic):
+    """Shapes, dtypes, z <= 0, and the points are the masked pixels in the SPEC sensor frame."""
+    recon = reconstruct(synthetic["images"][17], synthetic["calibration"])
+    assert recon.contact and recon.reason == ""
+    assert recon.height_map_m.shape == (SPEC.height_px, SPEC.width_px)
+    assert recon.mask.dtype == bool and recon.mask.shape == recon.height_map_m.shape
+    assert recon.points_sensor.dtype == np.float64 and recon.points_sensor.shape[1] == 3
+    assert (recon.points_sensor[:, 2] <= 0).all() and (recon.height_map_m <= 0).all()
+    expected = SPEC.height_map_to_points(recon.height_map_m, recon.mask)
+    np.testing.assert_array_equal(recon.points_sensor, expected)
+    # The contact sits where the press is: the deepest point's pixel is within 2 px of the true centre.
+    cx, cy, a = synthetic["circles"][17]
+    row, col = np.unravel_index(np.argmin(recon.height_map_m), recon.height_map_m.shape)
+    assert np.hypot(col - cx, row - cy) < 2.0
+    # The mask is the contact disc (Hertz: the edge is at half the depth).
+    disc = np.hypot(*np.meshgrid(np.arange(SPEC.width_px) - cx, np.arange(SPEC.height_px) - cy)) < a
+    assert (recon.mask & disc).sum() / (recon.mask | disc).sum() > 0.75
+
+
+def test_fast_gradients_match_the_polynomial_reference(synthetic):
+    """Table + per-pixel maps (fast) agree with the fitted polynomial (slow) up to the table's quantisation."""
+    calibration = synthetic["calibration"]
+    change = model_colour_change(synthetic["images"][18], calibration.background_i16, calibration.smooth)
+    fast = calibration.gradient_model.predict(change)
+    slow = calibration.gradient_model.predict_reference(change)
+    for got, ref in zip(fast, slow, strict=True):
+        touched = np.abs(change).max(axis=2) > 3
+        assert np.abs(got - ref)[touched].max() < 0.06
+        assert np.abs(got - ref)[touched].mean() < 0.01
+    # A window of the frame gives the same gradients as the full frame there.
+    window = calibration.gradient_model.predict(change[40:120, 100:260], origin=(40, 100))
+    np.testing.assert_allclose(window[0], fast[0][40:120, 100:260], atol=1e-6)
+
+
+def test_no_contact_is_an_explicit_empty_result(synthetic, rng):
+    calibration = synthetic["calibration"]
+    frame = np.clip(synthetic["background"] + rng.normal(0, 2.0, synthetic["background"].shape), 0, 255)
+    recon = reconstruct(frame.astype(np.uint8), calibration)
+    assert not recon.contact and recon.reason.startswith("no contact")
+    assert recon.points_sensor.shape == (0, 3) and not recon.mask.any()
+
+
+@pytest.mark.parametrize("kind", ["cap", "hertz"])
+def test_optical_round_trip(synthetic, rng, kind):
+    """render_image then reconstruct returns the height map inside the contact, with sensor noise.
+
+    A cap (gel flat outside the contact): RMS error < 0.06 mm at depths of 0.2-0.5 mm. A Hertz press: shape
+    error (offset removed) < 0.03 mm; its depth is underestimated by up to 16% because the far, faint
+    part of the gel's rim lies outside the touched box, where the gel is taken as flat (docs/sensor.md).
+    """
+    calibration = synthetic["calibration"]
+    for cx, cy, a in [(160.0, 120.0, 20.0), (90.0, 80.0, 26.0), (230.0, 150.0, 24.0)]:
+        height = press_height_map(cx, cy, a, BALL_RADIUS_M)
+        disc = np.hypot(*np.meshgrid(np.arange(SPEC.width_px) - cx, np.arange(SPEC.height_px) - cy)) < a
+        if kind == "cap":  # a sphere pressed into a gel that stays flat outside the contact
+            height = np.minimum(np.where(disc, height - height[~disc].min(), 0.0), 0.0)
+        image = render_image(height, calibration, rng)
+        recon = reconstruct(image, calibration)
+        error = (recon.height_map_m - height)[disc]
+        if kind == "cap":
+            assert np.sqrt(np.mean(error**2)) < 6e-5, (cx, cy, a)
+        else:
+            assert np.sqrt(np.mean((error - error.mean()) ** 2)) < 3e-5, (cx, cy, a)
+            assert 0 <= error.mean() < 0.16 * -height.min(), (cx, cy, a)
+        assert recon.contact
+
+
+def test_render_image_is_the_background_where_the_gel_is_flat(synthetic):
+    calibration = synthetic["calibration"]
+    flat = render_image(np.zeros((SPEC.height_px, SPEC.width_px)), calibration, blur_px=0.0)
+    np.testing.assert_array_equal(flat, calibration.background)
+    noisy = render_image(np.zeros((SPEC.height_px, SPEC.width_px)), calibration, np.random.default_rng(0))
+    assert 0.5 < np.std(noisy.astype(float) - calibration.background) < 5.0
+
+
+def test_render_matches_the_synthetic_optics(synthetic):
+    """The fitted inverse model reproduces the synthetic sensor's image of a new press (RMS < 4 levels)."""
+    cx, cy, a = synthetic["circles"][20]
+    height = press_height_map(cx, cy, a, BALL_RADIUS_M)
+    truth = synthetic_sensor_image(height, synthetic["background"])
+    rendered = render_image(height, synthetic["calibration"])
+    near = np.hypot(*np.meshgrid(np.arange(SPEC.width_px) - cx, np.arange(SPEC.height_px) - cy)) < 1.5 * a
+    assert np.sqrt(np.mean((rendered.astype(float) - truth)[near] ** 2)) < 4.0
+
+
+# ------------------------------------------------------------------------------------------ the file
+
+
+def test_calibration_file_round_trip(synthetic, tmp_path):
+    calibration = synthetic["calibration"]
+    path = calibration.save(tmp_path / "cal.npz")
+    loaded = load_calibration(path, SPEC)
+    import json
+
+    meta = json.loads(np.load(path)["meta_json"].tobytes())
+    assert meta["format"] == "yoto-sensor-calibration" and meta["version"] == 1
+    assert meta["sensor"] == {"name": "gelsight_mini", "width_px": 320, "height_px": 240, "mm_per_px": 0.0634}
+    assert meta["background_sha256"] == calibration.background_sha256
+    assert meta["model"]["type"] == "polynomial-lut"
+    image = synthetic["images"][19]
+    a, b = reconstruct(image, calibration), reconstruct(image, loaded)
+    np.testing.assert_array_equal(a.points_sensor, b.points_sensor)
+    np.testing.assert_array_equal(render_image(a.height_map_m, calibration), render_image(a.height_map_m, loaded))
+
+
+def test_calibration_for_another_sensor_is_refused(synthetic, tmp_path):
+    other = GelSightSpec(name="gelsight_r15", width_px=320, height_px=240, mm_per_px=0.0634)
+    path = replace_spec(synthetic["calibration"], other).save(tmp_path / "r15.npz")
+    with pytest.raises(InputError, match="calibration is for sensor 'gelsight_r15'") as info:
+        load_calibration(path, SPEC)
+    assert info.value.path == path
+    assert load_calibration(path).spec == other  # without an expected sensor it loads
+
+
+def test_frame_of_another_size_is_refused(synthetic):
+    big = np.zeros((480, 640, 3), np.uint8)
+    with pytest.raises(InputError, match="640x480"):
+        reconstruct(big, synthetic["calibration"], source="frame.png")
+    with pytest.raises(InputError, match="uint8"):
+        reconstruct(synthetic["images"][0].astype(np.float32), synthetic["calibration"])
+
+
+def test_saturated_frame_is_refused(synthetic):
+    frame = synthetic["images"][16].copy()
+    frame[:60] = 255
+    with pytest.raises(InputError, match="saturated"):
+        reconstruct(frame, synthetic["calibration"])
+
+
+def test_frame_from_another_sensor_is_refused(synthetic):
+    """A frame whose untouched gel does not look like the calibration's background (another sensor)."""
+    foreign = np.roll(synthetic["images"][16], 1, axis=2)  # channels swapped: other LEDs
+    with pytest.raises(InputError, match="differs from the calibration's background"):
+        reconstruct(foreign, synthetic["calibration"])
+
+
+def test_background_from_another_sensor_is_refused(synthetic):
+    foreign = np.roll(synthetic["background"], 1, axis=2)
+    with pytest.raises(InputError, match="background does not match the press images"):
+        calibrate(foreign, synthetic["images"][:6], 2 * BALL_RADIUS_M, background_path="bg.png")
+    with pytest.raises(InputError, match="from another sensor"):
+        with_background(synthetic["calibration"], foreign, "bg.png")
+    # A fresh background of the same sensor (a little brighter) is accepted and used.
+    fresh = np.clip(synthetic["background"].astype(int) + 2, 0, 255).astype(np.uint8)
+    assert with_background(synthetic["calibration"], fresh).background_sha256 != synthetic[
+        "calibration"].background_sha256
+
+
+def test_not_a_calibration_file(tmp_path):
+    from yoto.io import save_npz_atomic
+
+    other = save_npz_atomic(tmp_path / "model.npz", {"x": np.zeros(3)}, {"format": "yoto-object-model"})
+    with pytest.raises(InputError, match="not a sensor calibration file"):
+        load_calibration(other)
+    garbage = tmp_path / "garbage.npz"
+    garbage.write_bytes(b"not an npz")
+    with pytest.raises(InputError, match="not a readable sensor calibration file"):
+        load_calibration(garbage)
+    with pytest.raises(InputError, match="not found"):
+        load_calibration(tmp_path / "missing.npz")
+
+
+def test_render_refuses_bad_height_maps(synthetic):
+    calibration = synthetic["calibration"]
+    with pytest.raises(InputError, match="shape"):
+        render_image(np.zeros((10, 10)), calibration)
+    with pytest.raises(InputError, match="millimetres"):
+        render_image(np.full((SPEC.height_px, SPEC.width_px), -0.8), calibration)  # mm, not m
+
+
+def test_presses_without_contact_are_left_out_with_a_reason(synthetic):
+    images = synthetic["images"][:5] + [synthetic["background"].copy()]
+    _, report = calibrate(synthetic["background"], images, 2 * BALL_RADIUS_M)
+    assert [p.used for p in report.presses] == [True] * 5 + [False]
+    assert "no contact" in report.presses[-1].reason
+    with pytest.raises(InputError, match="usable presses"):
+        calibrate(synthetic["background"], [synthetic["background"]] * 5, 2 * BALL_RADIUS_M)
+
+
+def test_find_press_circle_uses_the_model(synthetic):
+    cx, cy, a = synthetic["circles"][21]
+    x, y, r = find_press_circle(synthetic["images"][21], synthetic["calibration"], BALL_RADIUS_PX)
+    assert np.hypot(x - cx, y - cy) < 1.0 and abs(r - a) < 0.12 * a
+
+
+def replace_spec(calibration: SensorCalibration, spec: GelSightSpec) -> SensorCalibration:
+    return replace(calibration, spec=spec)
