@@ -143,7 +143,7 @@ def test_optical_round_trip(synthetic, rng, kind):
     """render_image then reconstruct returns the height map inside the contact, with sensor noise.
 
     A cap (gel flat outside the contact): RMS error < 0.06 mm at depths of 0.2-0.5 mm. A Hertz press: shape
-    error (offset removed) < 0.03 mm; its depth is underestimated by up to 16% because the far, faint
+    error (offset removed) < 0.03 mm; its depth is underestimated by up to 0.15 mm because the far, faint
     part of the gel's rim lies outside the touched box, where the gel is taken as flat (docs/sensor.md).
     """
     calibration = synthetic["calibration"]
@@ -159,7 +159,7 @@ def test_optical_round_trip(synthetic, rng, kind):
             assert np.sqrt(np.mean(error**2)) < 6e-5, (cx, cy, a)
         else:
             assert np.sqrt(np.mean((error - error.mean()) ** 2)) < 3e-5, (cx, cy, a)
-            assert 0 <= error.mean() < 0.16 * -height.min(), (cx, cy, a)
+            assert 0 <= error.mean() < 1.5e-4, (cx, cy, a)
         assert recon.contact
 
 
