@@ -1,4 +1,4 @@
-"""Sensor pieces that need no calibration: circle finding, ball ground truth, Poisson integration, sphere fit."""
+"""Sensor pieces that need no calibration: circles, ball ground truth, Poisson integration, sphere fit."""
 
 from __future__ import annotations
 

@@ -30,7 +30,9 @@ BALL_RADIUS_PX = BALL_RADIUS_M / SPEC.pixel_size_m
 
 def synthetic_background() -> np.ndarray:
     """A smooth, uneven illumination like the Mini's (teal corners, a brighter middle)."""
-    y, x = np.mgrid[: SPEC.height_px, : SPEC.width_px] / np.array([SPEC.height_px, SPEC.width_px])[:, None, None]
+    y, x = (
+        np.mgrid[: SPEC.height_px, : SPEC.width_px] / np.array([SPEC.height_px, SPEC.width_px])[:, None, None]
+    )
     glow = np.exp(-((x - 0.5) ** 2 + (y - 0.5) ** 2) / 0.08)
     background = np.stack([70 + 50 * glow, 90 + 10 * glow, 100 + 20 * glow - 10 * x], axis=2)
     return np.clip(background, 0, 255).astype(np.uint8)
@@ -41,8 +43,14 @@ def synthetic_sensor_image(height_m: np.ndarray, background: np.ndarray, rng=Non
     gx, gy = height_gradients(height_m, SPEC.pixel_size_m)
     x = np.linspace(-1, 1, SPEC.width_px)[None, :]
     gain = 1.0 + 0.25 * x
-    change = np.stack([110 * gain * gx + 40 * gx * gx, 100 * gy - 20 * gy * gy,
-                       -(70 * gx + 60 * gy) * (1.1 - 0.2 * x) + 30 * (gx * gx + gy * gy)], axis=2)
+    change = np.stack(
+        [
+            110 * gain * gx + 40 * gx * gx,
+            100 * gy - 20 * gy * gy,
+            -(70 * gx + 60 * gy) * (1.1 - 0.2 * x) + 30 * (gx * gx + gy * gy),
+        ],
+        axis=2,
+    )
     change = ndimage.gaussian_filter(change, (1.0, 1.0, 0))
     image = background + change
     if rng is not None:
@@ -54,7 +62,9 @@ def _press_circles(rng, count):
     circles = []
     for _ in range(count):
         a = rng.uniform(22, 30)
-        circles.append((rng.uniform(a + 4, SPEC.width_px - a - 4), rng.uniform(a + 4, SPEC.height_px - a - 4), a))
+        circles.append(
+            (rng.uniform(a + 4, SPEC.width_px - a - 4), rng.uniform(a + 4, SPEC.height_px - a - 4), a)
+        )
     return circles
 
 
@@ -64,11 +74,18 @@ def synthetic():
     rng = np.random.default_rng(7)
     background = synthetic_background()
     circles = _press_circles(rng, 22)
-    images = [synthetic_sensor_image(press_height_map(cx, cy, a, BALL_RADIUS_M), background, rng)
-              for cx, cy, a in circles]
+    images = [
+        synthetic_sensor_image(press_height_map(cx, cy, a, BALL_RADIUS_M), background, rng)
+        for cx, cy, a in circles
+    ]
     calibration, report = calibrate(background, images[:16], 2 * BALL_RADIUS_M)
-    return {"calibration": calibration, "report": report, "background": background, "circles": circles,
-            "images": images}
+    return {
+        "calibration": calibration,
+        "report": report,
+        "background": background,
+        "circles": circles,
+        "images": images,
+    }
 
 
 def test_calibration_recovers_the_contact_circles(synthetic):
@@ -85,7 +102,9 @@ def test_held_out_presses_give_the_ball_radius(synthetic):
     """Held-out presses reconstruct to spheres of the ball's radius (median within 3%, each within 8%)."""
     radii = []
     for k in range(16, 22):
-        result, recon = evaluate_press(synthetic["images"][k], synthetic["calibration"], BALL_RADIUS_M, str(k), 0)
+        result, recon = evaluate_press(
+            synthetic["images"][k], synthetic["calibration"], BALL_RADIUS_M, str(k), 0
+        )
         assert result.found and recon.contact
         cx, cy, a = synthetic["circles"][k]
         assert np.hypot(result.centre_x_px - cx, result.centre_y_px - cy) < 1.0
@@ -116,7 +135,7 @@ def test_reconstruction_fields_and_frame(synthetic):
 
 
 def test_fast_gradients_match_the_polynomial_reference(synthetic):
-    """Table + per-pixel maps (fast) agree with the fitted polynomial (slow) up to the table's quantisation."""
+    """Table + per-pixel maps (fast) match the fitted polynomial (slow) up to the table's quantisation."""
     calibration = synthetic["calibration"]
     change = model_colour_change(synthetic["images"][18], calibration.background_i16, calibration.smooth)
     fast = calibration.gradient_model.predict(change)
@@ -198,7 +217,9 @@ def test_calibration_file_round_trip(synthetic, tmp_path):
     image = synthetic["images"][19]
     a, b = reconstruct(image, calibration), reconstruct(image, loaded)
     np.testing.assert_array_equal(a.points_sensor, b.points_sensor)
-    np.testing.assert_array_equal(render_image(a.height_map_m, calibration), render_image(a.height_map_m, loaded))
+    np.testing.assert_array_equal(
+        render_image(a.height_map_m, calibration), render_image(a.height_map_m, loaded)
+    )
 
 
 def test_calibration_for_another_sensor_is_refused(synthetic, tmp_path):
@@ -240,8 +261,10 @@ def test_background_from_another_sensor_is_refused(synthetic):
         with_background(synthetic["calibration"], foreign, "bg.png")
     # A fresh background of the same sensor (a little brighter) is accepted and used.
     fresh = np.clip(synthetic["background"].astype(int) + 2, 0, 255).astype(np.uint8)
-    assert with_background(synthetic["calibration"], fresh).background_sha256 != synthetic[
-        "calibration"].background_sha256
+    assert (
+        with_background(synthetic["calibration"], fresh).background_sha256
+        != synthetic["calibration"].background_sha256
+    )
 
 
 def test_not_a_calibration_file(tmp_path):
@@ -283,3 +306,72 @@ def test_find_press_circle_uses_the_model(synthetic):
 
 def replace_spec(calibration: SensorCalibration, spec: GelSightSpec) -> SensorCalibration:
     return replace(calibration, spec=spec)
+
+
+def test_cli_reconstruct_render_bench(synthetic, tmp_path, capsys):
+    """`yoto sensor reconstruct|render|bench` on a saved calibration; an empty cloud for no contact."""
+    from PIL import Image
+
+    from yoto.cli import main
+    from yoto.io import read_ply_points
+
+    calibration = synthetic["calibration"].save(tmp_path / "cal.npz")
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    Image.fromarray(synthetic["images"][16]).save(frames / "press.png")
+    Image.fromarray(synthetic["background"]).save(frames / "empty.png")
+    assert (
+        main(
+            [
+                "sensor",
+                "reconstruct",
+                str(frames / "press.png"),
+                "--calibration",
+                str(calibration),
+                "--out",
+                str(tmp_path / "press.ply"),
+            ]
+        )
+        == 0
+    )
+    points, _ = read_ply_points(tmp_path / "press.ply")
+    expected = reconstruct(synthetic["images"][16], synthetic["calibration"]).points_sensor
+    np.testing.assert_allclose(points, expected, atol=1e-9)  # float32 in the file
+    assert (
+        main(
+            [
+                "sensor",
+                "reconstruct",
+                str(frames),
+                "--calibration",
+                str(calibration),
+                "--out",
+                str(tmp_path / "out"),
+            ]
+        )
+        == 0
+    )
+    assert len(read_ply_points(tmp_path / "out" / "empty.ply")[0]) == 0
+    assert (
+        main(["sensor", "render", "--calibration", str(calibration), "--out", str(tmp_path / "r.png")]) == 0
+    )
+    assert np.asarray(Image.open(tmp_path / "r.png")).shape == (SPEC.height_px, SPEC.width_px, 3)
+    assert main(["sensor", "bench", "--calibration", str(calibration), "--repeats", "20"]) == 0
+    assert "image -> point cloud" in capsys.readouterr().out
+    big = tmp_path / "big.png"
+    Image.fromarray(np.zeros((480, 640, 3), np.uint8)).save(big)
+    assert (
+        main(
+            [
+                "sensor",
+                "reconstruct",
+                str(big),
+                "--calibration",
+                str(calibration),
+                "--out",
+                str(tmp_path / "x.ply"),
+            ]
+        )
+        == 2
+    )
+    assert "640x480" in capsys.readouterr().err

@@ -97,10 +97,10 @@ def run_benchmark(
     # Per step, on precomputed inputs of the previous step.
     blocks = [check_frame(f, calibration) for f in frames]
     boxes = [touched_box(b, (spec.height_px, spec.width_px)) for b in blocks]
-    gradients = [box_gradients(f, calibration, box) for f, box in zip(frames, boxes)]
+    gradients = [box_gradients(f, calibration, box) for f, box in zip(frames, boxes, strict=True)]
     heights = [
         integrate_box(gx, gy, box, b, spec.pixel_size_m)
-        for (gx, gy, _), box, b in zip(gradients, boxes, blocks)
+        for (gx, gy, _), box, b in zip(gradients, boxes, blocks, strict=True)
     ]
     masks = [h <= 0.5 * h.min() for h in heights]
     index = {id(f): i for i, f in enumerate(frames)}

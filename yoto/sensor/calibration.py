@@ -312,7 +312,9 @@ class SensorCalibration:
 
 
 def with_background(
-    calibration: SensorCalibration, background: np.ndarray, path: str | Path | None = None,
+    calibration: SensorCalibration,
+    background: np.ndarray,
+    path: str | Path | None = None,
     max_change: float = 10.0,
 ) -> SensorCalibration:
     """The calibration with a fresh background image of the same sensor (lighting drifts over a day).
@@ -330,9 +332,17 @@ def with_background(
             path,
         )
     meta = {**calibration.meta, "background_replaced_from": str(path) if path else "array"}
-    return SensorCalibration(calibration.spec, np.ascontiguousarray(background), calibration.gradient_model,
-                             calibration.image_model, calibration.mask, calibration.smooth, calibration.noise_std,
-                             calibration.render_blur_px, meta)
+    return SensorCalibration(
+        calibration.spec,
+        np.ascontiguousarray(background),
+        calibration.gradient_model,
+        calibration.image_model,
+        calibration.mask,
+        calibration.smooth,
+        calibration.noise_std,
+        calibration.render_blur_px,
+        meta,
+    )
 
 
 def background_hash(background: np.ndarray) -> str:
@@ -512,7 +522,8 @@ def calibrate(
         usable.append(i)
     if len(mismatched) > len(presses) / 2:
         raise InputError(
-            f"the background does not match the press images: {len(mismatched)}/{len(presses)} presses differ "
+            f"the background does not match the press images: {len(mismatched)}/{len(presses)} presses "
+            "differ "
             f"from it almost everywhere (median change {np.median(mismatched):.0f} levels, limit "
             f"{config.max_background_change:.0f}); use a background taken with the same sensor and lighting",
             background_path,

@@ -1,4 +1,4 @@
-"""`yoto sensor ...`: calibrate a GelSight from ball presses, reconstruct point clouds, validate, benchmark."""
+"""`yoto sensor ...`: calibrate a GelSight from ball presses, reconstruct point clouds, validate, time."""
 
 from __future__ import annotations
 
@@ -20,7 +20,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     calibrate = commands.add_parser("calibrate", help="calibrate from a background image and ball presses")
     _add_press_arguments(calibrate)
     calibrate.add_argument("--out", help="calibration file to write (default: WORKSPACE/sensors/SENSOR.npz)")
-    calibrate.add_argument("--workspace", help="workspace folder (default: $YOTO_WORKSPACE or ./yoto_workspace)")
+    calibrate.add_argument(
+        "--workspace", help="workspace folder (default: $YOTO_WORKSPACE or ./yoto_workspace)"
+    )
     calibrate.add_argument("--overwrite", action="store_true", help="replace an existing calibration file")
     calibrate.set_defaults(run=_run_calibrate)
 
@@ -30,16 +32,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     recon.add_argument("input", help="an image, a folder of images, or a multi-frame file (GIF, TIFF, .npy)")
     recon.add_argument("--calibration", required=True, help="calibration file from `yoto sensor calibrate`")
     recon.add_argument("--out", required=True, help="PLY file for one image; a folder for several frames")
-    recon.add_argument("--background", help="a fresh no-contact image of the same sensor (default: the "
-                       "calibration's)")
+    recon.add_argument(
+        "--background", help="a fresh no-contact image of the same sensor (default: the calibration's)"
+    )
     recon.add_argument("--height-maps", action="store_true", help="also write each height map (.npy, metres)")
     recon.set_defaults(run=_run_reconstruct)
 
     validate = commands.add_parser("validate", help="k-fold validation on ball presses (sphere fits)")
     _add_press_arguments(validate)
     validate.add_argument("--folds", type=int, default=4, help="number of folds (default 4)")
-    validate.add_argument("--figure", default="docs/figures/sensor_validation.png", help="figure to write "
-                          "('' for none)")
+    validate.add_argument(
+        "--figure", default="docs/figures/sensor_validation.png", help="figure to write ('' for none)"
+    )
     validate.add_argument("--table", help="also write the Markdown table here")
     validate.set_defaults(run=_run_validate)
 
@@ -55,15 +59,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     render.add_argument("--out", required=True, help="PNG to write")
     render.add_argument("--ball-diameter-mm", type=float, default=6.31, help="ball diameter (default 6.31)")
     render.add_argument("--contact-radius-mm", type=float, default=1.6, help="contact radius (default 1.6)")
-    render.add_argument("--centre-px", type=float, nargs=2, metavar=("X", "Y"), help="contact centre (pixels; "
-                        "default: the image centre)")
+    render.add_argument(
+        "--centre-px",
+        type=float,
+        nargs=2,
+        metavar=("X", "Y"),
+        help="contact centre (pixels; default: the image centre)",
+    )
     render.add_argument("--seed", type=int, help="add sensor noise drawn with this seed")
     render.set_defaults(run=_run_render)
 
 
 def _add_press_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--background", required=True, help="image of the sensor with nothing touching it")
-    parser.add_argument("--presses", required=True, help="folder of ball-press images (or sub-folders of them)")
+    parser.add_argument(
+        "--presses", required=True, help="folder of ball-press images (or sub-folders of them)"
+    )
     parser.add_argument("--ball-diameter-mm", type=float, required=True, help="diameter of the ball (mm)")
 
 
@@ -86,12 +97,15 @@ def _run_calibrate(args: argparse.Namespace) -> int:
     if out.exists() and not args.overwrite:
         raise InputError("calibration file exists; pass --overwrite to replace it", out)
     background, presses, names = _load_presses(args)
-    calibration, report = calibrate(background, presses, args.ball_diameter_mm * 1e-3, names=names,
-                                    background_path=args.background)
+    calibration, report = calibrate(
+        background, presses, args.ball_diameter_mm * 1e-3, names=names, background_path=args.background
+    )
     for press in report.presses:
         if press.used:
-            print(f"  {press.name}: contact circle ({press.contact_x_px:.1f}, {press.contact_y_px:.1f}) "
-                  f"r={press.contact_radius_px:.1f} px, gradient RMSE {press.gradient_rmse:.3f}")
+            print(
+                f"  {press.name}: contact circle ({press.contact_x_px:.1f}, {press.contact_y_px:.1f}) "
+                f"r={press.contact_radius_px:.1f} px, gradient RMSE {press.gradient_rmse:.3f}"
+            )
         else:
             print(f"  {press.name}: not used: {press.reason}")
     calibration.save(out)
@@ -116,7 +130,9 @@ def _read_frames(path: Path):
     if suffix == ".npy":
         stack = np.load(path, allow_pickle=False)
         if stack.ndim != 4:
-            raise InputError(f"a frame stack must be (frames, rows, cols, 3) uint8, got shape {stack.shape}", path)
+            raise InputError(
+                f"a frame stack must be (frames, rows, cols, 3) uint8, got shape {stack.shape}", path
+            )
         for k, frame in enumerate(stack):
             yield f"frame_{k:05d}", frame
         return
@@ -141,18 +157,19 @@ def _read_frames(path: Path):
         except Exception as exc:  # imageio raises many types when no video plugin is installed
             raise InputError(
                 f"cannot decode this video ({type(exc).__name__}: {exc}); install a video plugin "
-                "(`pip install imageio[pyav]`) or extract the frames to PNG files", path
+                "(`pip install imageio[pyav]`) or extract the frames to PNG files",
+                path,
             ) from exc
         return
     if suffix in IMAGE_SUFFIXES:
         yield path.stem, load_image(path)
         return
-    raise InputError(f"unknown input type '{suffix}' (expected an image, a folder, GIF/TIFF, .npy or a video)",
-                     path)
+    raise InputError(
+        f"unknown input type '{suffix}' (expected an image, a folder, GIF/TIFF, .npy or a video)", path
+    )
 
 
 def _run_reconstruct(args: argparse.Namespace) -> int:
-    import numpy as np
 
     from yoto.io import save_npz_atomic, write_ply_points
     from yoto.sensor.calibration import load_calibration, with_background
@@ -161,7 +178,9 @@ def _run_reconstruct(args: argparse.Namespace) -> int:
 
     calibration = load_calibration(args.calibration)
     if args.background:
-        calibration = with_background(calibration, load_image(args.background, calibration.spec), args.background)
+        calibration = with_background(
+            calibration, load_image(args.background, calibration.spec), args.background
+        )
     source = Path(args.input)
     frames = _read_frames(source)
     single = source.is_file() and source.suffix.lower() not in VIDEO_SUFFIXES
@@ -173,15 +192,23 @@ def _run_reconstruct(args: argparse.Namespace) -> int:
         target = out if single else out / f"{name}.ply"
         write_ply_points(target, result.points_sensor)
         if args.height_maps:
-            save_npz_atomic(target.with_suffix(".height.npz"), {"height_map_m": result.height_map_m,
-                                                                "mask": result.mask}, {"source": str(label)})
+            save_npz_atomic(
+                target.with_suffix(".height.npz"),
+                {"height_map_m": result.height_map_m, "mask": result.mask},
+                {"source": str(label)},
+            )
         written += 1
         if not result.contact:
             empty += 1
             log.info("%s: %s (wrote an empty cloud)", label, result.reason)
         else:
-            log.info("%s: %d points, depth %.3f mm%s", label, len(result.points_sensor),
-                     result.max_depth_m * 1e3, ", touches the frame's edge" if result.touches_border else "")
+            log.info(
+                "%s: %d points, depth %.3f mm%s",
+                label,
+                len(result.points_sensor),
+                result.max_depth_m * 1e3,
+                ", touches the frame's edge" if result.touches_border else "",
+            )
     print(f"wrote {written} point cloud(s) to {out} ({empty} without contact)")
     return 0 if written else 1
 
@@ -191,8 +218,14 @@ def _run_validate(args: argparse.Namespace) -> int:
     from yoto.sensor.validation import validate
 
     background, presses, names = _load_presses(args)
-    result = validate(background, presses, args.ball_diameter_mm * 1e-3, folds=args.folds, names=names,
-                      figure=args.figure or None)
+    result = validate(
+        background,
+        presses,
+        args.ball_diameter_mm * 1e-3,
+        folds=args.folds,
+        names=names,
+        figure=args.figure or None,
+    )
     table = result.table()
     print(table)
     if args.table:
@@ -233,7 +266,9 @@ def _run_render(args: argparse.Namespace) -> int:
     calibration = load_calibration(args.calibration)
     spec = calibration.spec
     cx, cy = args.centre_px if args.centre_px else ((spec.width_px - 1) / 2, (spec.height_px - 1) / 2)
-    height = press_height_map(cx, cy, args.contact_radius_mm / spec.mm_per_px, args.ball_diameter_mm * 5e-4, spec)
+    height = press_height_map(
+        cx, cy, args.contact_radius_mm / spec.mm_per_px, args.ball_diameter_mm * 5e-4, spec
+    )
     rng = None if args.seed is None else np.random.default_rng(args.seed)
     image = render_image(height, calibration, rng)
     import io

@@ -162,7 +162,7 @@ class GradientModel:
         return out[0], out[1]
 
     def predict_reference(self, diff: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The fitted polynomial evaluated directly (slow, no table): the reference the fast path must match."""
+        """The fitted polynomial evaluated directly (slow, no table): the reference of the fast path."""
         rows, cols = diff.shape[:2]
         x, y = normalised_xy(rows, cols)
         design = _mixed_design(
@@ -230,7 +230,7 @@ def bake_gradient_model(
 def _position_maps(
     coefficients: np.ndarray, image_shape: tuple[int, int], config: GradientModelConfig
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pixel bias b(x, y) (2, rows, cols) and gains M_j(x, y) (2, 3, rows, cols) for the raw colour change."""
+    """Per-pixel bias b(x, y) (2, rows, cols) and gains M_j(x, y) (2, 3, rows, cols) of the raw change."""
     n_colour = len(monomial_exponents(3, config.colour_degree))
     position_exps = monomial_exponents(2, config.position_degree)[1:]
     n_pos = len(position_exps)

@@ -59,7 +59,8 @@ def check_image(
     expected = (spec.height_px, spec.width_px, 3)
     if image.shape != expected:
         raise InputError(
-            f"{what} is {_shape_text(image.shape)} but the {spec.name} gives {spec.width_px}x{spec.height_px} RGB "
+            f"{what} is {_shape_text(image.shape)} but the {spec.name} gives "
+            f"{spec.width_px}x{spec.height_px} RGB "
             f"(shape {expected}); resize it or use a calibration for this sensor",
             path,
         )

@@ -200,7 +200,8 @@ def check_frame(
     if level > MAX_BACKGROUND_CHANGE:
         raise InputError(
             f"frame differs from the calibration's background almost everywhere (median change {level:.0f} "
-            f"levels, limit {MAX_BACKGROUND_CHANGE:.0f}): another sensor, or the lighting or a camera setting "
+            f"levels, limit {MAX_BACKGROUND_CHANGE:.0f}): another sensor, or the lighting or a camera "
+            "setting "
             "changed; recalibrate, or give a background taken with this sensor now",
             source,
         )

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -59,9 +59,10 @@ class PressValidation:
 
 @dataclass
 class ValidationResult:
-    presses: list[PressValidation]
+    presses: list[PressValidation]  # one per press, in input order
     ball_radius_mm: float
     folds: int
+    calibrations: list[SensorCalibration] = field(default_factory=list)  # per fold, calibrated without it
 
     def fitted(self) -> np.ndarray:
         return np.array(
@@ -97,7 +98,8 @@ class ValidationResult:
                 continue
             lines.append(
                 f"| {p.name} | {p.fold} | {p.centre_x_px:.1f}, {p.centre_y_px:.1f}, {p.radius_px:.1f} | "
-                f"{p.fitted_radius_mm:.3f} | {p.radius_error(self.ball_radius_mm):+.1%} | {p.profile_rmse_mm:.3f} | "
+                f"{p.fitted_radius_mm:.3f} | {p.radius_error(self.ball_radius_mm):+.1%} | "
+                f"{p.profile_rmse_mm:.3f} | "
                 f"{p.offset_mm:+.3f} | {p.depth_mm:.3f} | {p.mask_iou:.2f} |"
             )
         return "\n".join(lines) + "\n\n" + self.summary()
@@ -111,7 +113,8 @@ class ValidationResult:
             f"held-out presses: {len(found)}/{len(self.presses)} circles found; fitted sphere radius median "
             f"{self.median_radius_mm:.3f} mm vs {self.ball_radius_mm:.3f} mm ({self.median_error:+.1%}), "
             f"IQR {np.percentile(radii, 25):.3f}-{np.percentile(radii, 75):.3f} mm, median |error| "
-            f"{np.median(errors):.1%}; profile RMSE median {np.median([p.profile_rmse_mm for p in found]):.3f} mm; "
+            f"{np.median(errors):.1%}; profile RMSE median "
+            f"{np.median([p.profile_rmse_mm for p in found]):.3f} mm; "
             f"mask IoU median {np.median([p.mask_iou for p in found]):.2f}\nper fold: {per_fold}"
         )
 
@@ -120,7 +123,7 @@ def find_press_circle(
     image: np.ndarray,
     calibration: SensorCalibration,
     ball_radius_px: float,
-    circle_config: CircleConfig = CircleConfig(),
+    circle_config: CircleConfig | None = None,
     iterations: int = 2,
     fit_fraction: float = 0.9,
 ) -> tuple[float, float, float]:
@@ -129,6 +132,7 @@ def find_press_circle(
     Colour disc first, then the centre refined on the predicted gradients and the edge re-found where the
     predicted slope peaks (as in calibration). Raises NoCircleError when there is no press.
     """
+    circle_config = circle_config or CircleConfig()
     disc = find_contact_circle(image, calibration.background, circle_config)
     change = model_colour_change(image, calibration.background_i16, calibration.smooth)
     gx, gy = calibration.gradient_model.predict(change)
@@ -148,7 +152,7 @@ def find_press_circle(
 
 
 def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
-    """Least-squares sphere (centre, radius) through (N, 3) points: algebraic fit, then geometric refinement."""
+    """Least-squares sphere (centre, radius) through (N, 3) points: algebraic fit, then geometric."""
     points = np.asarray(points, dtype=np.float64)
     origin = points.mean(axis=0)
     p = points - origin
@@ -220,7 +224,7 @@ def validate(
     presses: Sequence[np.ndarray],
     ball_diameter_m: float,
     folds: int = 4,
-    config: CalibrationConfig = CalibrationConfig(),
+    config: CalibrationConfig | None = None,
     spec: GelSightSpec = GELSIGHT_MINI,
     names: Sequence[str] | None = None,
     figure: str | Path | None = None,
@@ -229,24 +233,29 @@ def validate(
 
     Press i is in fold i % folds. With `figure`, writes a PNG for the held-out press with the median error.
     """
+    config = config or CalibrationConfig()
     names = [str(i) for i in range(len(presses))] if names is None else list(names)
     if not 2 <= folds <= len(presses):
         raise ValueError(f"folds must be in [2, {len(presses)}], got {folds}")
     fold_of = np.arange(len(presses)) % folds
     results: list[PressValidation | None] = [None] * len(presses)
     kept: dict[int, tuple[np.ndarray, Reconstruction, SensorCalibration]] = {}
+    calibrations = []
     for fold in range(folds):
         train = [i for i in range(len(presses)) if fold_of[i] != fold]
         calibration, report = calibrate(
             background, [presses[i] for i in train], ball_diameter_m, config, spec, [names[i] for i in train]
         )
         log.info("fold %d: calibrated on %s", fold, report.summary())
+        calibrations.append(calibration)
         for i in np.nonzero(fold_of == fold)[0]:
             result, recon = evaluate_press(presses[i], calibration, ball_diameter_m / 2, names[i], fold)
             results[i] = result
             if recon is not None:
                 kept[i] = (presses[i], recon, calibration)
-    validation = ValidationResult([r for r in results if r is not None], ball_diameter_m / 2 * 1e3, folds)
+    validation = ValidationResult(
+        [r for r in results if r is not None], ball_diameter_m / 2 * 1e3, folds, calibrations
+    )
     if figure is not None and kept:
         errors = {i: abs(results[i].radius_error(validation.ball_radius_mm)) for i in kept}
         median = float(np.median(list(errors.values())))
