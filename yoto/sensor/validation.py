@@ -273,7 +273,8 @@ def write_validation_figure(
     ball_radius_m: float,
     spec: GelSightSpec = GELSIGHT_MINI,
 ) -> Path:
-    """Image with the found circle, contact mask, height map, and the height profile through the centre."""
+    """Full frame, then (zoomed on the press) image with the found circle, contact mask, height map, and the
+    height profile through the centre against the Hertz press and the fitted sphere."""
     import io
 
     import matplotlib
@@ -283,20 +284,33 @@ def write_validation_figure(
 
     from yoto.io import write_bytes_atomic
 
-    fig, axes = plt.subplots(1, 4, figsize=(13, 2.9))
+    fig, axes = plt.subplots(1, 5, figsize=(13, 3.3), gridspec_kw={"width_ratios": [1.33, 1, 1, 1.2, 1.7]})
     theta = np.linspace(0, 2 * np.pi, 200)
     circle_x = press.centre_x_px + press.radius_px * np.cos(theta)
     circle_y = press.centre_y_px + press.radius_px * np.sin(theta)
+    half = 2.2 * press.radius_px
+    window = (
+        press.centre_x_px - half,
+        press.centre_x_px + half,
+        press.centre_y_px + half,
+        press.centre_y_px - half,
+    )
     axes[0].imshow(image)
-    axes[0].plot(circle_x, circle_y, "w--", lw=1)
-    axes[0].set_title(f"held-out press {press.name} and found circle", fontsize=9)
-    axes[1].imshow(recon.mask, cmap="gray")
-    axes[1].plot(circle_x, circle_y, "r--", lw=1)
-    axes[1].set_title("contact mask", fontsize=9)
-    shown = axes[2].imshow(recon.height_map_m * 1e3, cmap="viridis")
-    fig.colorbar(shown, ax=axes[2], fraction=0.035, label="z (mm)")
-    axes[2].set_title("height map", fontsize=9)
-    for ax in axes[:3]:
+    axes[0].plot(circle_x, circle_y, "w--", lw=0.8)
+    axes[0].set_title(f"held-out press {press.name}", fontsize=9)
+    axes[1].imshow(image)
+    axes[1].plot(circle_x, circle_y, "w--", lw=1)
+    axes[1].set_title("found contact circle", fontsize=9)
+    axes[2].imshow(recon.mask, cmap="gray")
+    axes[2].plot(circle_x, circle_y, "r--", lw=1)
+    axes[2].set_title("contact mask vs circle", fontsize=9)
+    shown = axes[3].imshow(recon.height_map_m * 1e3, cmap="viridis")
+    fig.colorbar(shown, ax=axes[3], fraction=0.046, label="z (mm)")
+    axes[3].set_title("height map", fontsize=9)
+    for ax in axes[1:4]:
+        ax.set_xlim(window[0], window[1])
+        ax.set_ylim(window[2], window[3])
+    for ax in axes[:4]:
         ax.set_xticks([])
         ax.set_yticks([])
     row = int(round(press.centre_y_px))
@@ -306,8 +320,9 @@ def write_validation_figure(
     near = np.abs(x_mm - centre_x_mm) < 2.5 * press.radius_px * spec.mm_per_px
     inside = np.abs(x_mm - centre_x_mm) < press.radius_px * spec.mm_per_px
     hertz = press_height_map(press.centre_x_px, press.centre_y_px, press.radius_px, ball_radius_m, spec)
-    axes[3].plot(x_mm[near], recon.height_map_m[row, near] * 1e3, "C0", label="reconstructed")
-    axes[3].plot(
+    profile = axes[4]
+    profile.plot(x_mm[near], recon.height_map_m[row, near] * 1e3, "C0", lw=2, label="reconstructed")
+    profile.plot(
         x_mm[near],
         hertz[row, near] * 1e3,
         "k--",
@@ -319,11 +334,18 @@ def write_validation_figure(
     fitted = press.fitted_radius_mm
     y_mm = y_sensor[row, 0] * 1e3
     section = sz - np.sqrt(np.maximum(fitted**2 - (x_mm[inside] - sx) ** 2 - (y_mm - sy) ** 2, 0.0))
-    axes[3].plot(x_mm[inside], section, "C3:", lw=2, label=f"fitted sphere R={fitted:.3f} mm")
-    axes[3].set_xlabel("x through the centre (mm)")
-    axes[3].set_ylabel("z (mm)")
-    axes[3].legend(fontsize=7, loc="lower right")
-    axes[3].set_title("height profile", fontsize=9)
+    profile.plot(x_mm[inside], section, "C3:", lw=2.5, label=f"fitted sphere R={fitted:.3f} mm")
+    profile.axvspan(
+        centre_x_mm - press.radius_px * spec.mm_per_px,
+        centre_x_mm + press.radius_px * spec.mm_per_px,
+        color="0.9",
+        zorder=0,
+        label="found contact",
+    )
+    profile.set_xlabel("sensor x through the centre (mm)")
+    profile.set_ylabel("z (mm)")
+    profile.legend(fontsize=7, loc="lower right")
+    profile.set_title("height profile", fontsize=9)
     fig.tight_layout()
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=80)
