@@ -284,7 +284,15 @@ def write_validation_figure(
 
     from yoto.io import write_bytes_atomic
 
-    fig, axes = plt.subplots(1, 5, figsize=(13, 3.3), gridspec_kw={"width_ratios": [1.33, 1, 1, 1.2, 1.7]})
+    fig = plt.figure(figsize=(11, 6.6))
+    grid = fig.add_gridspec(2, 3, height_ratios=[1, 1.1])
+    axes = [
+        fig.add_subplot(grid[0, 0]),
+        fig.add_subplot(grid[0, 1]),
+        fig.add_subplot(grid[0, 2]),
+        fig.add_subplot(grid[1, 0]),
+        fig.add_subplot(grid[1, 1:]),
+    ]
     theta = np.linspace(0, 2 * np.pi, 200)
     circle_x = press.centre_x_px + press.radius_px * np.cos(theta)
     circle_y = press.centre_y_px + press.radius_px * np.sin(theta)
