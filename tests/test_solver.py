@@ -40,7 +40,9 @@ def test_random_poses_are_recovered_to_float_precision(rng):
         T_world_object = _random_pose(rng)
         left, right = _random_contacts(rng)
         solution = solve_pose(
-            left, right, _observe(T_world_object, left.p_object, left.n_object),
+            left,
+            right,
+            _observe(T_world_object, left.p_object, left.n_object),
             _observe(T_world_object, right.p_object, right.n_object),
         )
         assert np.abs(solution.T_world_object[:3, 3] - T_world_object[:3, 3]).max() < TOL["pose_exact_m"]
@@ -100,13 +102,17 @@ def test_coaxial_grasp_is_flagged_not_silent(rng):
     left = ContactEstimate(-0.02 * axis, -axis)
     right = ContactEstimate(0.02 * axis, axis)
     T = _random_pose(rng)
-    solution = solve_pose(left, right, _observe(T, left.p_object, left.n_object), _observe(T, right.p_object, right.n_object))
+    solution = solve_pose(
+        left, right, _observe(T, left.p_object, left.n_object), _observe(T, right.p_object, right.n_object)
+    )
     assert not solution.well_conditioned
     assert solution.conditioning < 1e-9
     assert "near-coaxial" in solution.warnings[0]
     # A generic grasp is well conditioned.
     left, right = _random_contacts(rng)
-    solution = solve_pose(left, right, _observe(T, left.p_object, left.n_object), _observe(T, right.p_object, right.n_object))
+    solution = solve_pose(
+        left, right, _observe(T, left.p_object, left.n_object), _observe(T, right.p_object, right.n_object)
+    )
     assert solution.well_conditioned and not solution.warnings
 
 

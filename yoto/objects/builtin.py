@@ -153,7 +153,9 @@ def builtin_mesh(name: str, voxel_size_m: float = 0.001) -> trimesh.Trimesh:
     # marching cubes reads nothing but the sign of voxels away from the zero level.
     stride = 4
     coarse = sdf(np.stack(np.meshgrid(*[a[::stride] for a in axes], indexing="ij"), axis=-1))
-    values = np.repeat(np.repeat(np.repeat(coarse, stride, 0), stride, 1), stride, 2)[: shape[0], : shape[1], : shape[2]]
+    values = np.repeat(np.repeat(np.repeat(coarse, stride, 0), stride, 1), stride, 2)[
+        : shape[0], : shape[1], : shape[2]
+    ]
     band = np.abs(values) < 1.5 * stride * voxel_size_m
     near = np.argwhere(band)
     values[band] = sdf(low_arr + voxel_size_m * near)

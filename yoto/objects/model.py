@@ -167,7 +167,11 @@ def sample_parent_cloud(mesh: trimesh.Trimesh, count: int, config: ObjectModelCo
     flip = u + v > 1.0
     u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
     triangles = mesh.triangles[faces]
-    points = triangles[:, 0] + u[:, None] * (triangles[:, 1] - triangles[:, 0]) + v[:, None] * (triangles[:, 2] - triangles[:, 0])
+    points = (
+        triangles[:, 0]
+        + u[:, None] * (triangles[:, 1] - triangles[:, 0])
+        + v[:, None] * (triangles[:, 2] - triangles[:, 0])
+    )
     normals = estimate_normals(points, config.normal_neighbours, orientation_hint=mesh.face_normals[faces])
     return points, normals
 
@@ -191,7 +195,9 @@ def canonical_frame(points_mesh: np.ndarray) -> np.ndarray:
     return make_transform(np.stack([e_x, e_y, e_z], axis=1), centroid)
 
 
-def build_blocks(points_object: np.ndarray, normals_object: np.ndarray, config: ObjectModelConfig) -> dict[str, np.ndarray]:
+def build_blocks(
+    points_object: np.ndarray, normals_object: np.ndarray, config: ObjectModelConfig
+) -> dict[str, np.ndarray]:
     """Partition the parent cloud on the canonical grid; drop sparse cells; per-block centre, normal, rotation."""
     grid_shape = np.asarray(config.grid_shape)
     low, high = points_object.min(axis=0), points_object.max(axis=0)
