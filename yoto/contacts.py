@@ -64,13 +64,15 @@ def validate_tactile_points(points: np.ndarray, source: str | Path | None) -> np
         raise InputError(f"tactile cloud has {int((~finite).sum())} points with NaN or inf coordinates", source)
     if len(points) < MIN_TACTILE_POINTS:
         raise InputError(
-            f"tactile cloud has only {len(points)} points; at least {MIN_TACTILE_POINTS} are needed to localize a contact",
+            f"tactile cloud has only {len(points)} points; at least {MIN_TACTILE_POINTS} are needed to localize "
+            "a contact",
             source,
         )
     extent = float(np.ptp(points, axis=0).max())
     if extent > 0.1:
         raise InputError(
-            f"tactile cloud spans {extent * 1000:.0f} mm, larger than any GelSight pad: is it in metres and in the sensor frame?",
+            f"tactile cloud spans {extent * 1000:.0f} mm, larger than any GelSight pad: is it in metres and in the "
+            "sensor frame?",
             source,
         )
     if extent < 1e-4:

@@ -65,8 +65,8 @@ class PoseSolution:
         notes = []
         if not self.well_conditioned:
             notes.append(
-                f"near-coaxial contacts (conditioning {self.conditioning:.3f} < {WELL_CONDITIONED}): the rotation about "
-                "the contact axis is poorly determined; touch again with less opposed sensors"
+                f"near-coaxial contacts (conditioning {self.conditioning:.3f} < {WELL_CONDITIONED}): the rotation "
+                "about the contact axis is poorly determined; touch again with less opposed sensors"
             )
         return notes
 
