@@ -17,6 +17,8 @@ from yoto.errors import YotoError
 # Order here is the order in `yoto --help`.
 STAGE_CLI_MODULES = [
     "yoto.objects.cli",
+    "yoto.patches.cli",
+    "yoto.pose.cli",
 ]
 
 

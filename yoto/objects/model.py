@@ -7,6 +7,7 @@ Everything stored per point or per block is in the object frame unless its name 
 
 from __future__ import annotations
 
+import hashlib
 import logging
 from dataclasses import asdict, dataclass, field
 from functools import cached_property
@@ -81,6 +82,19 @@ class ObjectModel:
         """The repaired mesh expressed in the object frame."""
         vertices = transform_points(self.T_object_mesh, self.mesh_vertices_mesh)
         return trimesh.Trimesh(vertices=vertices, faces=self.mesh_faces, process=False)
+
+    @cached_property
+    def point_spacing_m(self) -> float:
+        """Typical distance between neighbouring parent points: sqrt(surface area / point count)."""
+        return float(np.sqrt(self.meta["surface_area_m2"] / len(self.points_object)))
+
+    @cached_property
+    def fingerprint(self) -> str:
+        """Hash of the parent cloud and blocks: datasets and checkpoints record which model they belong to."""
+        digest = hashlib.sha256()
+        for array in (self.points_object, self.point_block, self.block_centres_object):
+            digest.update(np.ascontiguousarray(array).tobytes())
+        return digest.hexdigest()[:16]
 
     @cached_property
     def mesh_scale_m(self) -> float:
