@@ -19,6 +19,7 @@ STAGE_CLI_MODULES = [
     "yoto.objects.cli",
     "yoto.patches.cli",
     "yoto.pose.cli",
+    "yoto.evaluation.cli",
 ]
 
 

@@ -37,6 +37,7 @@ class PoseEstimate:
     T_world_object: np.ndarray  # (4, 4), YOTO's canonical object frame
     T_world_mesh: np.ndarray  # (4, 4), the mesh file's frame (what users and mocap know)
     contacts: dict[str, ContactEstimate]  # chosen candidate per side
+    candidates: dict[str, list[ContactEstimate]]  # every candidate per side, the localizer's order
     world: dict[str, WorldContact]
     solution: PoseSolution
     consistency: float  # in [0, 1]: how well the two contacts agree with the sensors' geometry
@@ -135,6 +136,7 @@ def estimate_pose(
         T_world_object=solution.T_world_object,
         T_world_mesh=solution.T_world_object @ model.T_object_mesh,
         contacts={"left": left, "right": right},
+        candidates=candidates,
         world=world,
         solution=solution,
         consistency=consistency,
