@@ -2,6 +2,7 @@
 
     python benchmarks/icp_timing.py                      # 8 patches per object, models at the default density
     python benchmarks/icp_timing.py --patches 20 --points 40000 --out bench_out/icp
+    python benchmarks/icp_timing.py --set estimation=generalized --set voxel_spacing_m=0.001
 
 Until the contact simulator lands, contacts are made here: a flat pad (GelSight Mini, 20.3 x 15.2 mm) is
 pressed 0.5-1.5 mm into the mesh along the inward normal at a random surface point, with a random spin; the
@@ -97,7 +98,7 @@ def git_commit() -> str:
 def run(args: argparse.Namespace) -> dict:
     import open3d
 
-    config = replace(IcpConfig(), seed=args.seed, **({"estimation": args.estimation} if args.estimation else {}))
+    config = replace(IcpConfig(), seed=args.seed, **config_overrides(args.set))
     localizer = IcpLocalizer(config)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -154,6 +155,21 @@ def run(args: argparse.Namespace) -> dict:
     }
 
 
+def config_overrides(assignments: list[str]) -> dict[str, object]:
+    """`--set key=value` pairs as IcpConfig fields, each value parsed as the field's default is typed."""
+    defaults = asdict(IcpConfig())
+    overrides: dict[str, object] = {}
+    for assignment in assignments:
+        key, _, value = assignment.partition("=")
+        if key not in defaults:
+            raise SystemExit(f"--set {assignment}: IcpConfig has no field {key!r} (fields: {', '.join(defaults)})")
+        default = defaults[key]
+        overrides[key] = (
+            value if isinstance(default, str) else (float(value) if default is None else type(default)(value))
+        )
+    return overrides
+
+
 def summary(values: list[float]) -> dict[str, float]:
     array = np.asarray(values, dtype=np.float64)
     return {
@@ -192,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--patches", type=int, default=8, help="timed contacts per object (plus one warm-up)")
     parser.add_argument("--points", type=int, default=None, help="parent cloud size (default: the model default)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--estimation", default=None, help="IcpConfig.estimation override")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override an IcpConfig field")
     parser.add_argument("--out", default="bench_out/icp", help="JSON output and object-model cache folder")
     args = parser.parse_args(argv)
     result = run(args)
