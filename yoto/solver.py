@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from yoto.contacts import TactileContact
 from yoto.errors import DegenerateGeometryError
@@ -80,14 +79,15 @@ def contact_in_sensor(points_sensor: np.ndarray) -> tuple[np.ndarray, np.ndarray
     locations are defined); it is read off the few points closest to the line, so curvature adds no bias.
     """
     centroid = points_sensor.mean(axis=0)
-    tree = cKDTree(points_sensor)
-    nearest = points_sensor[tree.query(centroid)[1]]
-    neighbours = tree.query_ball_point(nearest, LOCAL_FIT_RADIUS_M)
+    offsets = points_sensor - centroid
+    # Plain distances beat building a KD-tree for one query on a dense (~20k-point) tactile cloud.
+    nearest = points_sensor[np.argmin(np.einsum("ij,ij->i", offsets, offsets))]
+    squared = np.einsum("ij,ij->i", points_sensor - nearest, points_sensor - nearest)
+    neighbours = np.flatnonzero(squared <= LOCAL_FIT_RADIUS_M**2)
     if len(neighbours) < LOCAL_FIT_MIN_POINTS:
-        neighbours = tree.query(nearest, k=min(LOCAL_FIT_MIN_POINTS, len(points_sensor)))[1]
+        neighbours = np.argsort(squared)[:LOCAL_FIT_MIN_POINTS]
     _, _, eigenvectors = covariance_eigh(points_sensor[neighbours])
     normal = eigenvectors[:, 0] if eigenvectors[2, 0] <= 0 else -eigenvectors[:, 0]
-    offsets = points_sensor - centroid
     along = offsets @ normal
     off_line = np.linalg.norm(offsets - along[:, None] * normal, axis=1)
     closest_to_line = np.argpartition(off_line, min(LINE_POINTS, len(off_line) - 1))[:LINE_POINTS]
