@@ -24,6 +24,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 
 from yoto.errors import InputError, require_open3d
 
@@ -66,6 +67,7 @@ def degrade_mesh(mesh: trimesh.Trimesh, config: ScanConfig = ScanConfig(), rng: 
     smooth_std = config.noise_std_m * np.sqrt(1.0 - config.white_noise_fraction)
     white_std = config.noise_std_m * np.sqrt(config.white_noise_fraction)
     offsets = smooth_std * _smooth_field(points, config.noise_length_m, rng) + white_std * rng.normal(size=count)
+    offsets -= offsets.mean()  # waves as long as the object would otherwise add a net inflation: a scale error
     points = points + offsets[:, None] * normals
 
     # 3. Holes.
@@ -100,6 +102,11 @@ def degrade_mesh(mesh: trimesh.Trimesh, config: ScanConfig = ScanConfig(), rng: 
     scan.remove_unreferenced_vertices()
     if config.smoothing_iterations > 0:
         trimesh.smoothing.filter_taubin(scan, iterations=config.smoothing_iterations)
+    # Poisson meshing inflates or deflates a surface by a fraction of a cell; remove that mean offset so the
+    # scan's only size error is the configured one.
+    _, nearest = cKDTree(points).query(scan.vertices)
+    offset = float(np.mean(np.einsum("ij,ij->i", scan.vertices - points[nearest], normals[nearest])))
+    scan.vertices = scan.vertices - offset * scan.vertex_normals
 
     # 5. Metric scale error about the source's centroid.
     centre = np.asarray(mesh.center_mass if mesh.is_watertight else mesh.centroid, dtype=np.float64)
@@ -110,6 +117,7 @@ def degrade_mesh(mesh: trimesh.Trimesh, config: ScanConfig = ScanConfig(), rng: 
         "sampled_points": count,
         "hole_points_removed": removed,
         "poisson_depth": depth,
+        "poisson_offset_removed_m": offset,
     }
     return scan
 
