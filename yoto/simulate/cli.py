@@ -197,8 +197,9 @@ def _run_scan(args: argparse.Namespace) -> int:
 
 
 def press_figure(model, contact, path):
-    """Save a figure of one press: noise-free height map, contact mask with the tactile cloud, and where
-    the contact lies on the object. Returns the path."""
+    """Save a figure of one press: the noise-free gel height map, the reconstructed (noisy) tactile cloud with
+    the true contact outlined, and where the contact lies on the object. Returns the path."""
+    import io
     from pathlib import Path
 
     import matplotlib
@@ -209,36 +210,45 @@ def press_figure(model, contact, path):
 
     from yoto.geometry import transform_points
     from yoto.io import write_bytes_atomic
+    from yoto.sensor.spec import GELSIGHT_MINI
 
     press = contact.press
-    figure = plt.figure(figsize=(12, 3.6), dpi=80)
-    height = figure.add_subplot(1, 3, 1)
+    spec = GELSIGHT_MINI
+    figure = plt.figure(figsize=(13, 3.8), dpi=72)
+    grid = figure.add_gridspec(1, 3, width_ratios=[1, 1, 0.9])
+    height = figure.add_subplot(grid[0])
     image = height.imshow(press.height_map_m * 1e3, cmap="viridis")
-    height.set_title(f"gel height map (depth {press.depth_m * 1e3:.2f} mm)")
-    figure.colorbar(image, ax=height, label="z (mm)", shrink=0.8)
-    mask = figure.add_subplot(1, 3, 2)
-    mask.imshow(press.contact_mask, cmap="gray")
+    height.contour(press.contact_mask, levels=[0.5], colors="white", linewidths=0.8)
+    height.set_title(f"noise-free gel surface, depth {press.depth_m * 1e3:.2f} mm\nwhite: where the gel touches")
+    figure.colorbar(image, ax=height, label="z (mm)", shrink=0.85)
+
+    cloud_panel = figure.add_subplot(grid[1])
     points = contact.points_sensor
-    pixel = 0.0634e-3
-    mask.scatter(points[::25, 0] / pixel + 159.5, points[::25, 1] / pixel + 119.5, s=0.3, c="tab:red")
-    mask.set_title(f"contact mask ({press.contact_pixels} px); noisy cloud (red, 1 in 25)")
-    for axis in (height, mask):
+    columns = np.rint(points[:, 0] / spec.pixel_size_m + (spec.width_px - 1) / 2).astype(int)
+    rows = np.rint(points[:, 1] / spec.pixel_size_m + (spec.height_px - 1) / 2).astype(int)
+    noisy = np.full((spec.height_px, spec.width_px), np.nan)
+    noisy[rows, columns] = (points[:, 2] - press.height_map_m[rows, columns]) * 1e3
+    limit = float(np.nanmax(np.abs(noisy)))
+    image = cloud_panel.imshow(noisy, cmap="coolwarm", vmin=-limit, vmax=limit)
+    cloud_panel.contour(press.contact_mask, levels=[0.5], colors="black", linewidths=0.8)
+    cloud_panel.set_title(f"tactile cloud, {len(points)} points\nreconstruction error (black: contact)")
+    figure.colorbar(image, ax=cloud_panel, label="error (mm)", shrink=0.85)
+    for axis in (height, cloud_panel):
         axis.set_xlabel("column (sensor x)")
         axis.set_ylabel("row (sensor y)")
-    scene = figure.add_subplot(1, 3, 3, projection="3d")
-    cloud = model.points_object[:: max(1, len(model.points_object) // 6000)]
-    scene.scatter(cloud[:, 0], cloud[:, 1], cloud[:, 2], s=0.2, c="0.6")
-    patch = transform_points(press.T_object_sensor, press.contact_points_sensor())[::40]
-    scene.scatter(patch[:, 0], patch[:, 1], patch[:, 2], s=1, c="tab:red")
-    axis_end = press.T_object_sensor[:3, 3] - 0.03 * press.T_object_sensor[:3, 2]
-    scene.plot(*np.stack([press.T_object_sensor[:3, 3], axis_end], axis=1), c="tab:blue", lw=2)
-    scene.scatter(*press.p_object, s=30, c="k", marker="x")
+
+    scene = figure.add_subplot(grid[2], projection="3d")
+    cloud = model.points_object[:: max(1, len(model.points_object) // 8000)]
+    scene.scatter(*cloud.T, s=0.3, c="0.65", depthshade=False)
+    patch = transform_points(press.T_object_sensor, press.contact_points_sensor())[::30]
+    scene.scatter(*patch.T, s=1.5, c="tab:red", depthshade=False)
+    start = press.T_object_sensor[:3, 3]
+    scene.plot(*np.stack([start, start - 0.04 * press.T_object_sensor[:3, 2]], axis=1), c="tab:blue", lw=2.5)
     scene.set_title(f"{model.name}: contact (red), sensor axis (blue)")
-    scene.set_box_aspect(np.ptp(cloud, axis=0))
+    scene.set_box_aspect(np.ptp(cloud, axis=0), zoom=1.5)
+    scene.view_init(elev=20, azim=np.degrees(np.arctan2(-press.T_object_sensor[1, 2], -press.T_object_sensor[0, 2])))
     scene.set_axis_off()
     figure.tight_layout()
-    import io
-
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png")
     plt.close(figure)

@@ -232,8 +232,8 @@ class PressSimulator:
         self.bounds_radius = float(np.linalg.norm(vertices - self.bounds_centre, axis=1).max())
         spec = config.spec
         x, y = spec.pixel_xy_sensor()
-        self._pixel_xy = np.stack([x.ravel(), y.ravel()], axis=1)  # (H*W, 2), row-major
-        self._pixel_xy_coarse = np.stack([x[::8, ::8].ravel(), y[::8, ::8].ravel()], axis=1)
+        self._pixel_x, self._pixel_y = x.ravel(), y.ravel()  # every pixel, row-major
+        self._coarse_x, self._coarse_y = x[::8, ::8].ravel(), y[::8, ::8].ravel()  # every 8th row and column
         self._border = _border_ring_indices(spec.height_px, spec.width_px)
         self._collision_rays_sensor = _box_sweep_rays(config.body.boxes(spec), config.collision_ray_spacing_m)
         self._face_area_cdf = np.cumsum(mesh_object.area_faces) / mesh_object.area
@@ -289,15 +289,16 @@ class PressSimulator:
 
     # ------------------------------------------------------------------------------------------ the press
     def _cast(
-        self, T_object_sensor: np.ndarray, xy_sensor: np.ndarray, start_z: float
+        self, T_object_sensor: np.ndarray, x_sensor: np.ndarray, y_sensor: np.ndarray, start_z: float
     ) -> tuple[np.ndarray, np.ndarray]:
         """Rays along the sensor's +z from (x, y, start_z): hit z, sensor frame (+inf: miss), and back-face flags."""
         rotation = T_object_sensor[:3, :3]
         direction = rotation[:, 2]
-        rays = np.empty((len(xy_sensor), 6), dtype=np.float32)
         start = T_object_sensor[:3, 3] + start_z * direction
-        rays[:, :3] = xy_sensor[:, :1] * rotation[:, 0] + xy_sensor[:, 1:2] * rotation[:, 1] + start
-        rays[:, 3:] = direction
+        rays = np.empty((len(x_sensor), 6), dtype=np.float32)
+        for axis in range(3):  # column by column from 1-D arrays: ten times faster than (N, 3) broadcasting
+            rays[:, axis] = x_sensor * rotation[axis, 0] + y_sensor * rotation[axis, 1] + start[axis]
+            rays[:, 3 + axis] = direction[axis]
         hits = self.scene.cast_rays(self._o3d.core.Tensor(rays))
         t_hit = hits["t_hit"].numpy()
         normals = hits["primitive_normals"].numpy()
@@ -331,7 +332,8 @@ class PressSimulator:
             # Cheap first: a coarse grid and the ray through the target. The coarse minimum is never below the
             # true one, so a target already too shallow against it is too shallow against the full grid.
             target_sensor = transform_points(invert_transform(T_start), np.asarray(target_object, dtype=np.float64))
-            coarse_z, _ = self._cast(T_start, np.vstack([self._pixel_xy_coarse, target_sensor[:2]]), start_z)
+            coarse_x = np.append(self._coarse_x, target_sensor[0])
+            coarse_z, _ = self._cast(T_start, coarse_x, np.append(self._coarse_y, target_sensor[1]), start_z)
             target_hit_z = float(coarse_z[-1])
             if not (np.isfinite(target_hit_z) and target_hit_z > target_sensor[2] - config.target_tolerance_m):
                 return rejected("target_occluded", T_start, empty)
@@ -339,7 +341,7 @@ class PressSimulator:
             if target_sensor[2] - coarse_min >= depth_m - config.gel.contact_threshold_m:
                 return rejected("target_not_in_contact", T_start, empty, coarse=True)
 
-        z_start, back = self._cast(T_start, self._pixel_xy, start_z)
+        z_start, back = self._cast(T_start, self._pixel_x, self._pixel_y, start_z)
         z_start, back = z_start.reshape(shape), back.reshape(shape)
         hit = np.isfinite(z_start)
         if not hit.any():
@@ -556,10 +558,12 @@ def finish_contact(
 def _transform_points_elementwise(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
     """`geometry.transform_points` for large (N, 3) arrays without a BLAS call: numpy's threaded matmul can
     stall for tens of milliseconds on a busy machine, elementwise products do not."""
-    rotation = transform[:3, :3]
-    return (
-        points[:, :1] * rotation[:, 0] + points[:, 1:2] * rotation[:, 1] + points[:, 2:3] * rotation[:, 2]
-    ) + transform[:3, 3]
+    rotation, translation = transform[:3, :3], transform[:3, 3]
+    result = np.empty_like(points, dtype=np.float64)
+    for axis in range(3):
+        row = rotation[axis]
+        result[:, axis] = points[:, 0] * row[0] + points[:, 1] * row[1] + points[:, 2] * row[2] + translation[axis]
+    return result
 
 
 @functools.lru_cache(maxsize=8)

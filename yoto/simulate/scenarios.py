@@ -224,6 +224,8 @@ class PairSimulator:
             record[side] = {
                 **{key: round(value, 6) for key, value in contact.approach.items()},
                 "contact_pixels": contact.press.contact_pixels,
+                "border_fraction": round(contact.press.details["border_fraction"], 4),
+                "contact_width_mm": round(contact.press.details["contact_width_mm"], 3),
                 "tactile_points": len(contact.points_sensor),
                 "target_mesh": transform_points(model.T_mesh_object, contact.target_object),
                 "T_world_sensor_true": T_world_sensor,
