@@ -18,6 +18,7 @@ from yoto.errors import YotoError
 STAGE_CLI_MODULES = [
     "yoto.objects.cli",
     "yoto.patches.cli",
+    "yoto.simulate.cli",
     "yoto.pose.cli",
     "yoto.evaluation.cli",
 ]
