@@ -16,6 +16,7 @@ from yoto.errors import YotoError
 
 # Order here is the order in `yoto --help`.
 STAGE_CLI_MODULES = [
+    "yoto.demo",
     "yoto.objects.cli",
     "yoto.patches.cli",
     "yoto.simulate.cli",
