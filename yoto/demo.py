@@ -16,8 +16,8 @@ import numpy as np
 
 from yoto.contacts import SIDES
 from yoto.evaluation.metrics import pose_errors
-from yoto.objects.builtin import builtin_object_names
 from yoto.objects.build import load_object_model
+from yoto.objects.builtin import builtin_object_names
 from yoto.workspace import workspace_dir
 
 log = logging.getLogger("yoto")
