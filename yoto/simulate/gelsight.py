@@ -62,6 +62,7 @@ TOUCH_TOLERANCE_M = 1e-7  # the gel counts as touching the object where it is wi
 # Why a press was rejected. Keys are stable identifiers (they appear in statistics and files).
 REJECTION_REASONS = {
     "no_contact": "nothing under the pad: the rays miss the object",
+    "no_normal": "the model has no defined normal at the chosen point (a sheet thinner than the normal estimate)",
     "back_face": "rays hit back faces near the gel (open mesh, or a wall thinner than a pixel)",
     "target_occluded": "another part of the object lies in front of the chosen point (a deep concavity or overhang)",
     "target_not_in_contact": "the press stops before reaching the chosen point (a concavity at the pad's scale, "
@@ -525,6 +526,13 @@ def press_contact(
     simulator: PressSimulator, p_object: np.ndarray, n_object: np.ndarray, rng: np.random.Generator
 ) -> SimulatedContact:
     """Draw an approach toward a surface point and press (noise-free; no tactile cloud yet)."""
+    n_object = np.asarray(n_object, dtype=np.float64)
+    if not (np.all(np.isfinite(n_object)) and np.linalg.norm(n_object) > 1e-6):
+        # The model's normal cancelled out (both sides of a sheet thinner than its neighbourhood): no approach.
+        spec = simulator.config.spec
+        shape = (spec.height_px, spec.width_px)
+        press = Press(np.eye(4), 0.0, np.full(shape, np.inf), np.zeros(shape), np.zeros(shape, bool), None, "no_normal")
+        return SimulatedContact(target_object=np.asarray(p_object, dtype=np.float64), approach={}, press=press)
     T_start, depth, approach = simulator.draw_approach(p_object, n_object, rng)
     press = simulator.press(T_start, depth, target_object=p_object)
     return SimulatedContact(target_object=np.asarray(p_object, dtype=np.float64), approach=approach, press=press)
