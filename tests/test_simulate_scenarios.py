@@ -202,3 +202,10 @@ def test_cli_writes_resumes_and_refuses_mixed_settings(builtin_models, tmp_path,
     assert "other settings" in capsys.readouterr().err
     assert main([*args[:-1], "4", "-n", "1", "--overwrite", "--sensor-noise-mm", "1"]) == 0
     assert (out / "pair_0000.json").read_bytes() != first
+    # The earlier run's other pairs are gone with it: one folder, one scenario set.
+    assert sorted(p.name for p in out.iterdir()) == [
+        "pair_0000.json",
+        "pair_0000_left.ply",
+        "pair_0000_right.ply",
+        "simulation.json",
+    ]

@@ -214,12 +214,14 @@ def press_figure(model, contact, path):
 
     press = contact.press
     spec = GELSIGHT_MINI
-    figure = plt.figure(figsize=(13, 3.8), dpi=72)
+    figure = plt.figure(figsize=(13, 3.8), dpi=64)
     grid = figure.add_gridspec(1, 3, width_ratios=[1, 1, 0.9])
     height = figure.add_subplot(grid[0])
     image = height.imshow(press.height_map_m * 1e3, cmap="viridis")
     height.contour(press.contact_mask, levels=[0.5], colors="white", linewidths=0.8)
-    height.set_title(f"noise-free gel surface, depth {press.depth_m * 1e3:.2f} mm\nwhite: where the gel touches")
+    height.set_title(
+        f"noise-free gel surface, depth {press.depth_m * 1e3:.2f} mm\nwhite: where the gel touches", fontsize=9
+    )
     figure.colorbar(image, ax=height, label="z (mm)", shrink=0.85)
 
     cloud_panel = figure.add_subplot(grid[1])
@@ -231,20 +233,20 @@ def press_figure(model, contact, path):
     limit = float(np.nanmax(np.abs(noisy)))
     image = cloud_panel.imshow(noisy, cmap="coolwarm", vmin=-limit, vmax=limit)
     cloud_panel.contour(press.contact_mask, levels=[0.5], colors="black", linewidths=0.8)
-    cloud_panel.set_title(f"tactile cloud, {len(points)} points\nreconstruction error (black: contact)")
+    cloud_panel.set_title(f"tactile cloud, {len(points)} points\nreconstruction error (black: contact)", fontsize=9)
     figure.colorbar(image, ax=cloud_panel, label="error (mm)", shrink=0.85)
     for axis in (height, cloud_panel):
         axis.set_xlabel("column (sensor x)")
         axis.set_ylabel("row (sensor y)")
 
     scene = figure.add_subplot(grid[2], projection="3d")
-    cloud = model.points_object[:: max(1, len(model.points_object) // 8000)]
+    cloud = model.points_object[:: max(1, len(model.points_object) // 5000)]
     scene.scatter(*cloud.T, s=0.3, c="0.65", depthshade=False)
     patch = transform_points(press.T_object_sensor, press.contact_points_sensor())[::30]
     scene.scatter(*patch.T, s=1.5, c="tab:red", depthshade=False)
     start = press.T_object_sensor[:3, 3]
     scene.plot(*np.stack([start, start - 0.04 * press.T_object_sensor[:3, 2]], axis=1), c="tab:blue", lw=2.5)
-    scene.set_title(f"{model.name}: contact (red), sensor axis (blue)")
+    scene.set_title(f"{model.name}: contact (red), sensor axis (blue)", fontsize=9)
     scene.set_box_aspect(np.ptp(cloud, axis=0), zoom=1.5)
     scene.view_init(elev=20, azim=np.degrees(np.arctan2(-press.T_object_sensor[1, 2], -press.T_object_sensor[0, 2])))
     scene.set_axis_off()

@@ -62,6 +62,7 @@ TOUCH_TOLERANCE_M = 1e-7  # the gel counts as touching the object where it is wi
 # Why a press was rejected. Keys are stable identifiers (they appear in statistics and files).
 REJECTION_REASONS = {
     "no_contact": "nothing under the pad: the rays miss the object",
+    "no_normal": "the model has no defined normal at the chosen point (a sheet thinner than the normal estimate)",
     "back_face": "rays hit back faces near the gel (open mesh, or a wall thinner than a pixel)",
     "target_occluded": "another part of the object lies in front of the chosen point (a deep concavity or overhang)",
     "target_not_in_contact": "the press stops before reaching the chosen point (a concavity at the pad's scale, "
@@ -69,7 +70,7 @@ REJECTION_REASONS = {
     "small_contact": "the contact covers too few pixels (a sharp corner or a small feature)",
     "thin_edge": "a narrow contact crossing the whole pad (an edge or ridge thinner than the pad can resolve)",
     "border": "the contact covers too much of the pad border",
-    "housing_collision": "the sensor body (gel block, housing, probe) would collide with the object",
+    "housing_collision": "the sensor body (housing or the probe behind it) would collide with the object",
     "reconstruction_failed": "the reconstruction returned too few points",
 }
 
@@ -119,9 +120,10 @@ class GelModel:
 class ReconstructionNoise:
     """Errors of a GelSight height-map reconstruction (photometric stereo + Poisson integration).
 
-    Defaults are of the size reported for GelSight-class sensors on ball presses: a few hundredths of
-    a millimetre of per-pixel and low-frequency depth error, and a few percent of depth scale error
-    from the gradient calibration.
+    The defaults are a judgement, not a fit to data: depth errors of a few hundredths of a millimetre
+    (per pixel and low-frequency, RMS about 0.03 mm together) and a few percent of depth scale error from the
+    gradient calibration, the size GelSight-class reconstructions of ball presses show. For realism beyond
+    this, plug an image renderer and the real reconstruction into `simulate_contact(reconstruct=...)`.
     """
 
     pixel_std_m: float = 1.5e-5  # white per-pixel height noise
@@ -154,7 +156,8 @@ class PressConfig:
     max_offset_m: float = 0.0015  # the pad centre lands up to this far from the target (uniform on a disc)
     min_contact_pixels: int = 500  # fewer contact pixels are rejected (about 2 mm^2)
     min_crossing_width_m: float = 0.0025  # a contact crossing the pad narrower than this is a thin edge
-    max_border_fraction: float = 1.0  # reject contacts covering more of the pad border than this (1: never)
+    max_border_fraction: float = 1.0  # reject contacts covering more of the pad border than this (1: never;
+    # measured: contacts touching the border are no harder for the solver, see docs/simulation.md)
     back_face_clearance_m: float = 0.002  # back faces hit closer than this in front of the gel reject the press
     target_tolerance_m: float = 1e-4  # the target counts as seen if the ray through it first hits within this
     collision_ray_spacing_m: float = 0.001  # spacing of the rays that sweep the body boxes for collisions
@@ -215,7 +218,7 @@ class SimulatedContact:
 
 # ------------------------------------------------------------------------------------------------ simulator
 class PressSimulator:
-    """Presses a GelSight into one mesh. Builds the ray-casting scene once; `press` is then ~30 ms."""
+    """Presses a GelSight into one mesh. Builds the ray-casting scene once; a press then takes tens of ms."""
 
     def __init__(self, mesh_object: trimesh.Trimesh, config: PressConfig = PressConfig()):
         o3d = require_open3d("the GelSight contact simulator")
@@ -327,7 +330,7 @@ class PressSimulator:
         def rejected(reason: str, T: np.ndarray, object_z: np.ndarray, **details: Any) -> Press:
             return Press(T, depth_m, object_z, np.zeros(shape), np.zeros(shape, bool), None, reason, details)
 
-        target_sensor = target_hit_z = None
+        target_sensor = None
         if target_object is not None:
             # Cheap first: a coarse grid and the ray through the target. The coarse minimum is never below the
             # true one, so a target already too shallow against it is too shallow against the full grid.
@@ -523,6 +526,13 @@ def press_contact(
     simulator: PressSimulator, p_object: np.ndarray, n_object: np.ndarray, rng: np.random.Generator
 ) -> SimulatedContact:
     """Draw an approach toward a surface point and press (noise-free; no tactile cloud yet)."""
+    n_object = np.asarray(n_object, dtype=np.float64)
+    if not (np.all(np.isfinite(n_object)) and np.linalg.norm(n_object) > 1e-6):
+        # The model's normal cancelled out (both sides of a sheet thinner than its neighbourhood): no approach.
+        spec = simulator.config.spec
+        shape = (spec.height_px, spec.width_px)
+        press = Press(np.eye(4), 0.0, np.full(shape, np.inf), np.zeros(shape), np.zeros(shape, bool), None, "no_normal")
+        return SimulatedContact(target_object=np.asarray(p_object, dtype=np.float64), approach={}, press=press)
     T_start, depth, approach = simulator.draw_approach(p_object, n_object, rng)
     press = simulator.press(T_start, depth, target_object=p_object)
     return SimulatedContact(target_object=np.asarray(p_object, dtype=np.float64), approach=approach, press=press)

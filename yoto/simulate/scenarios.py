@@ -322,6 +322,16 @@ def pair_file_name(index: int) -> str:
     return f"pair_{index:04d}.json"
 
 
+def _remove_pairs(out_dir: Path, first_index: int) -> None:
+    """Delete the simulated pair files (JSON and both clouds) with index >= first_index."""
+    for path in out_dir.glob("pair_*.json"):
+        stem = path.stem
+        if stem[5:].isdigit() and int(stem[5:]) >= first_index:
+            for side in SIDES:
+                (out_dir / f"{stem}_{side}.ply").unlink(missing_ok=True)
+            path.unlink()
+
+
 def simulation_settings(model: ObjectModel, seed: int, config: ScenarioConfig, reconstruct: bool) -> dict[str, Any]:
     """What determines a folder's pairs; stored next to them so a resumed run can check it is the same."""
     return json.loads(
@@ -353,14 +363,23 @@ def write_pairs(
     """Write pairs 0..count-1 as pair files (SPEC format) into `out_dir`; resumable and idempotent.
 
     Pair files already present are kept unless `overwrite`. A folder made with other settings (object,
-    seed, config) is refused unless `overwrite`, so a resumed run never mixes two scenario sets.
+    seed, config) is refused unless `overwrite`, which then also removes that run's pairs beyond `count`:
+    a folder never mixes two scenario sets.
     """
     out_dir = Path(out_dir)
     settings = simulation_settings(model, seed, config, reconstruct is not None)
     settings_path = out_dir / SETTINGS_FILE
-    if settings_path.exists() and not overwrite:
-        stored = read_json(settings_path)
-        if stored != settings:
+    stored = read_json(settings_path) if settings_path.exists() else None
+    if stored is None and not overwrite and any(out_dir.glob("pair_*.json")):
+        raise InputError(
+            f"this folder holds pair files but no {SETTINGS_FILE}: they were not made by `yoto simulate pairs`; pass "
+            "--overwrite to replace them, or choose another --out",
+            out_dir,
+        )
+    if stored is not None and stored != settings:
+        if overwrite:
+            _remove_pairs(out_dir, first_index=count)
+        else:
             changed = sorted(key for key in settings if stored.get(key) != settings[key])
             raise InputError(
                 f"this folder holds pairs simulated with other settings ({', '.join(changed)} differ); pass "
