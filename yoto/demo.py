@@ -14,12 +14,6 @@ from pathlib import Path
 
 import numpy as np
 
-from yoto.contacts import SIDES
-from yoto.evaluation.metrics import pose_errors
-from yoto.objects.build import load_object_model
-from yoto.objects.builtin import builtin_object_names
-from yoto.workspace import workspace_dir
-
 log = logging.getLogger("yoto")
 
 DEMO_SEED = 7  # the benchmark's evaluation seed; the shipped weights were fine-tuned on other seeds
@@ -44,9 +38,14 @@ def run_demo(
     workspace: str | Path | None = None,
     out: str | Path | None = None,
 ) -> int:
+    from yoto.contacts import SIDES
+    from yoto.evaluation.metrics import pose_errors
     from yoto.localize import make_localizer
+    from yoto.objects.build import load_object_model
+    from yoto.objects.builtin import builtin_object_names
     from yoto.pose.pipeline import estimate_pose
     from yoto.simulate.scenarios import PairSimulator
+    from yoto.workspace import workspace_dir
 
     started = time.perf_counter()
     yoto_localizer = make_localizer("yoto", checkpoint)
