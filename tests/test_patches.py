@@ -148,3 +148,59 @@ def test_dataset_of_another_model_is_refused(builtin_models, tmp_path):
     path = dataset.save(tmp_path / "fruit.npz")
     with pytest.raises(InputError, match="another build"):
         VirtualPatchDataset.load(path, builtin_models["figurine"])
+
+
+def _height_gap(real: np.ndarray, virtual: np.ndarray) -> float:
+    """Smallest, over in-plane rotations (2 deg steps), median |z| gap between the real patch's points and the
+    virtual patch's surface at the same (x, y), read off its 4 nearest points in x, y."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(virtual[:, :2])
+    best = np.inf
+    for angle in np.radians(np.arange(0.0, 360.0, 2.0)):
+        rotated = real @ rotation_about_axis(np.array([0.0, 0.0, 1.0]), angle).T
+        _, neighbours = tree.query(rotated[:, :2], k=4)
+        best = min(best, float(np.median(np.abs(rotated[:, 2] - virtual[neighbours, 2].mean(axis=1)))))
+    return best
+
+
+def test_a_simulated_gelsight_contact_and_a_virtual_patch_of_the_same_region_agree(builtin_models):
+    """The issue's check: a GelSight press (simulator, noise-free) and the virtual patch of the parent points
+    under the same footprint land in the same canonical form up to in-plane rotation."""
+    from scipy.spatial import cKDTree
+
+    from yoto.simulate.gelsight import PressConfig, PressSimulator, ReconstructionNoise, simulate_contact
+
+    model = builtin_models["figurine"]
+    simulator = PressSimulator(model.mesh_object, PressConfig(noise=ReconstructionNoise.none()))
+    rng = np.random.default_rng(4)
+    gaps, control_gaps = [], []
+    while len(gaps) < 3:
+        p = simulator.sample_surface(rng)[0]
+        contact = simulate_contact(simulator, p, model.aggregated_normal(p), rng)
+        if not contact.accepted:
+            continue
+        prepared, prepared_normals = prepare_tactile_cloud(contact.points_sensor, model.point_spacing_m)
+        real = canonicalize_patch(prepared, prepared_normals)
+        assert np.allclose(real.points.mean(axis=0), 0.0, atol=1e-9)
+        assert real.concave_direction_source[2] > 0.9  # into the object: along the sensor's +z
+
+        # The same surface region on the parent cloud: the parent points under the contact's footprint.
+        footprint_object = transform_points(contact.press.T_object_sensor, contact.points_sensor)
+        members = cKDTree(footprint_object).query(model.points_object)[0] < 0.5 * model.point_spacing_m
+        virtual = canonicalize_patch(model.points_object[members].astype(np.float64), model.normals_object[members])
+        gaps.append(_height_gap(real.points, virtual.points))
+        # Control: the same footprint shape moved 20 mm across the surface is another region, and must not fit.
+        shift = model.nearest_surface_point(
+            footprint_object.mean(axis=0)
+            + 0.02 * np.cross(model.aggregated_normal(contact.press.p_object), [0.0, 0.0, 1.0])
+        )
+        others = (
+            np.linalg.norm(model.points_object - shift, axis=1)
+            < np.linalg.norm(footprint_object - footprint_object.mean(axis=0), axis=1).max()
+        )
+        control = canonicalize_patch(model.points_object[others].astype(np.float64), model.normals_object[others])
+        control_gaps.append(_height_gap(real.points, control.points))
+    # Sub-0.1 mm agreement in height, and clearly better than another region of the same object.
+    assert max(gaps) < 0.1e-3
+    assert np.median(control_gaps) > 2 * np.median(gaps)
