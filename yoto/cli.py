@@ -16,8 +16,13 @@ from yoto.errors import YotoError
 
 # Order here is the order in `yoto --help`.
 STAGE_CLI_MODULES = [
+    "yoto.demo",
     "yoto.objects.cli",
     "yoto.sensor.cli",
+    "yoto.patches.cli",
+    "yoto.simulate.cli",
+    "yoto.pose.cli",
+    "yoto.evaluation.cli",
 ]
 
 

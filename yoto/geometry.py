@@ -151,4 +151,3 @@ def validate_transform(matrix: object, what: str, path: str | Path | None = None
     transform[:3, :3] = u @ vt
     transform[3] = [0.0, 0.0, 0.0, 1.0]
     return transform
-

@@ -11,6 +11,7 @@ import hashlib
 import io
 import json
 import os
+import re
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -23,6 +24,9 @@ from yoto.errors import InputError
 # ---------------------------------------------------------------------------------------------------------
 # Atomic writes
 
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
 
 @contextlib.contextmanager
 def atomic_open(path: str | Path, mode: str = "wb") -> Iterator[Any]:
@@ -30,6 +34,7 @@ def atomic_open(path: str | Path, mode: str = "wb") -> Iterator[Any]:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.chmod(tmp_name, 0o666 & ~_UMASK)  # mkstemp creates 0600; give the file the mode open() would
     try:
         with os.fdopen(fd, mode) as handle:
             yield handle
@@ -62,8 +67,14 @@ def _to_jsonable(value: Any) -> Any:
     raise TypeError(f"cannot write {type(value).__name__} to JSON")
 
 
+_NUMBER_LIST = re.compile(r"\[\s*(-?[\d.eE+-]+(?:,\s*-?[\d.eE+-]+)*)\s*\]")
+
+
 def write_json_atomic(path: str | Path, payload: Any) -> Path:
-    return write_text_atomic(path, json.dumps(payload, indent=2, default=_to_jsonable) + "\n")
+    """Indented JSON with each list of numbers (a matrix row, a point) on one line."""
+    text = json.dumps(payload, indent=2, default=_to_jsonable)
+    text = _NUMBER_LIST.sub(lambda match: "[" + ", ".join(v.strip() for v in match.group(1).split(",")) + "]", text)
+    return write_text_atomic(path, text + "\n")
 
 
 def read_json(path: str | Path) -> Any:
@@ -112,10 +123,22 @@ def sha256_of_file(path: str | Path) -> str:
 # PLY point clouds (vertex element only). Written as binary little-endian float32; read in any PLY flavour.
 
 _PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
 }
 
 

@@ -9,12 +9,14 @@ The shapes are deterministic: the same code always yields the same mesh.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
-from skimage.measure import marching_cubes
 
 from yoto.errors import InputError
+
+if TYPE_CHECKING:
+    import trimesh
 
 SDF = Callable[[np.ndarray], np.ndarray]
 
@@ -64,7 +66,7 @@ def _smooth_subtract(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
 
 # -------------------------------------------------------------------------------------------- objects
 def power_tool_sdf(p: np.ndarray) -> np.ndarray:
-    """A cordless-drill-like tool, about 190 x 60 x 185 mm: barrel, chuck, handle, trigger, battery."""
+    """A cordless-drill-like tool, about 217 x 72 x 204 mm: barrel, chuck, handle, trigger, battery."""
     barrel = _capsule(p, (-0.055, 0, 0.060), (0.045, 0, 0.060), 0.028)
     motor_cap = _ellipsoid(p, (-0.070, 0, 0.062), (0.022, 0.026, 0.030))
     chuck = _cylinder_x(p, 0.060, 0.100, (0.0, 0.060), 0.016)
@@ -87,7 +89,7 @@ def power_tool_sdf(p: np.ndarray) -> np.ndarray:
 
 
 def bumpy_fruit_sdf(p: np.ndarray) -> np.ndarray:
-    """An avocado-like fruit, about 62 x 62 x 92 mm: a pear-shaped body covered in small random bumps."""
+    """An avocado-like fruit, about 72 x 76 x 101 mm: a pear-shaped body covered in small random bumps."""
     z = p[..., 2]
     # Pear profile: the radius shrinks toward the top (+z).
     taper = 1.0 - 0.22 * np.clip((z + 0.01) / 0.05, 0.0, 1.0)
@@ -107,7 +109,7 @@ def bumpy_fruit_sdf(p: np.ndarray) -> np.ndarray:
 
 
 def figurine_sdf(p: np.ndarray) -> np.ndarray:
-    """A figurine-like head, about 100 x 70 x 105 mm: cranium, muzzle, ears, brow, eye sockets, neck."""
+    """A figurine-like head, about 100 x 75 x 118 mm: cranium, muzzle, ears, brow, eye sockets, neck."""
     cranium = _ellipsoid(p, (0, 0, 0.010), (0.034, 0.031, 0.036))
     muzzle = _ellipsoid(p, (0.0, 0.024, -0.012), (0.022, 0.016, 0.016))
     brow = _ellipsoid(p, (0.0, 0.020, 0.016), (0.026, 0.010, 0.008))
@@ -153,10 +155,15 @@ def builtin_mesh(name: str, voxel_size_m: float = 0.001) -> trimesh.Trimesh:
     # marching cubes reads nothing but the sign of voxels away from the zero level.
     stride = 4
     coarse = sdf(np.stack(np.meshgrid(*[a[::stride] for a in axes], indexing="ij"), axis=-1))
-    values = np.repeat(np.repeat(np.repeat(coarse, stride, 0), stride, 1), stride, 2)[: shape[0], : shape[1], : shape[2]]
+    values = np.repeat(np.repeat(np.repeat(coarse, stride, 0), stride, 1), stride, 2)[
+        : shape[0], : shape[1], : shape[2]
+    ]
     band = np.abs(values) < 1.5 * stride * voxel_size_m
     near = np.argwhere(band)
     values[band] = sdf(low_arr + voxel_size_m * near)
+    import trimesh
+    from skimage.measure import marching_cubes
+
     vertices, faces, _, _ = marching_cubes(values, level=0.0, spacing=(voxel_size_m,) * 3)
     mesh = trimesh.Trimesh(vertices=vertices + low_arr, faces=faces, process=False)
     if mesh.volume < 0:  # marching cubes' winding depends on the gradient convention; make it outward

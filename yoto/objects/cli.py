@@ -47,8 +47,9 @@ def _run_build(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     name = args.name or Path(args.mesh).stem
-    build_object(args.mesh, name, config, units=args.units, workspace=args.workspace, out=args.out,
-                 overwrite=args.overwrite)
+    build_object(
+        args.mesh, name, config, units=args.units, workspace=args.workspace, out=args.out, overwrite=args.overwrite
+    )
     return 0
 
 
@@ -60,7 +61,9 @@ def _run_show(args: argparse.Namespace) -> int:
         meta = model.meta
         bbox = " x ".join(f"{v * 1000:.1f}" for v in meta["bbox_object_m"])
         grid = meta["build_config"]["grid_shape"]
-        print(f"{model.name}: {len(model.points_object)} parent points, {model.num_blocks}/{grid[0] * grid[1] * grid[2]} "
-              f"valid blocks, bbox {bbox} mm, area {meta['surface_area_m2'] * 1e4:.1f} cm^2, "
-              f"watertight {meta['watertight']}, source {meta['source']}")
+        print(
+            f"{model.name}: {len(model.points_object)} parent points, {model.num_blocks}/{grid[0] * grid[1] * grid[2]} "
+            f"valid blocks, bbox {bbox} mm, area {meta['surface_area_m2'] * 1e4:.1f} cm^2, "
+            f"watertight {meta['watertight']}, source {meta['source']}"
+        )
     return 0

@@ -104,7 +104,8 @@ def _unit_scale(path: Path, extent: float, units: str) -> float:
             break
     if not IMPOSSIBLE_EXTENT_M[0] <= extent_m <= IMPOSSIBLE_EXTENT_M[1]:
         raise InputError(
-            f"read in {units}, the mesh is {extent_m * 1000:.4g} mm across, which no GelSight-graspable object is{hint}",
+            f"read in {units}, the mesh is {extent_m * 1000:.4g} mm across, which no GelSight-graspable object "
+            f"is{hint}",
             path,
         )
     if not PLAUSIBLE_EXTENT_M[0] <= extent_m <= PLAUSIBLE_EXTENT_M[1]:

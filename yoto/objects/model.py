@@ -7,6 +7,7 @@ Everything stored per point or per block is in the object frame unless its name 
 
 from __future__ import annotations
 
+import hashlib
 import logging
 from dataclasses import asdict, dataclass, field
 from functools import cached_property
@@ -81,6 +82,19 @@ class ObjectModel:
         """The repaired mesh expressed in the object frame."""
         vertices = transform_points(self.T_object_mesh, self.mesh_vertices_mesh)
         return trimesh.Trimesh(vertices=vertices, faces=self.mesh_faces, process=False)
+
+    @cached_property
+    def point_spacing_m(self) -> float:
+        """Typical distance between neighbouring parent points: sqrt(surface area / point count)."""
+        return float(np.sqrt(self.meta["surface_area_m2"] / len(self.points_object)))
+
+    @cached_property
+    def fingerprint(self) -> str:
+        """Hash of the parent cloud and blocks: datasets and checkpoints record which model they belong to."""
+        digest = hashlib.sha256()
+        for array in (self.points_object, self.point_block, self.block_centres_object):
+            digest.update(np.ascontiguousarray(array).tobytes())
+        return digest.hexdigest()[:16]
 
     @cached_property
     def mesh_scale_m(self) -> float:
@@ -167,7 +181,11 @@ def sample_parent_cloud(mesh: trimesh.Trimesh, count: int, config: ObjectModelCo
     flip = u + v > 1.0
     u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
     triangles = mesh.triangles[faces]
-    points = triangles[:, 0] + u[:, None] * (triangles[:, 1] - triangles[:, 0]) + v[:, None] * (triangles[:, 2] - triangles[:, 0])
+    points = (
+        triangles[:, 0]
+        + u[:, None] * (triangles[:, 1] - triangles[:, 0])
+        + v[:, None] * (triangles[:, 2] - triangles[:, 0])
+    )
     normals = estimate_normals(points, config.normal_neighbours, orientation_hint=mesh.face_normals[faces])
     return points, normals
 
@@ -191,7 +209,9 @@ def canonical_frame(points_mesh: np.ndarray) -> np.ndarray:
     return make_transform(np.stack([e_x, e_y, e_z], axis=1), centroid)
 
 
-def build_blocks(points_object: np.ndarray, normals_object: np.ndarray, config: ObjectModelConfig) -> dict[str, np.ndarray]:
+def build_blocks(
+    points_object: np.ndarray, normals_object: np.ndarray, config: ObjectModelConfig
+) -> dict[str, np.ndarray]:
     """Partition the parent cloud on the canonical grid; drop sparse cells; per-block centre, normal, rotation."""
     grid_shape = np.asarray(config.grid_shape)
     low, high = points_object.min(axis=0), points_object.max(axis=0)

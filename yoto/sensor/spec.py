@@ -8,6 +8,7 @@ sampling the sensor-frame point ((c - (cols-1)/2) * pixel, (r - (rows-1)/2) * pi
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,10 +33,8 @@ class GelSightSpec:
         return self.width_px * self.pixel_size_m, self.height_px * self.pixel_size_m
 
     def pixel_xy_sensor(self) -> tuple[np.ndarray, np.ndarray]:
-        """Sensor-frame x and y (metres) of every pixel centre, each of shape (height_px, width_px)."""
-        cols = (np.arange(self.width_px) - (self.width_px - 1) / 2.0) * self.pixel_size_m
-        rows = (np.arange(self.height_px) - (self.height_px - 1) / 2.0) * self.pixel_size_m
-        return np.meshgrid(cols, rows)
+        """Sensor-frame x and y (metres) of every pixel centre, each of shape (height_px, width_px). Read-only."""
+        return _pixel_grid(self.width_px, self.height_px, self.pixel_size_m)
 
     def height_map_to_points(self, height_map_m: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """Sensor-frame (N, 3) points of the masked pixels of a height map, row-major order."""
@@ -49,3 +48,13 @@ class GelSightSpec:
 
 
 GELSIGHT_MINI = GelSightSpec()
+
+
+@functools.lru_cache(maxsize=8)
+def _pixel_grid(width_px: int, height_px: int, pixel_size_m: float) -> tuple[np.ndarray, np.ndarray]:
+    cols = (np.arange(width_px) - (width_px - 1) / 2.0) * pixel_size_m
+    rows = (np.arange(height_px) - (height_px - 1) / 2.0) * pixel_size_m
+    x, y = np.meshgrid(cols, rows)
+    x.flags.writeable = False
+    y.flags.writeable = False
+    return x, y

@@ -1,0 +1,192 @@
+"""Tactile contacts and the contact-pair file (SPEC: "Dual contact").
+
+A pair file is JSON with fixed keys; its point clouds are PLY files next to it:
+    {"object": NAME,
+     "left":  {"points": "pair_0000_left.ply",  "T_world_sensor": 4x4},
+     "right": {"points": "pair_0000_right.ply", "T_world_sensor": 4x4},
+     "ground_truth": {"T_world_object": 4x4, "left_p_object": [x,y,z], "right_p_object": [x,y,z]}}
+`ground_truth` is optional and is expressed in the mesh file's frame; in code that frame is called
+`mesh` (`T_world_mesh`, `p_mesh`) to keep it apart from YOTO's canonical `object` frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from yoto.errors import InputError
+from yoto.geometry import validate_transform
+from yoto.io import read_json, read_ply_points, write_json_atomic, write_ply_points
+
+SIDES = ("left", "right")
+MIN_TACTILE_POINTS = 30  # fewer contact points than this cannot define a local surface
+
+
+@dataclass
+class TactileContact:
+    """One sensor's observation: its contact surface points (sensor frame) and where the sensor was."""
+
+    points_sensor: np.ndarray  # (N, 3) metres, contact-surface points, z <= 0 where pressed
+    T_world_sensor: np.ndarray  # (4, 4) the sensor's calibrated pose
+    source: Path | None = None  # the PLY file it came from, for messages
+
+
+@dataclass
+class ContactPair:
+    """A simultaneous dual contact, with its ground truth when known (mesh-file frame)."""
+
+    object_name: str
+    left: TactileContact
+    right: TactileContact
+    T_world_mesh_true: np.ndarray | None = None
+    p_mesh_true: dict[str, np.ndarray] = field(default_factory=dict)  # side -> (3,) true contact location
+    path: Path | None = None
+    extra: dict[str, Any] = field(default_factory=dict)  # keys beyond SPEC's, kept on rewrite
+
+    def contact(self, side: str) -> TactileContact:
+        return self.left if side == "left" else self.right
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return self.T_world_mesh_true is not None and all(side in self.p_mesh_true for side in SIDES)
+
+
+def validate_tactile_points(points: np.ndarray, source: str | Path | None) -> np.ndarray:
+    """Check a tactile cloud is (N, 3), finite and large enough; return it as float64."""
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InputError(f"tactile cloud must be (N, 3), got shape {points.shape}", source)
+    finite = np.isfinite(points).all(axis=1)
+    if not finite.all():
+        raise InputError(f"tactile cloud has {int((~finite).sum())} points with NaN or inf coordinates", source)
+    if len(points) < MIN_TACTILE_POINTS:
+        raise InputError(
+            f"tactile cloud has only {len(points)} points; at least {MIN_TACTILE_POINTS} are needed to localize "
+            "a contact",
+            source,
+        )
+    extent = float(np.ptp(points, axis=0).max())
+    if extent > 0.1:
+        raise InputError(
+            f"tactile cloud spans {extent * 1000:.0f} mm, larger than any GelSight pad: is it in metres and in the "
+            "sensor frame?",
+            source,
+        )
+    if extent < 1e-4:
+        raise InputError(f"tactile cloud spans only {extent * 1e3:.3f} mm: it holds no contact surface", source)
+    return points
+
+
+def _read_matrix(record: dict, key: str, what: str, path: Path) -> np.ndarray:
+    if key not in record:
+        raise InputError(f"missing key '{key}' in {what}", path)
+    return validate_transform(record[key], f"{what}.{key}", path)
+
+
+def _read_point(record: dict, key: str, what: str, path: Path) -> np.ndarray:
+    value = np.asarray(record.get(key), dtype=np.float64) if record.get(key) is not None else None
+    if value is None or value.shape != (3,) or not np.all(np.isfinite(value)):
+        raise InputError(f"{what}.{key} must be a list of 3 finite numbers", path)
+    return value
+
+
+def read_contact_pair(path: str | Path) -> ContactPair:
+    """Read and validate a pair file and its two point clouds. Errors name the file and the problem."""
+    path = Path(path)
+    payload = read_json(path)
+    if not isinstance(payload, dict):
+        raise InputError("a contact pair file must hold a JSON object", path)
+    for key in ("object", *SIDES):
+        if key not in payload:
+            raise InputError(f"missing key '{key}' (a contact pair needs 'object', 'left' and 'right')", path)
+    if not isinstance(payload["object"], str) or not payload["object"]:
+        raise InputError("'object' must be the object's name", path)
+
+    contacts = {}
+    for side in SIDES:
+        record = payload[side]
+        if not isinstance(record, dict) or "points" not in record:
+            raise InputError(f"'{side}' must be an object with 'points' and 'T_world_sensor'", path)
+        cloud_path = path.parent / str(record["points"])
+        points, _ = read_ply_points(cloud_path)
+        contacts[side] = TactileContact(
+            points_sensor=validate_tactile_points(points, cloud_path),
+            T_world_sensor=_read_matrix(record, "T_world_sensor", side, path),
+            source=cloud_path,
+        )
+
+    pair = ContactPair(object_name=payload["object"], left=contacts["left"], right=contacts["right"], path=path)
+    truth = payload.get("ground_truth")
+    if truth is not None:
+        if not isinstance(truth, dict):
+            raise InputError("'ground_truth' must be an object", path)
+        pair.T_world_mesh_true = _read_matrix(truth, "T_world_object", "ground_truth", path)
+        for side in SIDES:
+            if f"{side}_p_object" in truth:
+                pair.p_mesh_true[side] = _read_point(truth, f"{side}_p_object", "ground_truth", path)
+    pair.extra = {key: value for key, value in payload.items() if key not in ("object", *SIDES, "ground_truth")}
+
+    separation = np.linalg.norm(pair.left.T_world_sensor[:3, 3] - pair.right.T_world_sensor[:3, 3])
+    if separation < 0.005:
+        raise InputError(
+            f"the two sensors are {separation * 1000:.1f} mm apart: two simultaneous contacts need distinct sensors",
+            path,
+        )
+    return pair
+
+
+def write_contact_pair(path: str | Path, pair: ContactPair) -> Path:
+    """Write a pair file and its two PLY clouds (named after the pair file) atomically."""
+    path = Path(path)
+    stem = path.stem
+    payload: dict[str, Any] = {"object": pair.object_name}
+    for side in SIDES:
+        contact = pair.contact(side)
+        cloud_name = f"{stem}_{side}.ply"
+        write_ply_points(path.parent / cloud_name, contact.points_sensor)
+        payload[side] = {"points": cloud_name, "T_world_sensor": contact.T_world_sensor}
+    if pair.T_world_mesh_true is not None:
+        truth: dict[str, Any] = {"T_world_object": pair.T_world_mesh_true}
+        for side in SIDES:
+            if side in pair.p_mesh_true:
+                truth[f"{side}_p_object"] = pair.p_mesh_true[side]
+        payload["ground_truth"] = truth
+    payload.update(pair.extra)
+    return write_json_atomic(path, payload)
+
+
+POSE_RESULT_SUFFIX = ".pose.json"
+
+
+def is_pair_file_name(path: Path) -> bool:
+    """Pair files are the folder's JSON files other than hidden files and pose results."""
+    return not path.name.startswith(".") and not path.name.endswith(POSE_RESULT_SUFFIX)
+
+
+def find_pair_files(inputs: list[str | Path]) -> list[Path]:
+    """Pair files from a list of files and folders (a folder contributes its `*.json`, sorted)."""
+    found: list[Path] = []
+    for item in map(Path, inputs):
+        if item.is_dir():
+            found.extend(sorted(p for p in item.glob("*.json") if is_pair_file_name(p)))
+        elif item.is_file():
+            found.append(item)
+        else:
+            raise InputError("no such file or folder", item)
+    if not found:
+        raise InputError(f"no contact pair files (*.json) in {', '.join(map(str, inputs))}")
+    return found
+
+
+__all__ = [
+    "SIDES",
+    "ContactPair",
+    "TactileContact",
+    "find_pair_files",
+    "read_contact_pair",
+    "validate_tactile_points",
+    "write_contact_pair",
+]

@@ -1,0 +1,25 @@
+"""Contact localization: where on the object model is a tactile contact? One module per method."""
+
+from __future__ import annotations
+
+from yoto.localize.base import ContactLocalizer, OracleLocalizer
+
+METHODS = ("oracle", "icp", "yoto")
+
+
+def make_localizer(method: str, checkpoint: str | None = None) -> ContactLocalizer:
+    """The localizer for a method name; heavy dependencies are imported only for the method asked for."""
+    if method == "oracle":
+        return OracleLocalizer()
+    if method == "icp":
+        from yoto.localize.icp import IcpLocalizer
+
+        return IcpLocalizer()
+    if method == "yoto":
+        from yoto.localize.network import NetworkLocalizer
+
+        return NetworkLocalizer.from_checkpoint(checkpoint)
+    raise ValueError(f"unknown localization method {method!r} (use one of {', '.join(METHODS)})")
+
+
+__all__ = ["METHODS", "ContactLocalizer", "OracleLocalizer", "make_localizer"]

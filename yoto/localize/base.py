@@ -1,0 +1,57 @@
+"""The localizer interface: a tactile cloud in, ranked contact locations on the object model out.
+
+Every method (the oracle, the ICP baseline, the YOTO network) implements `ContactLocalizer`, so the pose
+pipeline and the benchmark swap them freely.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+from yoto.objects.model import ObjectModel
+from yoto.solver import ContactEstimate
+
+
+class ContactLocalizer(Protocol):
+    """Locates one tactile contact on an object model."""
+
+    name: str  # short method name used in result files and benchmark tables
+    needs_ground_truth: bool  # True only for the oracle
+
+    def localize(
+        self, points_sensor: np.ndarray, model: ObjectModel, truth_p_object: np.ndarray | None = None
+    ) -> list[ContactEstimate]:
+        """Candidate contacts on `model` (object frame), best first; at least one.
+
+        `points_sensor` is the tactile cloud (N, 3) in the sensor frame. `truth_p_object` is given only to
+        localizers with `needs_ground_truth`.
+        """
+        ...
+
+
+class OracleLocalizer:
+    """The ground-truth contact location with its kNN-aggregated model normal: shows the solver's own floor."""
+
+    name = "oracle"
+    needs_ground_truth = True
+
+    def __init__(self, normal_neighbours: int = 20):
+        self.normal_neighbours = normal_neighbours
+
+    def localize(
+        self, points_sensor: np.ndarray, model: ObjectModel, truth_p_object: np.ndarray | None = None
+    ) -> list[ContactEstimate]:
+        if truth_p_object is None:
+            raise ValueError("the oracle needs the ground-truth contact location")
+        p_object = np.asarray(truth_p_object, dtype=np.float64)
+        return [
+            ContactEstimate(
+                p_object=p_object,
+                n_object=model.aggregated_normal(p_object, self.normal_neighbours),
+                block=int(model.block_of_points(p_object)[0]),
+                score=1.0,
+                probability=1.0,
+            )
+        ]
