@@ -323,8 +323,7 @@ def with_background(
     the calibrated background by more than `max_change` levels (median over pixels, largest channel).
     """
     check_image(background, calibration.spec, path, "background")
-    change = np.abs(background.astype(np.int16) - calibration.background_i16).max(axis=2)
-    level = float(np.median(change))
+    level = background_change(background, calibration.background)
     if level > max_change:
         raise InputError(
             f"background differs from the calibration's background by {level:.0f} levels (median; limit "
@@ -450,11 +449,14 @@ class CalibrationReport:
         )
 
 
-def check_background(image: np.ndarray, background: np.ndarray, limit: float) -> float:
-    """Median over pixels of the largest per-channel colour change; most pixels of a press see no contact."""
+def background_change(image: np.ndarray, background: np.ndarray) -> float:
+    """Median over pixels of the largest per-channel colour change (levels).
+
+    Most pixels of a press see no contact, so this is small for a background of the same sensor and
+    lighting, and large for anything else.
+    """
     change = np.abs(image.astype(np.int16) - background.astype(np.int16)).max(axis=2)
-    value = float(np.median(change))
-    return value if value <= limit else -value
+    return float(np.median(change))
 
 
 def calibrate(
@@ -486,15 +488,15 @@ def calibrate(
     for i, (name, image) in enumerate(zip(names, presses, strict=True)):
         check_image(image, spec, name, "press image")
         images.append(image)
-        level = check_background(image, background, config.max_background_change)
-        if level < 0:
-            mismatched.append(-level)
+        level = background_change(image, background)
+        if level > config.max_background_change:
+            mismatched.append(level)
             results.append(
                 PressResult(
                     name,
                     False,
                     f"the image differs from the background almost everywhere "
-                    f"(median change {-level:.0f} levels): another sensor or lighting?",
+                    f"(median change {level:.0f} levels): another sensor or lighting?",
                 )
             )
             continue
