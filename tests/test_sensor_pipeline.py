@@ -30,9 +30,7 @@ BALL_RADIUS_PX = BALL_RADIUS_M / SPEC.pixel_size_m
 
 def synthetic_background() -> np.ndarray:
     """A smooth, uneven illumination like the Mini's (teal corners, a brighter middle)."""
-    y, x = (
-        np.mgrid[: SPEC.height_px, : SPEC.width_px] / np.array([SPEC.height_px, SPEC.width_px])[:, None, None]
-    )
+    y, x = np.mgrid[: SPEC.height_px, : SPEC.width_px] / np.array([SPEC.height_px, SPEC.width_px])[:, None, None]
     glow = np.exp(-((x - 0.5) ** 2 + (y - 0.5) ** 2) / 0.08)
     background = np.stack([70 + 50 * glow, 90 + 10 * glow, 100 + 20 * glow - 10 * x], axis=2)
     return np.clip(background, 0, 255).astype(np.uint8)
@@ -62,9 +60,7 @@ def _press_circles(rng, count):
     circles = []
     for _ in range(count):
         a = rng.uniform(22, 30)
-        circles.append(
-            (rng.uniform(a + 4, SPEC.width_px - a - 4), rng.uniform(a + 4, SPEC.height_px - a - 4), a)
-        )
+        circles.append((rng.uniform(a + 4, SPEC.width_px - a - 4), rng.uniform(a + 4, SPEC.height_px - a - 4), a))
     return circles
 
 
@@ -75,8 +71,7 @@ def synthetic():
     background = synthetic_background()
     circles = _press_circles(rng, 22)
     images = [
-        synthetic_sensor_image(press_height_map(cx, cy, a, BALL_RADIUS_M), background, rng)
-        for cx, cy, a in circles
+        synthetic_sensor_image(press_height_map(cx, cy, a, BALL_RADIUS_M), background, rng) for cx, cy, a in circles
     ]
     calibration, report = calibrate(background, images[:16], 2 * BALL_RADIUS_M)
     return {
@@ -102,9 +97,7 @@ def test_held_out_presses_give_the_ball_radius(synthetic):
     """Held-out presses reconstruct to spheres of the ball's radius (median within 3%, each within 8%)."""
     radii = []
     for k in range(16, 22):
-        result, recon = evaluate_press(
-            synthetic["images"][k], synthetic["calibration"], BALL_RADIUS_M, str(k), 0
-        )
+        result, recon = evaluate_press(synthetic["images"][k], synthetic["calibration"], BALL_RADIUS_M, str(k), 0)
         assert result.found and recon.contact
         cx, cy, a = synthetic["circles"][k]
         assert np.hypot(result.centre_x_px - cx, result.centre_y_px - cy) < 1.0
@@ -217,9 +210,7 @@ def test_calibration_file_round_trip(synthetic, tmp_path):
     image = synthetic["images"][19]
     a, b = reconstruct(image, calibration), reconstruct(image, loaded)
     np.testing.assert_array_equal(a.points_sensor, b.points_sensor)
-    np.testing.assert_array_equal(
-        render_image(a.height_map_m, calibration), render_image(a.height_map_m, loaded)
-    )
+    np.testing.assert_array_equal(render_image(a.height_map_m, calibration), render_image(a.height_map_m, loaded))
 
 
 def test_calibration_for_another_sensor_is_refused(synthetic, tmp_path):
@@ -262,8 +253,7 @@ def test_background_from_another_sensor_is_refused(synthetic):
     # A fresh background of the same sensor (a little brighter) is accepted and used.
     fresh = np.clip(synthetic["background"].astype(int) + 2, 0, 255).astype(np.uint8)
     assert (
-        with_background(synthetic["calibration"], fresh).background_sha256
-        != synthetic["calibration"].background_sha256
+        with_background(synthetic["calibration"], fresh).background_sha256 != synthetic["calibration"].background_sha256
     )
 
 
@@ -352,9 +342,7 @@ def test_cli_reconstruct_render_bench(synthetic, tmp_path, capsys):
         == 0
     )
     assert len(read_ply_points(tmp_path / "out" / "empty.ply")[0]) == 0
-    assert (
-        main(["sensor", "render", "--calibration", str(calibration), "--out", str(tmp_path / "r.png")]) == 0
-    )
+    assert main(["sensor", "render", "--calibration", str(calibration), "--out", str(tmp_path / "r.png")]) == 0
     assert np.asarray(Image.open(tmp_path / "r.png")).shape == (SPEC.height_px, SPEC.width_px, 3)
     assert main(["sensor", "bench", "--calibration", str(calibration), "--repeats", "20"]) == 0
     assert "image -> point cloud" in capsys.readouterr().out
@@ -375,3 +363,40 @@ def test_cli_reconstruct_render_bench(synthetic, tmp_path, capsys):
         == 2
     )
     assert "640x480" in capsys.readouterr().err
+
+
+def test_image_path_reconstructor_feeds_the_contact_simulator(synthetic, builtin_models):
+    """Simulated presses through rendered images and their reconstruction: clouds on the same surface as the
+    geometric path, deterministic for a height map, ground truth following the observed cloud, and the oracle
+    pose still close."""
+    from yoto.localize.base import OracleLocalizer
+    from yoto.pose.pipeline import estimate_pose
+    from yoto.evaluation.metrics import pose_errors
+    from yoto.sensor.optical import image_path_reconstructor
+    from yoto.simulate.scenarios import PairSimulator
+
+    calibration = synthetic["calibration"]
+    hook = image_path_reconstructor(calibration)
+    model = builtin_models["fruit"]
+    simulated = PairSimulator(model, reconstruct=hook).pair(seed=3, index=0)
+    height_map = simulated.height_maps["left"]
+    points = simulated.pair.left.points_sensor
+    assert np.array_equal(hook(height_map), points)  # seeded from the height map itself
+    # The reconstructed surface lies on the simulated gel surface: compare heights at the same pixels.
+    from yoto.sensor.spec import GELSIGHT_MINI
+
+    pixel = GELSIGHT_MINI.pixel_size_m
+    cols = np.round(points[:, 0] / pixel + (GELSIGHT_MINI.width_px - 1) / 2).astype(int)
+    rows = np.round(points[:, 1] / pixel + (GELSIGHT_MINI.height_px - 1) / 2).astype(int)
+    assert np.median(np.abs(points[:, 2] - height_map[rows, cols])) < 0.1e-3
+    # Ground truth is the surface point nearest the observed cloud's centroid (SPEC), not the gel's full contact.
+    from yoto.geometry import transform_points
+
+    for side in ("left", "right"):
+        press = simulated.contacts[side].press
+        centroid = transform_points(press.T_object_sensor, simulated.pair.contact(side).points_sensor.mean(axis=0))
+        assert np.linalg.norm(press.p_object - model.nearest_surface_point(centroid)) < 1.5 * model.point_spacing_m
+    errors = pose_errors(
+        estimate_pose(simulated.pair, model, OracleLocalizer()).T_world_mesh, simulated.pair.T_world_mesh_true, model
+    )
+    assert errors["translation_mm"] < 3.0 and errors["rotation_deg"] < 3.0

@@ -56,6 +56,7 @@ class BenchConfig:
     sensor_noise_mm: float = 0.0  # mean calibration error of each reported sensor position
     sensor_noise_deg: float = 0.0  # mean calibration error of each reported sensor orientation
     joint_selection: bool = True  # choose the candidate pair by geometric consistency (False: paper's top-1)
+    image_calibration: str | None = None  # GelSight calibration: contacts go height map -> image -> reconstruction
 
 
 @dataclass
@@ -176,7 +177,12 @@ def simulate_benchmark_pairs(model: ObjectModel, config: BenchConfig) -> list:
         calibration_translation_m=config.sensor_noise_mm / 1000.0,
         calibration_rotation_rad=np.radians(config.sensor_noise_deg),
     )
-    simulator = PairSimulator(model, scenario)
+    reconstruct = None
+    if config.image_calibration:
+        from yoto.sensor import image_path_reconstructor, load_calibration
+
+        reconstruct = image_path_reconstructor(load_calibration(config.image_calibration))
+    simulator = PairSimulator(model, scenario, reconstruct)
     return [
         simulator.pair(config.seed, index)
         for index in tqdm(range(config.num_pairs), desc=f"{model.name}: simulating", unit="pair", leave=False)

@@ -34,6 +34,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--sensor-noise-mm", type=float, default=0.0, help="sensor calibration error, position")
     parser.add_argument("--sensor-noise-deg", type=float, default=0.0, help="sensor calibration error, orientation")
+    parser.add_argument(
+        "--via-images",
+        metavar="CALIBRATION",
+        help="send every simulated contact through a rendered GelSight image and its reconstruction "
+        "(a calibration file from `yoto sensor calibrate`)",
+    )
     parser.add_argument("--independent", action="store_true", help="paper's per-contact top-1 instead of joint choice")
     parser.add_argument("--workspace", help="workspace folder")
     parser.add_argument("--out", default="bench_out", help="output folder")
@@ -73,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
         sensor_noise_mm=args.sensor_noise_mm,
         sensor_noise_deg=args.sensor_noise_deg,
         joint_selection=not args.independent,
+        image_calibration=args.via_images,
     )
     run_benchmark(args.objects, methods, config, args.out, args.workspace, args.overwrite)
     from pathlib import Path

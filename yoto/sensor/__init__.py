@@ -25,6 +25,7 @@ _EXPORTS = {
     "Reconstruction": "yoto.sensor.reconstruction",
     "reconstruct": "yoto.sensor.reconstruction",
     "render_image": "yoto.sensor.optical",
+    "image_path_reconstructor": "yoto.sensor.optical",
     "find_contact_circle": "yoto.sensor.presses",
     "load_image": "yoto.sensor.presses",
 }

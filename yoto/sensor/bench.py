@@ -43,8 +43,7 @@ class BenchResult:
         for name, (median, p90) in self.steps_ms.items():
             lines.append(f"| {name} | {median:.3f} | {p90:.3f} |")
         lines.append(
-            f"| **image -> point cloud (reconstruct)** | **{self.total_ms[0]:.3f}** | "
-            f"**{self.total_ms[1]:.3f}** |"
+            f"| **image -> point cloud (reconstruct)** | **{self.total_ms[0]:.3f}** | **{self.total_ms[1]:.3f}** |"
         )
         env = ", ".join(f"{k} {v}" for k, v in self.environment.items())
         return "\n".join(lines) + f"\n\n{self.repeats} timed frames after {self.frames} warm-up frames; {env}"
@@ -84,9 +83,7 @@ def _time(fn: Callable[[np.ndarray], Any], frames: list[np.ndarray], repeats: in
     return out * 1e3
 
 
-def run_benchmark(
-    calibration: SensorCalibration, frames: list[np.ndarray], repeats: int = 300
-) -> BenchResult:
+def run_benchmark(calibration: SensorCalibration, frames: list[np.ndarray], repeats: int = 300) -> BenchResult:
     """Time reconstruct() and each of its steps over `repeats` frames (cycling through `frames`)."""
     for frame in frames:  # warm-up: caches, allocator, FFT plans
         reconstruct(frame, calibration)
@@ -113,9 +110,7 @@ def run_benchmark(
         "checks + touched blocks (8x8 means)": lambda f: touched_box(
             check_frame(f, calibration), (spec.height_px, spec.width_px)
         ),
-        "gradients in the touched box (smoothing, table, gains)": lambda f: box_gradients(
-            f, calibration, at(boxes)(f)
-        ),
+        "gradients in the touched box (smoothing, table, gains)": lambda f: box_gradients(f, calibration, at(boxes)(f)),
         "Poisson integration in the box (DCT/DST, float32)": lambda f: integrate_box(
             *at(gradients)(f)[:2], at(boxes)(f), at(blocks)(f), spec.pixel_size_m
         ),

@@ -102,9 +102,7 @@ def press_height_map(
     dy = (np.arange(spec.height_px)[:, None] - centre_y_px) * pixel
     r = np.hypot(dx, dy)
     inside = r < a
-    sphere = (
-        -(np.sqrt(np.maximum(ball_radius_m**2 - r * r, 0.0)) - np.sqrt(ball_radius_m**2 - a * a)) - depth / 2
-    )
+    sphere = -(np.sqrt(np.maximum(ball_radius_m**2 - r * r, 0.0)) - np.sqrt(ball_radius_m**2 - a * a)) - depth / 2
     ratio = np.maximum(r / a, 1.0)
     outside = -(depth / np.pi) * ((2 - ratio**2) * np.arcsin(1 / ratio) + np.sqrt(ratio**2 - 1))
     return np.where(inside, sphere, outside)
@@ -197,12 +195,8 @@ class CalibrationConfig:
     gradient_model: GradientModelConfig = field(default_factory=GradientModelConfig)  # colour -> gradient
     image_model: ImageModelConfig = field(default_factory=ImageModelConfig)  # gradient -> colour
     mask: MaskConfig = field(default_factory=MaskConfig)  # contact mask written into the calibration
-    smooth: bool = (
-        True  # 3x3 binomial smoothing of the colour change before the model (also at reconstruction)
-    )
-    first_fit_fraction: float = (
-        0.7  # the first fit uses pixels within this fraction of the colour-disc radius
-    )
+    smooth: bool = True  # 3x3 binomial smoothing of the colour change before the model (also at reconstruction)
+    first_fit_fraction: float = 0.7  # the first fit uses pixels within this fraction of the colour-disc radius
     inside_fraction: float = 0.9  # later fits use pixels within this fraction of the refined contact radius
     flat_margin: float = 2.2  # pixels beyond this multiple of the radius (of every press) are labelled flat
     flat_stride: int = 21  # use every n-th flat pixel (raster order) of each press
@@ -384,9 +378,7 @@ def load_calibration(path: str | Path, spec: GelSightSpec | None = None) -> Sens
         gradient_model = load_gradient_model(
             arrays, "gradient_", gradient_config, (file_spec.height_px, file_spec.width_px)
         )
-        image_model = ImageModel(
-            arrays["image_coefficients"], float(model["image_max_gradient"]), image_config
-        )
+        image_model = ImageModel(arrays["image_coefficients"], float(model["image_max_gradient"]), image_config)
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(
             f"sensor calibration file is incomplete or damaged ({type(exc).__name__}: {exc})", path
@@ -403,8 +395,7 @@ def load_calibration(path: str | Path, spec: GelSightSpec | None = None) -> Sens
         )
     if spec is not None and abs(spec.mm_per_px - file_spec.mm_per_px) > 1e-9:
         raise InputError(
-            f"calibration scale is {file_spec.mm_per_px} mm/px but the {spec.name} has "
-            f"{spec.mm_per_px} mm/px",
+            f"calibration scale is {file_spec.mm_per_px} mm/px but the {spec.name} has {spec.mm_per_px} mm/px",
             path,
         )
     if background.shape != (file_spec.height_px, file_spec.width_px, 3) or background.dtype != np.uint8:
@@ -535,10 +526,7 @@ def calibrate(
         raise InputError(f"only {len(usable)} usable presses (need {config.min_presses}). {reasons}")
 
     changes = {i: model_colour_change(images[i], background_i16, config.smooth) for i in usable}
-    circles = {
-        i: (results[i].disc.centre_x_px, results[i].disc.centre_y_px, results[i].disc.radius_px)
-        for i in usable
-    }
+    circles = {i: (results[i].disc.centre_x_px, results[i].disc.centre_y_px, results[i].disc.radius_px) for i in usable}
     model = _fit_round(changes, circles, ball_radius_px, config.first_fit_fraction, config, spec)
     fraction = config.first_fit_fraction
     for _ in range(config.refine_iterations):
@@ -617,17 +605,13 @@ def _training_samples(
         for mask, is_contact in ((inside, True), (flat, False)):
             out["c"].append(change[mask].astype(np.float64))
             out["p"].append(np.stack([x[mask], y[mask]], 1))
-            out["g"].append(
-                np.stack([gx[mask], gy[mask]], 1) if is_contact else np.zeros((int(mask.sum()), 2))
-            )
+            out["g"].append(np.stack([gx[mask], gy[mask]], 1) if is_contact else np.zeros((int(mask.sum()), 2)))
             out["w"].append(np.full(int(mask.sum()), 1.0 if is_contact else config.flat_weight))
     return tuple(np.concatenate(v) for v in out.values())
 
 
 def _fit_round(changes, circles, ball_radius_px, fraction, config, spec) -> GradientModel:
-    colours, positions, gradients, weights = _training_samples(
-        changes, circles, ball_radius_px, fraction, config, spec
-    )
+    colours, positions, gradients, weights = _training_samples(changes, circles, ball_radius_px, fraction, config, spec)
     return fit_gradient_model(
         colours, positions, gradients, weights, (spec.height_px, spec.width_px), config.gradient_model
     )

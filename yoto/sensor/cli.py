@@ -20,9 +20,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     calibrate = commands.add_parser("calibrate", help="calibrate from a background image and ball presses")
     _add_press_arguments(calibrate)
     calibrate.add_argument("--out", help="calibration file to write (default: WORKSPACE/sensors/SENSOR.npz)")
-    calibrate.add_argument(
-        "--workspace", help="workspace folder (default: $YOTO_WORKSPACE or ./yoto_workspace)"
-    )
+    calibrate.add_argument("--workspace", help="workspace folder (default: $YOTO_WORKSPACE or ./yoto_workspace)")
     calibrate.add_argument("--overwrite", action="store_true", help="replace an existing calibration file")
     calibrate.set_defaults(run=_run_calibrate)
 
@@ -32,9 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     recon.add_argument("input", help="an image, a folder of images, or a multi-frame file (GIF, TIFF, .npy)")
     recon.add_argument("--calibration", required=True, help="calibration file from `yoto sensor calibrate`")
     recon.add_argument("--out", required=True, help="PLY file for one image; a folder for several frames")
-    recon.add_argument(
-        "--background", help="a fresh no-contact image of the same sensor (default: the calibration's)"
-    )
+    recon.add_argument("--background", help="a fresh no-contact image of the same sensor (default: the calibration's)")
     recon.add_argument("--height-maps", action="store_true", help="also write each height map (.npy, metres)")
     recon.set_defaults(run=_run_reconstruct)
 
@@ -72,9 +68,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _add_press_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--background", required=True, help="image of the sensor with nothing touching it")
-    parser.add_argument(
-        "--presses", required=True, help="folder of ball-press images (or sub-folders of them)"
-    )
+    parser.add_argument("--presses", required=True, help="folder of ball-press images (or sub-folders of them)")
     parser.add_argument("--ball-diameter-mm", type=float, required=True, help="diameter of the ball (mm)")
 
 
@@ -130,9 +124,7 @@ def _read_frames(path: Path):
     if suffix == ".npy":
         stack = np.load(path, allow_pickle=False)
         if stack.ndim != 4:
-            raise InputError(
-                f"a frame stack must be (frames, rows, cols, 3) uint8, got shape {stack.shape}", path
-            )
+            raise InputError(f"a frame stack must be (frames, rows, cols, 3) uint8, got shape {stack.shape}", path)
         for k, frame in enumerate(stack):
             yield f"frame_{k:05d}", frame
         return
@@ -164,9 +156,7 @@ def _read_frames(path: Path):
     if suffix in IMAGE_SUFFIXES:
         yield path.stem, load_image(path)
         return
-    raise InputError(
-        f"unknown input type '{suffix}' (expected an image, a folder, GIF/TIFF, .npy or a video)", path
-    )
+    raise InputError(f"unknown input type '{suffix}' (expected an image, a folder, GIF/TIFF, .npy or a video)", path)
 
 
 def _run_reconstruct(args: argparse.Namespace) -> int:
@@ -178,9 +168,7 @@ def _run_reconstruct(args: argparse.Namespace) -> int:
 
     calibration = load_calibration(args.calibration)
     if args.background:
-        calibration = with_background(
-            calibration, load_image(args.background, calibration.spec), args.background
-        )
+        calibration = with_background(calibration, load_image(args.background, calibration.spec), args.background)
     source = Path(args.input)
     frames = _read_frames(source)
     single = source.is_file() and source.suffix.lower() not in VIDEO_SUFFIXES
@@ -266,9 +254,7 @@ def _run_render(args: argparse.Namespace) -> int:
     calibration = load_calibration(args.calibration)
     spec = calibration.spec
     cx, cy = args.centre_px if args.centre_px else ((spec.width_px - 1) / 2, (spec.height_px - 1) / 2)
-    height = press_height_map(
-        cx, cy, args.contact_radius_mm / spec.mm_per_px, args.ball_diameter_mm * 5e-4, spec
-    )
+    height = press_height_map(cx, cy, args.contact_radius_mm / spec.mm_per_px, args.ball_diameter_mm * 5e-4, spec)
     rng = None if args.seed is None else np.random.default_rng(args.seed)
     image = render_image(height, calibration, rng)
     import io

@@ -240,9 +240,7 @@ def _position_maps(
     x, y = normalised_xy(rows, cols)
     pos = monomials(np.stack([x.ravel(), y.ravel()], 1), position_exps)  # (pixels, n_pos)
     bias = (pos @ c_pos).T.reshape(2, rows, cols)
-    gains = (
-        np.stack([(pos @ c_gain[j]).T.reshape(2, rows, cols) for j in range(3)], axis=1) / config.colour_scale
-    )
+    gains = np.stack([(pos @ c_gain[j]).T.reshape(2, rows, cols) for j in range(3)], axis=1) / config.colour_scale
     return bias.astype(np.float32), np.ascontiguousarray(gains, dtype=np.float32)
 
 
@@ -256,8 +254,7 @@ def load_gradient_model(
     expected = _design_width(3, config.colour_degree, config.position_degree)
     if lut.shape != (2, cells) or coefficients.shape != (expected, 2):
         raise ValueError(
-            f"model arrays have shapes {lut.shape} and {coefficients.shape}, expected (2, {cells}) "
-            f"and ({expected}, 2)"
+            f"model arrays have shapes {lut.shape} and {coefficients.shape}, expected (2, {cells}) and ({expected}, 2)"
         )
     bias, gains = _position_maps(coefficients, image_shape, config)
     return GradientModel(lut, bias, gains, coefficients, config)

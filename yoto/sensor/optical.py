@@ -61,3 +61,24 @@ def render_image(
     if rng is not None:
         image += rng.normal(size=image.shape).astype(np.float32) * calibration.noise_std.astype(np.float32)
     return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+def image_path_reconstructor(calibration: SensorCalibration, sensor_noise: bool = True):
+    """A height map -> tactile cloud function that goes through a rendered GelSight image and its reconstruction.
+
+    Plug it into the contact simulator (`PairSimulator(..., reconstruct=...)`) so contacts carry the real
+    reconstruction's errors. The sensor noise of each image is seeded from the height map itself, so a
+    contact's cloud does not depend on the order contacts are simulated in.
+    """
+    import hashlib
+
+    from yoto.sensor.reconstruction import reconstruct
+
+    def height_map_to_points(height_map_m: np.ndarray) -> np.ndarray:
+        rng = None
+        if sensor_noise:
+            digest = hashlib.sha256(np.ascontiguousarray(height_map_m, dtype=np.float64).tobytes()).digest()
+            rng = np.random.default_rng(int.from_bytes(digest[:8], "little"))
+        return reconstruct(render_image(height_map_m, calibration, rng), calibration).points_sensor
+
+    return height_map_to_points

@@ -126,9 +126,7 @@ class CircleConfig:
     max_residual_px: float = 3.0  # RMS distance of the inlier edge points from the fitted circle
     iterations: int = 3  # re-cast rays from the refined centre this many times
     seed: int = 0  # RANSAC sampling seed
-    mode: str = (
-        "edge"  # "edge": where the map falls fastest along a ray (the rim of a disc); "peak": its maximum
-    )
+    mode: str = "edge"  # "edge": where the map falls fastest along a ray (the rim of a disc); "peak": its maximum
 
 
 @dataclass(frozen=True)
@@ -200,9 +198,7 @@ def ring_circle(
             f"circle radius {radius:.1f} px is outside [{config.min_radius_px}, {config.max_radius_px}] px"
         )
     if coverage < config.min_coverage:
-        raise NoCircleError(
-            f"the edge points cover only {coverage:.0%} of the circle (need {config.min_coverage:.0%})"
-        )
+        raise NoCircleError(f"the edge points cover only {coverage:.0%} of the circle (need {config.min_coverage:.0%})")
     if residual > config.max_residual_px:
         raise NoCircleError(
             f"edge points scatter {residual:.1f} px RMS about the circle (limit {config.max_residual_px} px)"
@@ -223,9 +219,7 @@ def _blob_centre(ring_map: np.ndarray, threshold: float) -> tuple[float, float]:
     return float(np.average(cols, weights=weights)), float(np.average(rows, weights=weights))
 
 
-def _ray_peaks(
-    ring_map: np.ndarray, centre: np.ndarray, config: CircleConfig
-) -> tuple[np.ndarray, np.ndarray]:
+def _ray_peaks(ring_map: np.ndarray, centre: np.ndarray, config: CircleConfig) -> tuple[np.ndarray, np.ndarray]:
     """Edge points: along each ray from `centre`, the radius where the map peaks (sub-pixel)."""
     rows, cols = ring_map.shape
     angles = np.linspace(0.0, 2 * np.pi, config.num_rays, endpoint=False)
@@ -283,9 +277,7 @@ def _ransac_circle(
     cx, cy = solution[:, 0] / 2, solution[:, 1] / 2
     squared = solution[:, 2] + cx * cx + cy * cy
     radius = np.sqrt(np.maximum(squared, 0.0))
-    distance = np.abs(
-        np.hypot(points[None, :, 0] - cx[:, None], points[None, :, 1] - cy[:, None]) - radius[:, None]
-    )
+    distance = np.abs(np.hypot(points[None, :, 0] - cx[:, None], points[None, :, 1] - cy[:, None]) - radius[:, None])
     inliers = distance < inlier_px
     counts = np.where(squared > 0, inliers.sum(axis=1), 0)
     best = int(np.argmax(counts))

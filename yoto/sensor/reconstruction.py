@@ -178,9 +178,7 @@ def block_change(image: np.ndarray, background_i16: np.ndarray, block: int = BLO
     return level
 
 
-def check_frame(
-    image: np.ndarray, calibration: SensorCalibration, source: str | Path | None = None
-) -> np.ndarray:
+def check_frame(image: np.ndarray, calibration: SensorCalibration, source: str | Path | None = None) -> np.ndarray:
     """Raise InputError for a frame the calibration cannot reconstruct; return its block colour change.
 
     Checks: size and dtype, saturation, and that the frame shows the calibration's background where it is
@@ -283,9 +281,7 @@ def box_gradients(
     rows, cols = image.shape[:2]
     # One extra pixel around the box so the 3x3 smoothing inside it matches a full-frame smoothing.
     r0, r1, c0, c1 = max(0, row0 - 1), min(rows, row1 + 1), max(0, col0 - 1), min(cols, col1 + 1)
-    change = model_colour_change(
-        image[r0:r1, c0:c1], calibration.background_i16[r0:r1, c0:c1], calibration.smooth
-    )
+    change = model_colour_change(image[r0:r1, c0:c1], calibration.background_i16[r0:r1, c0:c1], calibration.smooth)
     change = change[row0 - r0 : row1 - r0, col0 - c0 : col1 - c0]
     box_gx, box_gy = calibration.gradient_model.predict(change, origin=(row0, col0))
     gx = np.zeros((rows, cols), np.float32)

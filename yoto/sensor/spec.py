@@ -40,8 +40,7 @@ class GelSightSpec:
         """Sensor-frame (N, 3) points of the masked pixels of a height map, row-major order."""
         if height_map_m.shape != (self.height_px, self.width_px) or mask.shape != height_map_m.shape:
             raise ValueError(
-                f"height map {height_map_m.shape} and mask {mask.shape} must be "
-                f"({self.height_px}, {self.width_px})"
+                f"height map {height_map_m.shape} and mask {mask.shape} must be ({self.height_px}, {self.width_px})"
             )
         x, y = self.pixel_xy_sensor()
         return np.stack([x[mask], y[mask], height_map_m[mask]], axis=1)

@@ -46,9 +46,7 @@ class PressValidation:
     radius_px: float = float("nan")  # found contact circle radius
     fitted_radius_mm: float = float("nan")  # sphere fitted to the reconstructed cap
     sphere_centre_mm: tuple[float, float, float] = (float("nan"),) * 3  # fitted sphere centre, sensor frame
-    profile_rmse_mm: float = float(
-        "nan"
-    )  # RMS height error vs the Hertz press inside the circle, offset removed
+    profile_rmse_mm: float = float("nan")  # RMS height error vs the Hertz press inside the circle, offset removed
     offset_mm: float = float("nan")  # mean (reconstructed - Hertz press) height inside the circle
     depth_mm: float = float("nan")  # deepest reconstructed point
     mask_iou: float = float("nan")  # intersection over union of the contact mask and the found circle
@@ -65,9 +63,7 @@ class ValidationResult:
     calibrations: list[SensorCalibration] = field(default_factory=list)  # per fold, calibrated without it
 
     def fitted(self) -> np.ndarray:
-        return np.array(
-            [p.fitted_radius_mm for p in self.presses if p.found and np.isfinite(p.fitted_radius_mm)]
-        )
+        return np.array([p.fitted_radius_mm for p in self.presses if p.found and np.isfinite(p.fitted_radius_mm)])
 
     @property
     def median_radius_mm(self) -> float:
@@ -253,9 +249,7 @@ def validate(
             results[i] = result
             if recon is not None:
                 kept[i] = (presses[i], recon, calibration)
-    validation = ValidationResult(
-        [r for r in results if r is not None], ball_diameter_m / 2 * 1e3, folds, calibrations
-    )
+    validation = ValidationResult([r for r in results if r is not None], ball_diameter_m / 2 * 1e3, folds, calibrations)
     if figure is not None and kept:
         errors = {i: abs(results[i].radius_error(validation.ball_radius_mm)) for i in kept}
         median = float(np.median(list(errors.values())))

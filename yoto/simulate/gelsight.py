@@ -561,6 +561,13 @@ def finish_contact(
         contact.points_sensor = None
         return contact
     contact.points_sensor = points
+    if reconstruct is not None:
+        # SPEC: the true contact is the surface point nearest the centroid of the contact patch, and the patch
+        # is what the sensor reports. A reconstruction's mask can differ from the gel's true contact (a tilted
+        # flat press keeps only its deeper half), so the truth follows the observed cloud.
+        centroid_object = transform_points(press.T_object_sensor, points.mean(axis=0))
+        press.details["p_object_of_true_contact"] = press.p_object.tolist()
+        press.p_object = simulator.closest_surface_points(centroid_object[None])[0]
     return contact
 
 
