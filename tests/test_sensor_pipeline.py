@@ -367,11 +367,7 @@ def test_cli_reconstruct_render_bench(synthetic, tmp_path, capsys):
 
 def test_image_path_reconstructor_feeds_the_contact_simulator(synthetic, builtin_models):
     """Simulated presses through rendered images and their reconstruction: clouds on the same surface as the
-    geometric path, deterministic for a height map, ground truth following the observed cloud, and the oracle
-    pose still close."""
-    from yoto.localize.base import OracleLocalizer
-    from yoto.pose.pipeline import estimate_pose
-    from yoto.evaluation.metrics import pose_errors
+    geometric path, deterministic for a height map, ground truth following the observed cloud."""
     from yoto.sensor.optical import image_path_reconstructor
     from yoto.simulate.scenarios import PairSimulator
 
@@ -396,7 +392,3 @@ def test_image_path_reconstructor_feeds_the_contact_simulator(synthetic, builtin
         press = simulated.contacts[side].press
         centroid = transform_points(press.T_object_sensor, simulated.pair.contact(side).points_sensor.mean(axis=0))
         assert np.linalg.norm(press.p_object - model.nearest_surface_point(centroid)) < 1.5 * model.point_spacing_m
-    errors = pose_errors(
-        estimate_pose(simulated.pair, model, OracleLocalizer()).T_world_mesh, simulated.pair.T_world_mesh_true, model
-    )
-    assert errors["translation_mm"] < 3.0 and errors["rotation_deg"] < 3.0

@@ -7,7 +7,7 @@ import pytest
 from conftest import shared_data
 
 from yoto.errors import InputError
-from yoto.sensor.calibration import press_height_map
+from yoto.sensor.calibration import calibrate, press_height_map
 from yoto.sensor.optical import render_image
 from yoto.sensor.presses import find_contact_circle, list_press_images, load_image
 from yoto.sensor.reconstruction import reconstruct
@@ -81,3 +81,26 @@ def test_real_round_trip_and_points(real_presses, two_fold):
     # A frame from another sensor (channels permuted) is refused.
     with pytest.raises(InputError, match="background"):
         reconstruct(presses[20][..., ::-1].copy(), calibration)
+
+
+def test_oracle_pose_through_real_calibrated_images(real_presses, builtin_models):
+    """Contacts rendered with the real sensor's optics and reconstructed: the oracle pose stays within a few
+    degrees, so the image path's errors reach the pose figures at the size the benchmark reports."""
+    from yoto.evaluation.metrics import pose_errors
+    from yoto.localize.base import OracleLocalizer
+    from yoto.pose.pipeline import estimate_pose
+    from yoto.sensor.optical import image_path_reconstructor
+    from yoto.simulate.scenarios import PairSimulator
+
+    background, presses, _ = real_presses
+    calibration, _ = calibrate(background, presses, BALL_DIAMETER_M)
+    model = builtin_models["fruit"]
+    simulator = PairSimulator(model, reconstruct=image_path_reconstructor(calibration))
+    errors = []
+    for index in range(4):
+        pair = simulator.pair(seed=11, index=index).pair
+        errors.append(
+            pose_errors(estimate_pose(pair, model, OracleLocalizer()).T_world_mesh, pair.T_world_mesh_true, model)
+        )
+    assert np.median([e["rotation_deg"] for e in errors]) < 2.5
+    assert np.median([e["translation_mm"] for e in errors]) < 2.0

@@ -45,7 +45,7 @@ import numpy as np
 import trimesh
 from scipy import ndimage
 
-from yoto.errors import InputError, require_open3d
+from yoto.errors import InputError, YotoError, require_open3d
 from yoto.geometry import (
     invert_transform,
     make_transform,
@@ -549,7 +549,11 @@ def finish_contact(
 
     press = contact.press
     if reconstruct is not None:
-        points = np.asarray(reconstruct(press.height_map_m), dtype=np.float64).reshape(-1, 3)
+        try:
+            points = np.asarray(reconstruct(press.height_map_m), dtype=np.float64).reshape(-1, 3)
+        except YotoError as exc:  # the reconstruction refused the frame: a contact the sensor cannot report
+            press.details["reconstruction_error"] = str(exc)
+            points = np.empty((0, 3))
         contact.noise = {"reconstruct": 1.0}
     else:
         points, contact.noise = reconstruct_points(
