@@ -165,3 +165,30 @@ def test_shared_drill_builds_with_the_papers_block_counts():
     assert 40 <= model.num_blocks <= 54
     bbox_mm = np.array(model.meta["bbox_object_m"]) * 1000
     assert bbox_mm[0] >= bbox_mm[1] >= bbox_mm[2]
+
+
+def test_nan_and_non_manifold_meshes(tmp_path, caplog):
+    box = _box_mesh()
+    vertices = box.vertices.copy()
+    vertices[3] = np.nan
+    path = tmp_path / "nan.obj"
+    path.write_text(
+        "".join(f"v {x} {y} {z}\n" for x, y, z in vertices)
+        + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in box.faces)
+    )
+    with pytest.raises(InputError, match="nan.obj: mesh has 1 vertices with NaN"):
+        load_mesh(path)
+
+    # A fin: an extra triangle on one of the box's edges makes that edge shared by three faces.
+    edge = box.edges_unique[0]
+    fin_vertex = box.vertices[edge].mean(axis=0) * 1.5 + np.array([0.0, 0.0, 0.05])
+    fin = trimesh.Trimesh(
+        np.vstack([box.vertices, fin_vertex]), np.vstack([box.faces, [[edge[0], edge[1], 8]]]), process=False
+    )
+    path = tmp_path / "fin.ply"
+    fin.export(path)
+    _, report, _ = load_mesh(path)
+    assert report.non_manifold_edges == 1
+    with caplog.at_level("WARNING", logger="yoto"):
+        build_object(path, "fin", SMALL, workspace=tmp_path)
+    assert "fin.ply: 1 non-manifold edges" in caplog.text

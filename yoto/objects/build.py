@@ -65,6 +65,13 @@ def build_object(
         mesh, report, scale = load_mesh(mesh_path, units)
         source["scale_to_m"] = scale
         log.info("%s: %s", mesh_path, report.summary())
+        if report.non_manifold_edges:
+            log.warning(
+                "%s: %d non-manifold edges (more than two faces on one edge): the surface is sampled as given, "
+                "but check the mesh if contacts there look wrong",
+                mesh_path,
+                report.non_manifold_edges,
+            )
     model = build_object_model(mesh, name, config, source=source, repair_report=report)
     model.save(out_path)
     log.info(
