@@ -27,7 +27,7 @@ from yoto.contacts import SIDES
 from yoto.errors import InputError, YotoError
 from yoto.evaluation.metrics import pose_errors, summarize
 from yoto.geometry import transform_points
-from yoto.io import read_json, write_json_atomic, write_text_atomic
+from yoto.io import read_json, write_bytes_atomic, write_json_atomic, write_text_atomic
 from yoto.objects.build import build_object, load_object_model
 from yoto.objects.mesh import MESH_SUFFIXES
 from yoto.objects.model import ObjectModel
@@ -197,7 +197,7 @@ def run_benchmark(
     workspace: str | Path | None = None,
     overwrite: bool = False,
 ) -> dict[str, Any]:
-    """Run every method on every object; write bench.md and bench.json into `out_dir`; return the report."""
+    """Run every method on every object; write bench.md, bench.json and bench.png into `out_dir`."""
     out_dir = Path(out_dir)
     partial_dir = out_dir / "partial"
     labels = [m.label for m in methods]
@@ -232,6 +232,7 @@ def run_benchmark(
     }
     write_json_atomic(out_dir / "bench.json", report)
     write_text_atomic(out_dir / "bench.md", format_markdown(report))
+    plot_report(results, methods, out_dir / "bench.png")
     return report
 
 
@@ -373,3 +374,58 @@ def format_markdown(report: dict[str, Any]) -> str:
             ]
     lines.append(f"\nWall time {run['wall_time_s']:.0f} s.")
     return "\n".join(lines) + "\n"
+
+
+def plot_report(results: dict[str, dict[str, MethodResult]], methods: list[MethodSpec], path: Path) -> Path:
+    """Localization and pose error CDFs per method (all objects), and pose error against confidence."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(1, 4, figsize=(18, 4.2))
+    panels = (
+        ("localization_top1_mm", "contact localization error (mm)"),
+        ("translation_mm", "pose translation error (mm)"),
+        ("rotation_deg", "pose rotation error (deg)"),
+    )
+    colours = {spec.label: f"C{i}" for i, spec in enumerate(methods)}
+    for axis, (key, title) in zip(axes[:3], panels):
+        for spec in methods:
+            values = np.sort(
+                [
+                    v
+                    for by_label in results.values()
+                    if spec.label in by_label
+                    for v in getattr(by_label[spec.label], key)
+                ]
+            )
+            if len(values) and (key != "localization_top1_mm" or spec.method != "oracle"):
+                axis.plot(values, np.arange(1, len(values) + 1) / len(values), label=spec.label, c=colours[spec.label])
+        axis.set_xscale("symlog", linthresh=1.0)
+        axis.set_xlabel(title)
+        axis.set_ylabel("fraction of contacts" if key.startswith("local") else "fraction of pairs")
+        axis.grid(alpha=0.3)
+    axes[1].legend(fontsize=8)
+    for spec in methods:
+        if spec.method != "yoto":
+            continue
+        confidence = [
+            v for by_label in results.values() if spec.label in by_label for v in by_label[spec.label].confidence
+        ]
+        translation = [
+            v for by_label in results.values() if spec.label in by_label for v in by_label[spec.label].translation_mm
+        ]
+        axes[3].scatter(confidence, translation, s=8, alpha=0.6, label=spec.label, c=colours[spec.label])
+    axes[3].set_yscale("log")
+    axes[3].set_xlabel("YOTO confidence")
+    axes[3].set_ylabel("pose translation error (mm)")
+    axes[3].set_title("re-touch below a confidence threshold")
+    axes[3].grid(alpha=0.3)
+    figure.tight_layout()
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=90)
+    plt.close(figure)
+    return write_bytes_atomic(path, buffer.getvalue())
