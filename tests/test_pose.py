@@ -19,7 +19,7 @@ from yoto.geometry import (
     transform_points,
 )
 from yoto.localize.base import OracleLocalizer
-from yoto.pose.pipeline import estimate_pose
+from yoto.pose.pipeline import PAPER, PoseConfig, estimate_pose
 from yoto.solver import ContactEstimate
 
 
@@ -123,8 +123,8 @@ def test_joint_selection_prefers_the_geometrically_consistent_pair(builtin_model
     model = builtin_models["tool"]
     pair = read_contact_pair(write_foreign_pairs(model, tmp_path, rng, 1)[0])
     decoys = [model.points_object[i].astype(float) for i in (0, 5000, 10000, 15000)]
-    joint = estimate_pose(pair, model, _TwoCandidates(decoys[:2]))
-    independent = estimate_pose(pair, model, _TwoCandidates(decoys[2:]), joint_selection=False)
+    joint = estimate_pose(pair, model, _TwoCandidates(decoys[:2]), PoseConfig(verify=False, refine=False))
+    independent = estimate_pose(pair, model, _TwoCandidates(decoys[2:]), PAPER)
     for side in ("left", "right"):
         truth = transform_points(model.T_object_mesh, pair.p_mesh_true[side])
         assert np.allclose(joint.contacts[side].p_object, truth)
@@ -132,3 +132,55 @@ def test_joint_selection_prefers_the_geometrically_consistent_pair(builtin_model
     assert pose_errors(joint.T_world_mesh, pair.T_world_mesh_true, model)["translation_mm"] < 3.0
     assert pose_errors(independent.T_world_mesh, pair.T_world_mesh_true, model)["translation_mm"] > 10.0
     assert joint.consistency > 0.9 > independent.consistency
+
+
+def test_surface_verification_and_refinement(builtin_models, tmp_path, rng):
+    """Under the true pose both tactile clouds lie on the surface; a pose 2 mm / 2 deg off does not, and
+    refinement brings it back to a fraction of that."""
+    from yoto.geometry import random_perturbation, rotation_angle_rad
+    from yoto.pose.refine import RefineConfig, contact_samples, refine_pose, surface_fit
+
+    model = builtin_models["figurine"]
+    config = RefineConfig()
+    for path in write_foreign_pairs(model, tmp_path, rng, 3):
+        pair = read_contact_pair(path)
+        T_true = pair.T_world_mesh_true @ model.T_mesh_object
+        points = np.vstack(
+            [
+                contact_samples(
+                    pair.contact(s).points_sensor, pair.contact(s).T_world_sensor, model.point_spacing_m, config
+                )
+                for s in ("left", "right")
+            ]
+        )
+        true_fit = surface_fit(model, T_true, points, config)
+        assert true_fit.rms_m < 0.15e-3 and true_fit.inlier_fraction > 0.9
+        perturbation = random_perturbation(rng, 0.002 / np.sqrt(3), np.radians(2.0))
+        T_start = T_true @ perturbation
+        assert surface_fit(model, T_start, points, config).rms_m > 0.5e-3
+        T_refined, fit = refine_pose(model, T_start, points, config)
+        assert fit.rms_m < 0.2e-3
+        assert np.linalg.norm(T_refined[:3, 3] - T_true[:3, 3]) < 0.5e-3
+        assert np.degrees(rotation_angle_rad(T_refined, T_true)) < 0.8
+
+
+def test_refinement_does_not_slide_on_a_sphere(rng):
+    """A sphere constrains no rotation: refinement fixes the translation but keeps the starting rotation."""
+    import trimesh
+
+    from yoto.geometry import rotation_angle_rad
+    from yoto.objects.model import ObjectModelConfig, build_object_model
+    from yoto.pose.refine import RefineConfig, refine_pose
+
+    model = build_object_model(
+        trimesh.creation.icosphere(subdivisions=5, radius=0.04), "ball", ObjectModelConfig(num_points=40_000)
+    )
+    patch = model.points_object[np.linalg.norm(model.points_object - [0, 0, 0.04], axis=1) < 0.008].astype(float)
+    patch2 = model.points_object[np.linalg.norm(model.points_object - [0.04, 0, 0], axis=1) < 0.008].astype(float)
+    T_true = make_transform(random_rotations(rng, 1)[0], [0.5, 0.1, 0.2])
+    points_world = transform_points(T_true, np.vstack([patch, patch2]))
+    offset = make_transform(rotation_about_axis(np.array([0.3, 0.2, 0.9]), np.radians(3.0)), [0.001, -0.0005, 0.0008])
+    T_start = T_true @ offset
+    T_refined, fit = refine_pose(model, T_start, points_world, RefineConfig())
+    assert np.linalg.norm(T_refined[:3, 3] - T_true[:3, 3]) < 0.2e-3  # the centre is pinned down
+    assert abs(np.degrees(rotation_angle_rad(T_refined, T_start))) < 0.5  # the free rotation is left alone

@@ -57,6 +57,7 @@ class PoseSolution:
     well_conditioned: bool
     separation_error_m: float  # | |pR_w - pL_w| - |pR_o - pL_o| |: a wrong localization shows here
     normal_angle_error_rad: float  # |angle(nL_w, nR_w) - angle(nL_o, nR_o)|
+    direction_angle_errors_rad: np.ndarray  # (3,) |world - object| of the angles (d, nL), (d, nR), (nL, nR)
     alignment_residual_rad: float  # largest angle between R @ Q_object and Q_world columns
 
     @property
@@ -133,14 +134,17 @@ def solve_pose(
     singular_values = np.linalg.svd(q_object, compute_uv=False)
     conditioning = float(singular_values[1] / singular_values[0])
     aligned = rotation @ q_object
+    pairs = ((0, 1), (0, 2), (1, 2))
+    angle_errors = np.array(
+        [abs(_angle(q_world[:, i], q_world[:, j]) - _angle(q_object[:, i], q_object[:, j])) for i, j in pairs]
+    )
     return PoseSolution(
         T_world_object=make_transform(rotation, translation),
         direction_singular_values=singular_values,
         conditioning=conditioning,
         well_conditioned=conditioning >= WELL_CONDITIONED,
         separation_error_m=float(abs(np.linalg.norm(offset_world) - np.linalg.norm(offset_object))),
-        normal_angle_error_rad=abs(
-            _angle(left_world.n_world, right_world.n_world) - _angle(left.n_object, right.n_object)
-        ),
+        normal_angle_error_rad=float(angle_errors[2]),
+        direction_angle_errors_rad=angle_errors,
         alignment_residual_rad=max(_angle(aligned[:, i], q_world[:, i]) for i in range(3)),
     )

@@ -31,7 +31,15 @@ from yoto.io import read_json, write_bytes_atomic, write_json_atomic, write_text
 from yoto.objects.build import build_object, load_object_model
 from yoto.objects.mesh import MESH_SUFFIXES
 from yoto.objects.model import ObjectModel
-from yoto.pose.pipeline import estimate_pose
+from yoto.pose.pipeline import PAPER, PoseConfig, localize_contacts, pose_from_candidates
+
+POSE_STAGES = {"full": PoseConfig(), "paper": PAPER}
+
+
+def row_label(label: str, stage: str) -> str:
+    """Table row of a method under a pose stage: the full stage keeps the method's label."""
+    return label if stage == "full" else f"{label}, paper pose stage"
+
 
 log = logging.getLogger("yoto")
 
@@ -55,7 +63,7 @@ class BenchConfig:
     warmup_pairs: int = 2  # pairs whose latency is excluded (first calls: caches, lazy imports)
     sensor_noise_mm: float = 0.0  # mean calibration error of each reported sensor position
     sensor_noise_deg: float = 0.0  # mean calibration error of each reported sensor orientation
-    joint_selection: bool = True  # choose the candidate pair by geometric consistency (False: paper's top-1)
+    pose_stages: tuple[str, ...] = ("full", "paper")  # pose stages to report for every method (same localizations)
     image_calibration: str | None = None  # GelSight calibration: contacts go height map -> image -> reconstruction
 
 
@@ -137,37 +145,46 @@ def _make_localizer(spec: MethodSpec):
 
 def evaluate_method(
     spec: MethodSpec, model: ObjectModel, pairs: list, config: BenchConfig, workspace: str | Path | None
-) -> MethodResult:
-    """Run one method over the simulated pairs of one object."""
+) -> dict[str, MethodResult]:
+    """Run one method over the simulated pairs of one object: localize once, then each pose stage."""
     localizer = _make_localizer(spec)
     localize_model = load_object_model(model.name + spec.model_suffix, workspace) if spec.model_suffix else model
-    result = MethodResult(label=spec.label, object_name=model.name)
+    results = {
+        stage: MethodResult(label=row_label(spec.label, stage), object_name=model.name) for stage in config.pose_stages
+    }
     for number, simulated in enumerate(tqdm(pairs, desc=f"{model.name}: {spec.label}", unit="pair", leave=False)):
         pair = simulated.pair
-        try:
-            estimate = estimate_pose(pair, localize_model, localizer, joint_selection=config.joint_selection)
-        except YotoError as exc:
-            log.warning("%s pair %d: %s failed: %s", model.name, simulated.index, spec.label, exc)
-            result.failures += 1
-            continue
-        # Localization error in the mesh file's frame, which every object model of this object shares.
-        for side in SIDES:
-            truth_mesh = pair.p_mesh_true[side]
-            for store, estimate_contact in (
-                (result.localization_top1_mm, estimate.candidates[side][0]),
-                (result.localization_chosen_mm, estimate.contacts[side]),
-            ):
-                p_mesh = transform_points(localize_model.T_mesh_object, estimate_contact.p_object)
-                store.append(1000.0 * float(np.linalg.norm(p_mesh - truth_mesh)))
-        errors = pose_errors(estimate.T_world_mesh, pair.T_world_mesh_true, model)
-        result.translation_mm.append(errors["translation_mm"])
-        result.rotation_deg.append(errors["rotation_deg"])
-        result.add_s_mm.append(errors["add_s_mm"])
-        result.confidence.append(estimate.confidence)
-        if number >= config.warmup_pairs:
-            result.contact_latency_ms += [estimate.latency_ms["localize_left"], estimate.latency_ms["localize_right"]]
-            result.pose_latency_ms.append(estimate.latency_ms["total"])
-    return result
+        for stage, result in results.items():
+            try:
+                if stage == config.pose_stages[0]:
+                    candidates, world, latency = localize_contacts(pair, localize_model, localizer)
+                estimate = pose_from_candidates(
+                    pair, localize_model, candidates, world, POSE_STAGES[stage], spec.method
+                )
+            except YotoError as exc:
+                log.warning("%s pair %d: %s failed: %s", model.name, simulated.index, result.label, exc)
+                result.failures += 1
+                continue
+            # Localization error in the mesh file's frame, which every object model of this object shares.
+            for side in SIDES:
+                truth_mesh = pair.p_mesh_true[side]
+                for store, estimate_contact in (
+                    (result.localization_top1_mm, estimate.candidates[side][0]),
+                    (result.localization_chosen_mm, estimate.contacts[side]),
+                ):
+                    p_mesh = transform_points(localize_model.T_mesh_object, estimate_contact.p_object)
+                    store.append(1000.0 * float(np.linalg.norm(p_mesh - truth_mesh)))
+            errors = pose_errors(estimate.T_world_mesh, pair.T_world_mesh_true, model)
+            result.translation_mm.append(errors["translation_mm"])
+            result.rotation_deg.append(errors["rotation_deg"])
+            result.add_s_mm.append(errors["add_s_mm"])
+            result.confidence.append(estimate.confidence)
+            if number >= config.warmup_pairs:
+                result.contact_latency_ms += [latency["localize_left"], latency["localize_right"]]
+                result.pose_latency_ms.append(
+                    latency["localize_left"] + latency["localize_right"] + estimate.latency_ms["solve"]
+                )
+    return results
 
 
 def simulate_benchmark_pairs(model: ObjectModel, config: BenchConfig) -> list:
@@ -216,14 +233,16 @@ def run_benchmark(
             if cache.exists() and not overwrite:
                 stored = read_json(cache)
                 if stored.get("fingerprint") == fingerprint:
-                    results[model.name][spec.label] = MethodResult(**stored["result"])
+                    for stage_result in stored["results"]:
+                        results[model.name][stage_result["label"]] = MethodResult(**stage_result)
                     continue
             if pairs is None:
                 pairs = simulate_benchmark_pairs(model, config)
-            result = evaluate_method(spec, model, pairs, config, workspace)
-            write_json_atomic(cache, {"fingerprint": fingerprint, "result": asdict(result)})
-            results[model.name][spec.label] = result
-    report = build_report(results, methods, config)
+            by_stage = evaluate_method(spec, model, pairs, config, workspace)
+            write_json_atomic(cache, {"fingerprint": fingerprint, "results": [asdict(r) for r in by_stage.values()]})
+            for result in by_stage.values():
+                results[model.name][result.label] = result
+    report = build_report(results, rows_of(methods, config))
     report["run"] = {
         **_run_info(),
         "seed": config.seed,
@@ -232,7 +251,7 @@ def run_benchmark(
     }
     write_json_atomic(out_dir / "bench.json", report)
     write_text_atomic(out_dir / "bench.md", format_markdown(report))
-    plot_report(results, methods, out_dir / "bench.png")
+    plot_report(results, rows_of(methods, config), out_dir / "bench.png")
     return report
 
 
@@ -254,9 +273,20 @@ def _confidence_bins(confidence: list[float], translation: list[float], rotation
     return bins
 
 
-def build_report(
-    results: dict[str, dict[str, MethodResult]], methods: list[MethodSpec], config: BenchConfig
-) -> dict[str, Any]:
+@dataclass(frozen=True)
+class Row:
+    """One row of the report: a method under a pose stage."""
+
+    label: str
+    method: str
+    stage: str
+
+
+def rows_of(methods: list[MethodSpec], config: BenchConfig) -> list[Row]:
+    return [Row(row_label(spec.label, stage), spec.method, stage) for stage in config.pose_stages for spec in methods]
+
+
+def build_report(results: dict[str, dict[str, MethodResult]], methods: list[Row]) -> dict[str, Any]:
     """Statistics per object and over all objects, per method."""
     report: dict[str, Any] = {"objects": {}, "all": {}}
 
@@ -290,6 +320,7 @@ def format_markdown(report: dict[str, Any]) -> str:
     run = report["run"]
     objects = list(report["objects"])
     labels = [m["label"] for m in report["methods"]]
+    full_labels = [m["label"] for m in report["methods"] if m["stage"] == "full"]
     lines = [
         "# YOTO benchmark",
         "",
@@ -307,7 +338,7 @@ def format_markdown(report: dict[str, Any]) -> str:
     def cell(s: dict[str, float]) -> str:
         return f"{s['mean']:.2f} +- {s['std']:.2f} ({s['median']:.2f} / {s['p90']:.2f} / {s['max']:.1f})"
 
-    for label in labels:
+    for label in full_labels:
         row = [
             cell(report["objects"][o][label]["localization_mm"]) if label in report["objects"][o] else "-"
             for o in objects
@@ -341,12 +372,12 @@ def format_markdown(report: dict[str, Any]) -> str:
         c, p = s["contact_latency_ms"], s["pose_latency_ms"]
         return f"{c['median']:.1f} / {c['p90']:.1f}; {p['median']:.1f}"
 
-    for label in labels:
+    for label in full_labels:
         row = [latency_cell(report["objects"][o][label]) if label in report["objects"][o] else "-" for o in objects]
         lines.append(f"| {label} | " + " | ".join(row) + f" | {latency_cell(report['all'][label])} |")
     icp = next((m["label"] for m in report["methods"] if m["method"] == "icp"), None)
     if icp:
-        for label in labels:
+        for label in full_labels:
             method = next(m for m in report["methods"] if m["label"] == label)
             if method["method"] == "yoto":
                 ratio = (
@@ -356,7 +387,7 @@ def format_markdown(report: dict[str, Any]) -> str:
                 lines.append(
                     f"\n{label} is {ratio:.1f}x faster than ICP per contact (median, same process, same contacts)."
                 )
-    for label in labels:
+    for label in full_labels:
         bins = report["all"][label]["confidence_bins"]
         method = next(m for m in report["methods"] if m["label"] == label)
         if bins and method["method"] == "yoto":
@@ -376,7 +407,7 @@ def format_markdown(report: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot_report(results: dict[str, dict[str, MethodResult]], methods: list[MethodSpec], path: Path) -> Path:
+def plot_report(results: dict[str, dict[str, MethodResult]], methods: list[Row], path: Path) -> Path:
     """Localization and pose error CDFs per method (all objects), and pose error against confidence."""
     import io
 
@@ -402,7 +433,8 @@ def plot_report(results: dict[str, dict[str, MethodResult]], methods: list[Metho
                     for v in getattr(by_label[spec.label], key)
                 ]
             )
-            if len(values) and (key != "localization_top1_mm" or spec.method != "oracle"):
+            localization = key == "localization_top1_mm"
+            if len(values) and not (localization and (spec.method == "oracle" or spec.stage != "full")):
                 axis.plot(values, np.arange(1, len(values) + 1) / len(values), label=spec.label, c=colours[spec.label])
         axis.set_xscale("symlog", linthresh=1.0)
         axis.set_xlabel(title)
@@ -410,7 +442,7 @@ def plot_report(results: dict[str, dict[str, MethodResult]], methods: list[Metho
         axis.grid(alpha=0.3)
     axes[1].legend(fontsize=8)
     for spec in methods:
-        if spec.method != "yoto":
+        if spec.method != "yoto" or spec.stage != "full":
             continue
         confidence = [
             v for by_label in results.values() if spec.label in by_label for v in by_label[spec.label].confidence

@@ -40,7 +40,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="send every simulated contact through a rendered GelSight image and its reconstruction "
         "(a calibration file from `yoto sensor calibrate`)",
     )
-    parser.add_argument("--independent", action="store_true", help="paper's per-contact top-1 instead of joint choice")
+    parser.add_argument(
+        "--pose-stages",
+        nargs="+",
+        default=["full", "paper"],
+        choices=["full", "paper"],
+        help="pose stages reported for every method on the same localizations: 'full' (joint choice, "
+        "verification, refinement) and 'paper' (top candidates, SVD only)",
+    )
     parser.add_argument("--workspace", help="workspace folder")
     parser.add_argument("--out", default="bench_out", help="output folder")
     parser.add_argument("--overwrite", action="store_true", help="recompute cached results")
@@ -78,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         sensor_noise_mm=args.sensor_noise_mm,
         sensor_noise_deg=args.sensor_noise_deg,
-        joint_selection=not args.independent,
+        pose_stages=tuple(args.pose_stages),
         image_calibration=args.via_images,
     )
     run_benchmark(args.objects, methods, config, args.out, args.workspace, args.overwrite)

@@ -20,9 +20,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--workspace", help="workspace folder holding object models")
     parser.add_argument("--out", help="folder for the pose results (default: next to each pair file)")
     parser.add_argument(
-        "--independent",
+        "--paper",
         action="store_true",
-        help="take each contact's top candidate (paper) instead of choosing the geometrically consistent pair",
+        help="the paper's pose stage exactly: each contact's top candidate, SVD, no verification or refinement",
     )
     parser.set_defaults(run=run)
 
@@ -36,9 +36,10 @@ def run(args: argparse.Namespace) -> int:
     from yoto.io import write_json_atomic
     from yoto.localize import make_localizer
     from yoto.objects.build import load_object_model
-    from yoto.pose.pipeline import estimate_pose, pose_result_path
+    from yoto.pose.pipeline import PAPER, PoseConfig, estimate_pose, pose_result_path
 
     method = "oracle" if args.oracle else args.method
+    pose_config = PAPER if args.paper else PoseConfig()
     localizer = make_localizer(method, args.checkpoint)
     models: dict[str, object] = {}
     failures, errors = 0, []
@@ -49,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
             if key not in models:
                 models[key] = load_object_model(key, args.workspace)
             model = models[key]
-            estimate = estimate_pose(pair, model, localizer, joint_selection=not args.independent)
+            estimate = estimate_pose(pair, model, localizer, pose_config)
             result = estimate.to_json(model)
             line = (
                 f"{path.name}: confidence {estimate.confidence:.2f}, conditioning {estimate.solution.conditioning:.2f}"
