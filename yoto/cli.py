@@ -17,6 +17,7 @@ from yoto.errors import YotoError
 # Order here is the order in `yoto --help`.
 STAGE_CLI_MODULES = [
     "yoto.objects.cli",
+    "yoto.simulate.cli",
     "yoto.patches.cli",
     "yoto.pose.cli",
 ]

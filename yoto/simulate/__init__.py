@@ -1,0 +1,1 @@
+"""Simulated GelSight contacts, dual-contact scenarios and simulated phone scans."""

@@ -1,0 +1,245 @@
+"""`yoto simulate ...`: simulated GelSight contact pairs, single presses, simulated phone scans."""
+
+from __future__ import annotations
+
+import argparse
+
+SIMULATE_EPILOG = """examples:
+  yoto simulate pairs --object fruit -n 100 --seed 0
+  yoto simulate pairs --object drill -n 100 --sensor-noise-mm 1 --sensor-noise-deg 1 --out pairs/drill_noisy
+  yoto simulate press --object figurine --seed 3 --out press.png
+  yoto simulate scan meshes/drill.ply --out drill_scan.ply --seed 0
+"""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "simulate",
+        help="simulate GelSight contact pairs and phone scans (test and benchmark data)",
+        description="Simulated GelSight Mini contacts pressed into an object's mesh, and simulated phone scans.",
+        epilog=SIMULATE_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    commands = parser.add_subparsers(dest="simulate_command", required=True, metavar="ACTION")
+
+    pairs = commands.add_parser(
+        "pairs",
+        help="write N simulated dual contacts (pair files with ground truth)",
+        description="Draw random object poses and two reachable GelSight contacts each; write SPEC pair files. "
+        "Pair i depends only on (seed, i): rerunning with a larger N keeps earlier pairs; existing files are "
+        "kept unless --overwrite.",
+    )
+    _object_arguments(pairs)
+    pairs.add_argument("-n", "--count", type=int, required=True, help="number of pairs (indices 0..N-1)")
+    pairs.add_argument("--seed", type=int, default=0, help="scenario seed (default 0)")
+    pairs.add_argument("--out", help="output folder (default: WORKSPACE/pairs/OBJECT)")
+    pairs.add_argument(
+        "--sensor-noise-mm", type=float, default=0.0, help="mean translation error of the reported sensor poses"
+    )
+    pairs.add_argument(
+        "--sensor-noise-deg", type=float, default=0.0, help="mean rotation error of the reported sensor poses"
+    )
+    pairs.add_argument(
+        "--depth-noise-mm", type=float, help="per-pixel height noise of the tactile clouds (default 0.015 mm)"
+    )
+    pairs.add_argument("--noise-free", action="store_true", help="tactile clouds without reconstruction noise")
+    pairs.add_argument("--max-tilt-deg", type=float, help="largest sensor tilt from the surface normal (default 10)")
+    pairs.add_argument(
+        "--min-conditioning", type=float, help="floor on sigma_2/sigma_1 of [d, n_L, n_R] (default 0.15)"
+    )
+    pairs.add_argument("--overwrite", action="store_true", help="regenerate pairs that already exist")
+    pairs.set_defaults(run=_run_pairs)
+
+    press = commands.add_parser("press", help="simulate one press and save a figure of it")
+    _object_arguments(press)
+    press.add_argument("--seed", type=int, default=0, help="which press (the first accepted one for this seed)")
+    press.add_argument("--out", default="simulate_press.png", help="figure file (PNG)")
+    press.set_defaults(run=_run_press)
+
+    scan = commands.add_parser(
+        "scan",
+        help="degrade a mesh like a consumer phone scan",
+        description="Smooth fine detail, add surface noise, cut and bridge small holes, re-mesh and apply a "
+        "small scale error: a stand-in for a phone photogrammetry scan of the object.",
+    )
+    scan.add_argument("mesh", help="input mesh file (PLY, OBJ, STL, ...)")
+    scan.add_argument("--out", required=True, help="output mesh file (.ply, .obj, .stl)")
+    scan.add_argument("--seed", type=int, default=0, help="random seed (same seed, same scan)")
+    scan.add_argument("--units", default="m", choices=["m", "cm", "mm", "auto"], help="unit of the input mesh")
+    scan.add_argument("--resolution-mm", type=float, help="finest detail kept (default 1.5)")
+    scan.add_argument("--noise-mm", type=float, help="surface noise standard deviation (default 0.3)")
+    scan.add_argument("--scale-error", type=float, help="relative scale error, e.g. 0.007 (default)")
+    scan.add_argument("--holes", type=int, help="number of holes cut and bridged (default 4)")
+    scan.set_defaults(run=_run_scan)
+
+
+def _object_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--object",
+        required=True,
+        help="object: a name in the workspace, a built-in (tool, fruit, figurine), a model file (.npz) or a "
+        "mesh file (its model is built first)",
+    )
+    parser.add_argument("--workspace", help="workspace folder (default: $YOTO_WORKSPACE or ./yoto_workspace)")
+
+
+def _load_model(args: argparse.Namespace):
+    from pathlib import Path
+
+    from yoto.objects.build import build_object, load_object_model
+    from yoto.objects.mesh import MESH_SUFFIXES
+
+    candidate = Path(args.object)
+    if candidate.suffix.lower() in MESH_SUFFIXES and candidate.is_file():
+        return load_object_model(build_object(candidate, candidate.stem, workspace=args.workspace))
+    return load_object_model(args.object, args.workspace)
+
+
+def _run_pairs(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    import numpy as np
+
+    from yoto.errors import InputError
+    from yoto.simulate.gelsight import ReconstructionNoise
+    from yoto.simulate.scenarios import ScenarioConfig, write_pairs
+    from yoto.workspace import pairs_dir
+
+    if args.count < 1:
+        raise InputError(f"-n must be at least 1, got {args.count}")
+    for name in ("sensor_noise_mm", "sensor_noise_deg", "depth_noise_mm"):
+        value = getattr(args, name)
+        if value is not None and value < 0:
+            raise InputError(f"--{name.replace('_', '-')} must not be negative, got {value}")
+    model = _load_model(args)
+    config = ScenarioConfig(
+        calibration_translation_m=args.sensor_noise_mm * 1e-3,
+        calibration_rotation_rad=float(np.radians(args.sensor_noise_deg)),
+    )
+    press = config.press
+    if args.noise_free:
+        press = dataclasses.replace(press, noise=ReconstructionNoise.none())
+    if args.depth_noise_mm is not None:
+        noise = dataclasses.replace(press.noise, pixel_std_m=args.depth_noise_mm * 1e-3)
+        press = dataclasses.replace(press, noise=noise)
+    if args.max_tilt_deg is not None:
+        press = dataclasses.replace(press, max_tilt_deg=args.max_tilt_deg)
+    config = dataclasses.replace(config, press=press)
+    if args.min_conditioning is not None:
+        config = dataclasses.replace(config, min_conditioning=args.min_conditioning)
+
+    out_dir = args.out or pairs_dir(model.name, args.workspace)
+    report = write_pairs(
+        model, out_dir, args.count, seed=args.seed, config=config, overwrite=args.overwrite, progress=not args.quiet
+    )
+    print(report.summary())
+    return 0
+
+
+def _run_press(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from yoto.simulate.gelsight import PressSimulator, simulate_contact
+
+    model = _load_model(args)
+    simulator = PressSimulator(model.mesh_object)
+    rng = np.random.default_rng(args.seed)
+    for _ in range(1000):
+        p_object = simulator.sample_surface(rng)[0]
+        contact = simulate_contact(simulator, p_object, model.aggregated_normal(p_object), rng)
+        if contact.accepted:
+            break
+    else:  # pragma: no cover - only for meshes no sensor can touch
+        from yoto.errors import InputError
+
+        raise InputError(f"{model.name}: no reachable press in 1000 attempts")
+    path = press_figure(model, contact, args.out)
+    press = contact.press
+    print(
+        f"{model.name}: press at depth {press.depth_m * 1e3:.2f} mm, tilt {contact.approach['tilt_deg']:.1f} deg, "
+        f"{press.contact_pixels} contact pixels, {len(contact.points_sensor)} tactile points -> {path}"
+    )
+    return 0
+
+
+def _run_scan(args: argparse.Namespace) -> int:
+    import dataclasses
+    from pathlib import Path
+
+    import numpy as np
+
+    from yoto.errors import InputError
+    from yoto.objects.mesh import MESH_SUFFIXES, load_mesh
+    from yoto.simulate.scan import ScanConfig, degrade_mesh
+
+    out = Path(args.out)
+    if out.suffix.lower() not in (".ply", ".obj", ".stl", ".off", ".glb"):
+        raise InputError(f"unsupported output format '{out.suffix}' (use one of {', '.join(MESH_SUFFIXES)})", out)
+    mesh, _, _ = load_mesh(args.mesh, args.units)
+    config = ScanConfig()
+    overrides = {
+        "resolution_m": None if args.resolution_mm is None else args.resolution_mm * 1e-3,
+        "noise_std_m": None if args.noise_mm is None else args.noise_mm * 1e-3,
+        "scale_error": args.scale_error,
+        "holes": args.holes,
+    }
+    config = dataclasses.replace(config, **{key: value for key, value in overrides.items() if value is not None})
+    scan = degrade_mesh(mesh, config, np.random.default_rng(args.seed))
+    from yoto.io import write_bytes_atomic
+
+    data = scan.export(file_type=out.suffix.lower().lstrip("."))
+    write_bytes_atomic(out, data.encode("utf-8") if isinstance(data, str) else data)
+    print(
+        f"{args.mesh}: simulated scan with {len(scan.faces)} faces (source {len(mesh.faces)}), scale error "
+        f"{config.scale_error * 100:+.2f} %, noise {config.noise_std_m * 1e3:.2f} mm -> {out}"
+    )
+    return 0
+
+
+def press_figure(model, contact, path):
+    """Save a figure of one press: noise-free height map, contact mask with the tactile cloud, and where
+    the contact lies on the object. Returns the path."""
+    from pathlib import Path
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from yoto.geometry import transform_points
+    from yoto.io import write_bytes_atomic
+
+    press = contact.press
+    figure = plt.figure(figsize=(12, 3.6), dpi=80)
+    height = figure.add_subplot(1, 3, 1)
+    image = height.imshow(press.height_map_m * 1e3, cmap="viridis")
+    height.set_title(f"gel height map (depth {press.depth_m * 1e3:.2f} mm)")
+    figure.colorbar(image, ax=height, label="z (mm)", shrink=0.8)
+    mask = figure.add_subplot(1, 3, 2)
+    mask.imshow(press.contact_mask, cmap="gray")
+    points = contact.points_sensor
+    pixel = 0.0634e-3
+    mask.scatter(points[::25, 0] / pixel + 159.5, points[::25, 1] / pixel + 119.5, s=0.3, c="tab:red")
+    mask.set_title(f"contact mask ({press.contact_pixels} px); noisy cloud (red, 1 in 25)")
+    for axis in (height, mask):
+        axis.set_xlabel("column (sensor x)")
+        axis.set_ylabel("row (sensor y)")
+    scene = figure.add_subplot(1, 3, 3, projection="3d")
+    cloud = model.points_object[:: max(1, len(model.points_object) // 6000)]
+    scene.scatter(cloud[:, 0], cloud[:, 1], cloud[:, 2], s=0.2, c="0.6")
+    patch = transform_points(press.T_object_sensor, press.contact_points_sensor())[::40]
+    scene.scatter(patch[:, 0], patch[:, 1], patch[:, 2], s=1, c="tab:red")
+    axis_end = press.T_object_sensor[:3, 3] - 0.03 * press.T_object_sensor[:3, 2]
+    scene.plot(*np.stack([press.T_object_sensor[:3, 3], axis_end], axis=1), c="tab:blue", lw=2)
+    scene.scatter(*press.p_object, s=30, c="k", marker="x")
+    scene.set_title(f"{model.name}: contact (red), sensor axis (blue)")
+    scene.set_box_aspect(np.ptp(cloud, axis=0))
+    scene.set_axis_off()
+    figure.tight_layout()
+    import io
+
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png")
+    plt.close(figure)
+    return write_bytes_atomic(Path(path), buffer.getvalue())
