@@ -19,6 +19,8 @@ STAGE_CLI_MODULES = [
     "yoto.objects.cli",
     "yoto.simulate.cli",
     "yoto.patches.cli",
+    "yoto.training.cli",
+    "yoto.localize.cli",
     "yoto.pose.cli",
 ]
 

@@ -28,20 +28,32 @@ def rank_hypotheses(
 ) -> dict[str, np.ndarray]:
     """Score the candidate pools of the top `hypotheses` coarse blocks of each patch.
 
-    patch_features (B, D), block_features (NB, D); `blocks` holds block_centres, block_rotations and
-    block_neighbours as in the network's input. Returns numpy arrays (H hypotheses, K candidates per pool):
+    patch_features (B, D), or (B, R, D) for R in-plane rotations of each patch (test-time augmentation: coarse
+    logits, fine positions and confidences are averaged over the rotations); block_features (NB, D); `blocks`
+    holds block_centres, block_rotations and block_neighbours as in the network's input. Returns numpy arrays
+    (H hypotheses, K candidates per pool):
         logits (B, NB), top_blocks (B, H), pools (B, H, K), positions (B, H, K, 3), confidence (B, H, K),
         scores (B, H, K) = coarse logit + confidence, best (B, H): index of each pool's best candidate.
     """
-    logits = net.coarse_logits(patch_features, block_features)
+    if patch_features.dim() == 2:
+        patch_features = patch_features.unsqueeze(1)
+    batch, rotations, dim = patch_features.shape
+    flat_features = patch_features.reshape(batch * rotations, dim)
+    logits = net.coarse_logits(flat_features, block_features).reshape(batch, rotations, -1).mean(dim=1)
     count = min(hypotheses, logits.shape[1])
     top_blocks = logits.topk(count, dim=1).indices  # (B, H)
     pools = blocks["block_neighbours"][top_blocks]  # (B, H, K)
-    batch, _, k = pools.shape
+    k = pools.shape[2]
     flat = pools.reshape(batch, count * k)
     positions, _, confidence = net.fine_predictions(
-        patch_features, block_features, flat, blocks["block_centres"], blocks["block_rotations"]
+        flat_features,
+        block_features,
+        flat.repeat_interleave(rotations, dim=0),
+        blocks["block_centres"],
+        blocks["block_rotations"],
     )
+    positions = positions.reshape(batch, rotations, count * k, 3).mean(dim=1)
+    confidence = confidence.reshape(batch, rotations, count * k).mean(dim=1)
     scores = logits.gather(1, flat) + confidence
     scores = scores.reshape(batch, count, k)
     return {
@@ -55,6 +67,19 @@ def rank_hypotheses(
     }
 
 
+def rotated_copies(points: np.ndarray, normals: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """`count` copies of a canonical patch (N, 3) rotated about +z by 2 pi i / count -> (count, N, 3) each."""
+    angles = 2.0 * np.pi * np.arange(count) / count
+    c, s = np.cos(angles), np.sin(angles)
+    rotations = np.zeros((count, 3, 3), dtype=np.float32)
+    rotations[:, 0, 0], rotations[:, 0, 1], rotations[:, 1, 0], rotations[:, 1, 1] = c, -s, s, c
+    rotations[:, 2, 2] = 1.0
+    return (
+        np.einsum("rij,nj->rni", rotations, points).astype(np.float32),
+        np.einsum("rij,nj->rni", rotations, normals).astype(np.float32),
+    )
+
+
 @dataclass
 class Candidate:
     """One ranked contact hypothesis of one patch."""
@@ -66,6 +91,20 @@ class Candidate:
     confidence: float  # the fine head's confidence
     hypothesis: int  # rank of the coarse block whose pool produced it (0: the paper's answer)
     probability: float = 0.0
+
+
+def merge_close(candidates: list[Candidate], beliefs: np.ndarray, radius_m: float) -> list[Candidate]:
+    """Greedy merge in the given order: a candidate within `radius_m` of a kept one adds its belief to it."""
+    kept: list[Candidate] = []
+    for candidate, belief in zip(candidates, beliefs, strict=True):
+        for other in kept:
+            if np.linalg.norm(other.p_object - candidate.p_object) <= radius_m:
+                other.probability += float(belief)
+                break
+        else:
+            candidate.probability = float(belief)
+            kept.append(candidate)
+    return kept
 
 
 def softmax(values: np.ndarray, temperature: float) -> np.ndarray:
@@ -97,17 +136,7 @@ def candidates_of(
             hypothesis=h,
         )
     ordered = sorted(found.values(), key=lambda c: (not (paper_first and c.hypothesis == 0), -c.score))
-    beliefs = softmax(np.array([c.score for c in ordered]), temperature)
-    kept: list[Candidate] = []
-    for candidate, belief in zip(ordered, beliefs, strict=True):
-        for other in kept:
-            if np.linalg.norm(other.p_object - candidate.p_object) <= merge_radius_m:
-                other.probability += float(belief)
-                break
-        else:
-            candidate.probability = float(belief)
-            kept.append(candidate)
-    return kept
+    return merge_close(ordered, softmax(np.array([c.score for c in ordered]), temperature), merge_radius_m)
 
 
 def fit_temperature(score_lists: list[np.ndarray], correct_lists: list[np.ndarray]) -> float:

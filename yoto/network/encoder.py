@@ -70,6 +70,16 @@ class _NeighbourMax(torch.autograd.Function):
         return grad_values.view(batch, points, channels), None
 
 
+def cylindrical_inputs(coords: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+    """Per-point inputs that do not change when the cloud turns about its z axis: radius r = |(x, y)|, height z,
+    and the normal's radial, tangential and z components -> (B, N, 5)."""
+    radius = torch.linalg.vector_norm(coords[..., :2], dim=-1, keepdim=True)
+    radial = coords[..., :2] / radius.clamp_min(1e-6)
+    normal_radial = (normals[..., :2] * radial).sum(-1, keepdim=True)
+    normal_tangential = normals[..., 1:2] * radial[..., :1] - normals[..., :1] * radial[..., 1:2]
+    return torch.cat([radius, coords[..., 2:3], normal_radial, normal_tangential, normals[..., 2:3]], dim=-1)
+
+
 def neighbour_max(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """values (B, N, E), index (B, C, k) into N -> (B, C, E): each channel's max over each centre's neighbours."""
     return _NeighbourMax.apply(values, index)
@@ -89,16 +99,18 @@ def scale_neighbours(knn: torch.Tensor, scales: tuple[int, ...], max_gathered: i
 class MultiScaleEdge(nn.Module):
     """Multi-scale kNN aggregation: per scale, max over neighbours of relu(W [f_j ; x_j - x_i] + b)."""
 
-    def __init__(self, in_dim: int, edge_dim: int, scales: tuple[int, ...], max_gathered: int | None = None):
+    def __init__(
+        self, in_dim: int, edge_dim: int, scales: tuple[int, ...], max_gathered: int | None = None, offset_dim: int = 3
+    ):
         super().__init__()
         self.scales = tuple(scales)
         self.edge_dim = edge_dim
         self.max_gathered = max_gathered
         # One linear layer per scale, stored stacked: rows s*E:(s+1)*E belong to scale s.
         self.weight_feature = nn.Parameter(torch.empty(len(scales) * edge_dim, in_dim))
-        self.weight_offset = nn.Parameter(torch.empty(len(scales) * edge_dim, 3))
+        self.weight_offset = nn.Parameter(torch.empty(len(scales) * edge_dim, offset_dim))
         self.bias = nn.Parameter(torch.zeros(len(scales) * edge_dim))
-        fan_in = in_dim + 3
+        fan_in = in_dim + offset_dim
         for weight in (self.weight_feature, self.weight_offset):
             nn.init.uniform_(weight, -(fan_in**-0.5), fan_in**-0.5)
 
@@ -139,14 +151,20 @@ class PointEncoder(nn.Module):
         super().__init__()
         self.config = config
         self.point_mlp = nn.Sequential(
-            nn.Linear(6, config.point_dim),
+            nn.Linear(5 if config.rotation_invariant else 6, config.point_dim),
             nn.LayerNorm(config.point_dim),
             nn.ReLU(),
             nn.Linear(config.point_dim, config.point_dim),
             nn.LayerNorm(config.point_dim),
             nn.ReLU(),
         )
-        self.edge = MultiScaleEdge(config.point_dim, config.edge_dim, config.knn_scales, config.max_gathered_neighbours)
+        self.edge = MultiScaleEdge(
+            config.point_dim,
+            config.edge_dim,
+            config.knn_scales,
+            config.max_gathered_neighbours,
+            offset_dim=1 if config.rotation_invariant else 3,
+        )
         fused_in = config.point_dim + len(config.knn_scales) * config.edge_dim
         self.fusion = nn.Sequential(
             nn.Linear(fused_in, config.fusion_dim),
@@ -155,6 +173,8 @@ class PointEncoder(nn.Module):
             nn.Linear(config.fusion_dim, config.prepool_dim),
         )
         self.project = nn.Linear(2 * config.prepool_dim, config.feature_dim)
+        if config.fine_feature_dim > 0:
+            self.project_fine = nn.Linear(2 * config.prepool_dim, config.fine_feature_dim)
 
     def num_centres(self, num_points: int) -> int:
         return max(1, min(num_points, round(self.config.centre_fraction * num_points)))
@@ -168,14 +188,25 @@ class PointEncoder(nn.Module):
 
     def forward(self, points: torch.Tensor, normals: torch.Tensor, knn: torch.Tensor | None = None) -> torch.Tensor:
         """points (B, N, 3) metres, normals (B, N, 3), knn (B, C, >= max scale) from `neighbours` or None
-        -> features (B, D). The first C = centre_fraction * N points are the aggregation centres (the input
-        order is random, so they are a random subset)."""
+        -> features (B, D + F): the matching feature, then the fine feature if the config has one. The first
+        C = centre_fraction * N points are the aggregation centres (the input order is random, so they are a
+        random subset)."""
         coords = points / self.config.coordinate_scale_m
         if knn is None:
             knn = self.neighbours(points)
         centres = knn.shape[1]
-        point_features = self.point_mlp(torch.cat([coords, normals], dim=-1))
-        edge_features = self.edge(point_features, coords, coords[:, :centres], knn)
+        if self.config.rotation_invariant:
+            point_features = self.point_mlp(cylindrical_inputs(coords, normals))
+            heights = coords[..., 2:3]  # the edge's relative term keeps only the height difference
+            edge_features = self.edge(point_features, heights, heights[:, :centres], knn)
+        else:
+            point_features = self.point_mlp(torch.cat([coords, normals], dim=-1))
+            edge_features = self.edge(point_features, coords, coords[:, :centres], knn)
         fused = self.fusion(torch.cat([point_features[:, :centres], edge_features], dim=-1))
         pooled = torch.cat([fused.amax(dim=1), fused.mean(dim=1)], dim=-1)
+        if self.config.fine_feature_dim > 0:
+            from yoto.network.model import scale_gradient
+
+            fine = self.project_fine(scale_gradient(pooled, self.config.fine_encoder_gradient))
+            return torch.cat([self.project(pooled), fine], dim=-1)
         return self.project(pooled)

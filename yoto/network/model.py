@@ -28,8 +28,10 @@ class FineHead(nn.Module):
     def __init__(self, config: NetworkConfig):
         super().__init__()
         hidden, out = config.fine_dims
+        self.interaction = config.fine_interaction
+        width = config.fine_feature_dim or config.feature_dim
         self.mlp = nn.Sequential(
-            nn.Linear(2 * config.feature_dim, hidden),
+            nn.Linear((4 if config.fine_interaction else 2) * width, hidden),
             nn.LayerNorm(hidden),
             nn.GELU(),
             nn.Dropout(config.fine_dropout),
@@ -43,7 +45,10 @@ class FineHead(nn.Module):
 
     def forward(self, block_features: torch.Tensor, patch_features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """block_features (..., D), patch_features (..., D) -> offsets (..., 3), confidences (...)."""
-        hidden = self.mlp(torch.cat([block_features, patch_features], dim=-1))
+        parts = [block_features, patch_features]
+        if self.interaction:
+            parts += [block_features * patch_features, (block_features - patch_features).abs()]
+        hidden = self.mlp(torch.cat(parts, dim=-1))
         return self.offset(hidden), self.confidence(hidden).squeeze(-1)
 
 
@@ -70,6 +75,8 @@ class ContactLocalizationNet(nn.Module):
         self, patch_features: torch.Tensor, block_features: torch.Tensor, block_mask: torch.Tensor | None = None
     ) -> torch.Tensor:
         """tau * cosine similarity, (B, D) x (NB, D) -> (B, NB); blocks outside `block_mask` (B, NB) get -inf."""
+        dim = self.config.feature_dim
+        patch_features, block_features = patch_features[..., :dim], block_features[..., :dim]
         logits = self.temperature * F.normalize(patch_features, dim=-1) @ F.normalize(block_features, dim=-1).T
         if block_mask is not None:
             logits = logits.masked_fill(~block_mask, float("-inf"))
@@ -84,8 +91,16 @@ class ContactLocalizationNet(nn.Module):
         block_rotations: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Positions (B, K, 3; object frame), offsets (B, K, 3; block frames), confidences (B, K) of candidates."""
-        candidate_features = block_features[candidates]  # (B, K, D)
-        expanded = patch_features.unsqueeze(1).expand_as(candidate_features)
+        if self.config.fine_feature_dim > 0:  # its own projection; the encoder already scaled the trunk's gradient
+            scale = 1.0
+            patch_features = patch_features[..., self.config.feature_dim :]
+            block_features = block_features[..., self.config.feature_dim :]
+        else:
+            scale = self.config.fine_encoder_gradient
+            patch_features = patch_features[..., : self.config.feature_dim]
+            block_features = block_features[..., : self.config.feature_dim]
+        candidate_features = scale_gradient(block_features, scale)[candidates]  # (B, K, D)
+        expanded = scale_gradient(patch_features, scale).unsqueeze(1).expand_as(candidate_features)
         offsets, confidence = self.fine(candidate_features, expanded)
         offsets = offsets * self.config.offset_scale_m
         # p = c + R^T d: (R^T d)_a = sum_b R_ba d_b
@@ -151,6 +166,14 @@ class ContactLocalizationNet(nn.Module):
             "best": best,
             "p_object": positions[torch.arange(len(best)), best],
         }
+
+
+def scale_gradient(tensor: torch.Tensor, scale: float) -> torch.Tensor:
+    """The tensor unchanged in the forward pass, its gradient multiplied by `scale` in the backward pass."""
+    if scale == 1.0:
+        return tensor
+    detached = tensor.detach()
+    return detached if scale == 0.0 else detached + scale * (tensor - detached)
 
 
 def count_parameters(module: nn.Module) -> int:

@@ -20,18 +20,23 @@ class NetworkConfig:
     points_per_block: int = 512  # surface points the encoder sees per block
     point_dim: int = 256  # width of the point-wise MLP (6-D coordinates + normals in)
     knn_scales: tuple[int, ...] = (8, 16, 32, 64)  # neighbourhood sizes of the multi-scale aggregation
+    rotation_invariant: bool = False  # cylindrical point inputs and height-only edge offsets: exactly invariant
+    #   to turning the patch about its canonical z axis (the sensor's unknown roll); False: the paper's xyz + normals
     centre_fraction: float = 1.0  # fraction of the points at which neighbourhoods are aggregated (1: every point)
     max_gathered_neighbours: int | None = None  # larger scales are dilated to this many neighbours (None: all)
     edge_dim: int = 256  # output width of each scale's edge function
     fusion_dim: int = 256  # width of the fusion MLP over [point feature, scale features]
     prepool_dim: int = 512  # width of the projection before max+mean pooling
     feature_dim: int = 512  # dimension of a patch or block feature (the matching space)
+    fine_feature_dim: int = 0  # >0: a separate projection of this size feeds the fine head (0: the matching feature)
+    fine_interaction: bool = False  # fine head input [b, q, b*q, |b-q|] instead of the paper's [b, q]
     initial_temperature: float = 10.0  # tau of the cosine logits at initialisation (learnable)
     max_temperature: float = 100.0  # upper clamp of tau
     candidates: int = 9  # K_nbr: blocks in the candidate pool (the top block and its nearest block centres)
     fine_dims: tuple[int, int] = (512, 256)  # hidden widths of the two-layer fine MLP
     fine_dropout: float = 0.2  # dropout in the fine MLP
     offset_scale_m: float = 0.01  # the fine head's offset output is in units of this (metres)
+    fine_encoder_gradient: float = 0.1  # scale of the fine head's gradient into the shared encoder trunk (1: joint)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -55,6 +60,7 @@ PRESETS: dict[str, NetworkConfig] = {
         points_per_patch=128,
         points_per_block=256,
         centre_fraction=0.25,
+        max_gathered_neighbours=16,
         point_dim=64,
         edge_dim=32,
         fusion_dim=128,

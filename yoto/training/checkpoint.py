@@ -36,7 +36,7 @@ def versions() -> dict[str, str]:
     torch = require_torch("reading versions")
     return {
         "yoto": __version__,
-        "torch": torch.__version__,
+        "torch": str(torch.__version__),
         "numpy": np.__version__,
         "python": platform.python_version(),
     }

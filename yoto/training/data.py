@@ -15,9 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from yoto.contacts import SIDES, find_pair_files, read_contact_pair
+from yoto.contacts import SIDES, find_pair_files, is_pair_file_name, read_contact_pair
 from yoto.errors import DegenerateGeometryError, InputError
 from yoto.geometry import invert_transform, transform_points
+from yoto.io import read_json
 from yoto.network.inputs import BlockSet, subsample_indices
 from yoto.objects.model import ObjectModel
 from yoto.patches.canonical import canonicalize_patch, prepare_tactile_cloud
@@ -94,6 +95,31 @@ def pair_files_digest(paths: list[Path]) -> str:
     return digest.hexdigest()[:16]
 
 
+def _looks_like_pair_file(path: Path) -> bool:
+    """A JSON object with 'object', 'left' and 'right' (folders may hold other JSON, e.g. simulation settings)."""
+    try:
+        payload = read_json(path)
+    except InputError:
+        return False
+    return isinstance(payload, dict) and all(key in payload for key in ("object", *SIDES))
+
+
+def find_pair_files_recursive(inputs: list[str | Path]) -> list[Path]:
+    """Pair files from files and folders, folders searched recursively (one subfolder per object, say).
+
+    JSON files in the folders that are not contact pairs (simulation settings, pose results) are left out.
+    """
+    found: list[Path] = []
+    for item in map(Path, inputs):
+        if item.is_dir():
+            found.extend(sorted(p for p in item.rglob("*.json") if is_pair_file_name(p) and _looks_like_pair_file(p)))
+        else:
+            found.extend(find_pair_files([item]))
+    if not found:
+        raise InputError(f"no contact pair files (*.json) in {', '.join(map(str, inputs))}")
+    return found
+
+
 def load_contact_samples(
     pair_inputs: list[str | Path], models: dict[str, ObjectModel]
 ) -> tuple[dict[str, list[ContactSample]], list[Path]]:
@@ -103,7 +129,7 @@ def load_contact_samples(
     be canonicalized, are skipped with a warning. Returns the samples and the pair files read.
     """
     samples: dict[str, list[ContactSample]] = {name: [] for name in models}
-    files = find_pair_files(pair_inputs)
+    files = find_pair_files_recursive(pair_inputs)
     skipped_objects: set[str] = set()
     for path in files:
         pair = read_contact_pair(path)
@@ -146,12 +172,20 @@ class ObjectData:
     virtual: VirtualPatchDataset | None
     virtual_train: np.ndarray  # indices into `virtual`
     virtual_val: np.ndarray
+    press: VirtualPatchDataset | None = None  # press-shaped virtual patches (yoto.training.press), if used
+    press_train: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    press_val: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     real_train: list[ContactSample] = field(default_factory=list)
     real_val: list[ContactSample] = field(default_factory=list)
 
     @property
     def name(self) -> str:
         return self.model.name
+
+    def dataset(self, kind: str) -> VirtualPatchDataset:
+        dataset = self.virtual if kind == "virtual" else self.press
+        assert dataset is not None, kind
+        return dataset
 
 
 def split_virtual(
@@ -206,14 +240,12 @@ def _cropped_virtual_patch(
     return canonical.points.astype(np.float32), canonical.normals.astype(np.float32), p_object, block
 
 
-def _virtual_points(data: ObjectData, index: int, chosen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _virtual_points(dataset: VirtualPatchDataset, index: int, chosen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Canonical points and normals of the `chosen` members of virtual patch `index` (only those are moved)."""
-    dataset = data.virtual
-    assert dataset is not None
     members = dataset.indices[dataset.offsets[index] : dataset.offsets[index + 1]][chosen]
     rotation = dataset.rotation_canonical_object[index]
-    points = data.model.points_object[members] @ rotation.T + dataset.translation_canonical[index]
-    return points.astype(np.float32), (data.model.normals_object[members] @ rotation.T).astype(np.float32)
+    points = dataset.model.points_object[members] @ rotation.T + dataset.translation_canonical[index]
+    return points.astype(np.float32), (dataset.model.normals_object[members] @ rotation.T).astype(np.float32)
 
 
 def draw_patch(
@@ -226,10 +258,9 @@ def draw_patch(
 ) -> Patch:
     """Sample `num_points` points of a patch (repeat-padded), augmented when `augment` is given."""
     points = normals = None
-    if kind == "virtual":
-        dataset = data.virtual
-        assert dataset is not None
-        cropped = None if augment is None else _cropped_virtual_patch(data, index, rng, augment)
+    if kind in ("virtual", "press"):
+        dataset = data.dataset(kind)
+        cropped = None if augment is None or kind == "press" else _cropped_virtual_patch(data, index, rng, augment)
         if cropped is None:
             p_object, block = dataset.p_object[index], int(dataset.block[index])
             count = int(dataset.offsets[index + 1] - dataset.offsets[index])
@@ -249,7 +280,7 @@ def draw_patch(
     if augment is not None:
         chosen = point_dropout(chosen, rng, augment.dropout_prob, augment.dropout_ratio)
     if points is None:
-        points, normals = _virtual_points(data, index, chosen)
+        points, normals = _virtual_points(dataset, index, chosen)
     else:
         points, normals = points[chosen], normals[chosen]
     if augment is not None:
@@ -263,5 +294,5 @@ def draw_patch(
         normals=np.ascontiguousarray(normals, dtype=np.float32),
         p_object=np.asarray(p_object, dtype=np.float64),
         block=int(block),
-        real=kind != "virtual",
+        real=kind not in ("virtual", "press"),
     )

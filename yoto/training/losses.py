@@ -6,6 +6,11 @@
 - L_topK: [a_top - a_y + m1]_+ + [a_K - a_y + m2]_+, with a_top the best block other than y (the paper's
   highest-scoring block whenever the prediction is wrong, the runner-up when it is right, so the term keeps
   a margin instead of being the constant m1) and a_K the K-th highest logit (the last retained candidate).
+  It applies to the samples whose true block is already among the top K, which is its purpose ("keep the
+  correct block competitive during candidate selection"): applied to every sample, the hinge has a collapsed
+  minimum (all features parallel, all logits equal, loss m1 + m2) that training fell into within 20 steps
+  when most samples start outside the top K, and cosine logits get no gradient out of it (measured, see
+  docs/network.md).
 - L_pos: sum over candidates k of w_k * SmoothL1(p_k - p), where w_k favours candidates with a high combined
   score and a block centre near the truth: w = (softmax(score) + softmax(-|c_k - p| / d)) / 2, detached.
 - L_select (not spelled out in the paper, which ranks candidates by coarse score + confidence but names no
@@ -114,8 +119,8 @@ def localization_loss(
     """
     logits = outputs["coarse_logits"]
     cls = block_cross_entropy(logits, block_target)
-    margin = topk_margin(logits, block_target, config.topk, config.margin_top, config.margin_k)
     recall = topk_recall(logits.detach(), block_target, config.topk).float()
+    margin = topk_margin(logits, block_target, config.topk, config.margin_top, config.margin_k) * recall
     adaptive = 1.0 + (config.adaptive_max_factor - 1.0) * (1.0 - weighted_mean(recall, sample_weight))
     weights = candidate_weights(
         outputs["scores"], block_centres[outputs["candidates"]], p_true, config.weight_distance_m

@@ -33,7 +33,7 @@ import numpy as np
 from yoto.errors import InputError, require_torch
 from yoto.evaluation.metrics import summarize
 from yoto.io import read_json, write_bytes_atomic, write_json_atomic, write_text_atomic
-from yoto.network.candidates import candidates_of, fit_temperature, rank_hypotheses
+from yoto.network.candidates import candidates_of, fit_temperature, rank_hypotheses, rotated_copies
 from yoto.network.inputs import inference_points, make_block_set
 from yoto.network.presets import PRESETS as NETWORK_PRESETS
 from yoto.network.presets import NetworkConfig
@@ -52,6 +52,7 @@ from yoto.training.checkpoint import (
 )
 from yoto.training.data import ContactSample, ObjectData, Patch, draw_patch, load_contact_samples, pair_files_digest
 from yoto.training.losses import LossConfig, localization_loss
+from yoto.training.press import PressPatchConfig, press_patches
 from yoto.workspace import runs_dir
 
 log = logging.getLogger("yoto")
@@ -96,7 +97,10 @@ class TrainConfig:
     val_fraction: float = 0.05  # of each object's virtual patches, held out for validation
     val_max_per_object: int = 300  # at most this many virtual validation patches per object
     max_virtual_per_object: int | None = None  # use only this many virtual patches per object (None: all)
+    press: PressPatchConfig = PressPatchConfig(count=0)  # press-shaped virtual patches per object (0: none)
+    ball_patches: bool = True  # train on the paper's ball patches (False: press-shaped ones only)
     hypotheses: int = 4  # coarse hypotheses whose best candidates the localizer returns
+    test_rotations: int = 1  # in-plane rotations averaged at validation and inference (1: none)
     merge_radius_m: float = 0.005  # candidates closer than this are merged into one
 
     def to_dict(self) -> dict[str, Any]:
@@ -107,12 +111,14 @@ class TrainConfig:
         values = dict(values)
         augment = values.pop("augment", {})
         loss = values.pop("loss", {})
+        press = values.pop("press", {"count": 0})
         return cls(
             network=NetworkConfig.from_dict(values.pop("network")),
             stage1=StageConfig(**values.pop("stage1")),
             stage2=StageConfig(**values.pop("stage2")),
             augment=AugmentConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in augment.items()}),
             loss=LossConfig(**loss),
+            press=PressPatchConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in press.items()}),
             **values,
         )
 
@@ -128,7 +134,7 @@ PRESETS: dict[str, TrainConfig] = {
         stage2=StageConfig(
             epochs=4, lr=4e-4, encoder_lr=2e-4, real_oversample=10, real_weight=2.0, virtual_fraction=0.5
         ),
-        batch_size=64,
+        batch_size=128,
         # The 0.2 mm voxel grid removes ~8% of a virtual patch's points (near-duplicates of a 0.45 mm-spaced
         # cloud); with 128 of ~900 points sampled that changes nothing measurable but costs 0.3 ms a patch.
         augment=AugmentConfig(voxel_size_m=0.0),
@@ -152,11 +158,12 @@ def plan_epoch(
     """
     batches: list[tuple[int, list[tuple[str, int]]]] = []
     for obj_index, data in enumerate(objects):
-        virtual = data.virtual_train
-        if stage.virtual_fraction < 1.0:
-            count = max(1, int(round(stage.virtual_fraction * len(virtual))))
-            virtual = rng.choice(virtual, size=count, replace=False)
-        pool = [("virtual", int(i)) for i in virtual]
+        pool = []
+        for kind, indices in (("virtual", data.virtual_train), ("press", data.press_train)):
+            if stage.virtual_fraction < 1.0 and len(indices):
+                count = max(1, int(round(stage.virtual_fraction * len(indices))))
+                indices = rng.choice(indices, size=count, replace=False)
+            pool += [(kind, int(i)) for i in indices]
         if use_real:
             pool += [("real", j) for j in range(len(data.real_train))] * stage.real_oversample
         if not pool:
@@ -172,9 +179,12 @@ def plan_epoch(
 def epoch_batch_count(objects: list[ObjectData], stage: StageConfig, batch_size: int, use_real: bool) -> int:
     total = 0
     for data in objects:
-        count = len(data.virtual_train)
-        if stage.virtual_fraction < 1.0:
-            count = max(1, int(round(stage.virtual_fraction * count)))
+        count = 0
+        for indices in (data.virtual_train, data.press_train):
+            if stage.virtual_fraction < 1.0 and len(indices):
+                count += max(1, int(round(stage.virtual_fraction * len(indices))))
+            else:
+                count += len(indices)
         if use_real:
             count += len(data.real_train) * stage.real_oversample
         total += max(1, math.ceil(count / batch_size)) if count else 0
@@ -207,11 +217,11 @@ def make_eval_set(
     data: ObjectData, kind: str, num_points: int, real: list[ContactSample] | None = None
 ) -> EvalSet | None:
     items: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]] = []
-    if kind == "virtual":
-        assert data.virtual is not None
-        for index in data.virtual_val:
-            points, normals = data.virtual.patch(int(index))
-            items.append((points, normals, data.virtual.p_object[index], int(data.virtual.block[index])))
+    if kind in ("virtual", "press"):
+        dataset = data.virtual if kind == "virtual" else data.press
+        for index in data.virtual_val if kind == "virtual" else data.press_val:
+            points, normals = dataset.patch(int(index))
+            items.append((points, normals, dataset.p_object[index], int(dataset.block[index])))
     else:
         items = [(s.points, s.normals, s.p_object, s.block) for s in (real or [])]
     if not items:
@@ -226,17 +236,27 @@ def make_eval_set(
 
 
 def evaluate_set(
-    net: Any, eval_set: EvalSet, block_tensors: dict[str, Any], block_features: Any, config: TrainConfig
+    net: Any,
+    eval_set: EvalSet,
+    block_tensors: dict[str, Any],
+    block_features: Any,
+    config: TrainConfig,
+    rotations: int | None = None,
 ) -> dict[str, Any]:
     """Metrics of one validation set, and the candidate scores for the temperature fit."""
     torch = require_torch("validation")
     rankings = []
+    rotations = max(1, rotations if rotations is not None else config.test_rotations)
+    chunk = max(1, 256 // rotations)
     with torch.no_grad():
-        for start in range(0, len(eval_set.points), 256):
-            features = net.encode(
-                torch.from_numpy(eval_set.points[start : start + 256]),
-                torch.from_numpy(eval_set.normals[start : start + 256]),
-            )
+        for start in range(0, len(eval_set.points), chunk):
+            points, normals = eval_set.points[start : start + chunk], eval_set.normals[start : start + chunk]
+            if rotations > 1:
+                copies = [rotated_copies(p, n, rotations) for p, n in zip(points, normals, strict=True)]
+                points = np.concatenate([c[0] for c in copies])
+                normals = np.concatenate([c[1] for c in copies])
+            features = net.encode(torch.from_numpy(points), torch.from_numpy(normals))
+            features = features.reshape(-1, rotations, features.shape[-1])
             rankings.append(rank_hypotheses(net, features, block_features, block_tensors, config.hypotheses))
     ranking = {key: np.concatenate([r[key] for r in rankings]) for key in rankings[0]}
     k = min(config.network.candidates, ranking["logits"].shape[1])
@@ -361,7 +381,7 @@ def plot_curves(run_dir: Path, history: list[dict[str, Any]]) -> Path | None:
     for part in ("train_cls", "train_pos", "train_select"):
         axes[0].plot(x, [r[part] for r in history], label=part.removeprefix("train_"), alpha=0.7)
     axes[0].set(title="training loss", xlabel="epoch", yscale="log")
-    for kind in ("virtual", "real"):
+    for kind in ("virtual", "press", "real"):
         if f"val_{kind}_top1" in history[-1]:
             axes[1].plot(x, [r.get(f"val_{kind}_top1", np.nan) for r in history], label=f"{kind} top-1")
             axes[1].plot(x, [r.get(f"val_{kind}_topk", np.nan) for r in history], "--", label=f"{kind} top-K")
@@ -395,15 +415,21 @@ def _load_objects(
         train_idx, val_idx = split_virtual(
             len(dataset), config.val_fraction, config.val_max_per_object, config.max_virtual_per_object, config.seed
         )
-        objects.append(
-            ObjectData(
-                model=model,
-                blocks=make_block_set(model, config.network),
-                virtual=dataset,
-                virtual_train=train_idx,
-                virtual_val=val_idx,
-            )
+        if not config.ball_patches:
+            train_idx = train_idx[:0]
+        obj = ObjectData(
+            model=model,
+            blocks=make_block_set(model, config.network),
+            virtual=dataset,
+            virtual_train=train_idx,
+            virtual_val=val_idx,
         )
+        if config.press.count > 0:
+            obj.press = press_patches(model, config.press, workspace)
+            obj.press_train, obj.press_val = split_virtual(
+                len(obj.press), config.val_fraction, config.val_max_per_object, None, config.seed
+            )
+        objects.append(obj)
     seen = [o.name for o in objects]
     if len(set(seen)) != len(seen):
         raise InputError(f"an object is named twice among {seen}")
@@ -564,7 +590,7 @@ def train(
     eval_sets = {
         (i, kind): s
         for i, obj in enumerate(data)
-        for kind in ("virtual", "real")
+        for kind in ("virtual", "press", "real")
         if (s := make_eval_set(obj, kind, config.network.points_per_patch, obj.real_val)) is not None
     }
 
@@ -587,7 +613,10 @@ def train(
     log.info(
         "training %s on %s (%d parameters, %s, %s)",
         "stage 1" + (" + stage 2" if use_real else ""),
-        ", ".join(f"{o.name} ({len(o.virtual_train)} virtual, {len(o.real_train)} real)" for o in data),
+        ", ".join(
+            f"{o.name} ({len(o.virtual_train)} ball, {len(o.press_train)} press, {len(o.real_train)} real)"
+            for o in data
+        ),
         count_parameters(net),
         device_,
         "bf16" if autocast_dtype else "fp32",
@@ -683,6 +712,7 @@ def train(
             "temperature": temperature,
             "merge_radius_m": config.merge_radius_m,
             "hypotheses": config.hypotheses,
+            "test_rotations": config.test_rotations,
         },
     }
     save_torch_atomic(final_path, payload)
@@ -704,7 +734,7 @@ def _validate(
     torch = require_torch("validation")
     net.eval()
     record: dict[str, Any] = {}
-    per_kind: dict[str, list[dict]] = {"virtual": [], "real": []}
+    per_kind: dict[str, list[dict]] = {"virtual": [], "press": [], "real": []}
     with torch.no_grad():
         features = [net.encode(b["block_points"], b["block_normals"], b["block_knn"]) for b in block_tensors]
         for (obj_index, kind), eval_set in eval_sets.items():
@@ -745,7 +775,7 @@ def _log_epoch(record: dict[str, Any]) -> None:
         f"{record['stage']} epoch {record['epoch']}: loss {record['train_loss']:.3f} "
         f"({record['samples_per_s']:.0f} samples/s, tau {record['temperature']:.1f})"
     )
-    for kind in ("virtual", "real"):
+    for kind in ("virtual", "press", "real"):
         if f"val_{kind}_top1" in record:
             text += (
                 f" | val {kind}: top-1 {record[f'val_{kind}_top1']:.2f}, top-K {record[f'val_{kind}_topk']:.2f}, "
@@ -763,12 +793,33 @@ def with_overrides(config: TrainConfig, **stage_epochs: int | None) -> TrainConf
     return config
 
 
-def copy_run_model(run_dir: str | Path, destination: str | Path) -> Path:
-    """Copy a finished run's model.pt (e.g. into yoto/weights/)."""
+def export_weights(run_dir: str | Path, destination: str | Path, command: str = "") -> tuple[Path, Path]:
+    """Copy a finished run's model.pt to `destination` (e.g. yoto/weights/default.pt) and write a JSON card
+    next to it: how the weights were trained (command, config, objects, contacts, versions) and their
+    validation metrics. Returns the two paths."""
+    from yoto.training.checkpoint import load_localizer_checkpoint
+
     source = Path(run_dir) / "model.pt"
     if not source.exists():
         raise InputError("no finished model in this run folder", run_dir)
+    checkpoint = load_localizer_checkpoint(source)
     destination = Path(destination)
     destination.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(source, destination)
-    return destination
+    metrics = checkpoint.get("metrics", {})
+    card = {
+        "weights": destination.name,
+        "size_bytes": destination.stat().st_size,
+        "command": command,
+        "objects": checkpoint["objects"],
+        "real_pairs": checkpoint.get("real_pairs"),
+        "seed": checkpoint["seed"],
+        "versions": checkpoint["versions"],
+        "network_config": checkpoint["network_config"],
+        "train_config": checkpoint["train_config"],
+        "calibration": checkpoint["calibration"],
+        "validation": {k: v for k, v in metrics.items() if k.startswith("val_")},
+        "final_epoch": {k: v for k, v in metrics.items() if not k.startswith("val_")},
+    }
+    card_path = write_json_atomic(destination.with_suffix(".json"), card)
+    return destination, card_path
