@@ -115,6 +115,34 @@ def write_cut_pairs(model, folder: Path, count: int, rng) -> list[Path]:
     return paths
 
 
+def _fixed_batch_losses(builtin_models, tmp_path_factory, state_dict) -> tuple[dict, dict]:
+    """Loss parts of the seeded initial network and of `state_dict` on the same 48 training patches (eval mode)."""
+    from yoto.network.model import ContactLocalizationNet
+    from yoto.training.data import draw_patch
+    from yoto.training.losses import localization_loss
+    from yoto.training.train import _load_objects, collate
+
+    workspace = tiny_workspace(builtin_models, tmp_path_factory)
+    (data,) = _load_objects(["fruit"], [builtin_models["fruit"]], workspace, TINY_TRAINING, TINY_PATCHES, False)
+    rng = np.random.default_rng(1)
+    batch = collate([draw_patch(data, "virtual", int(i), 48, rng, None) for i in data.virtual_train[:48]], 1.0)
+    blocks = data.blocks.tensors()
+    losses = []
+    torch.manual_seed(TINY_TRAINING.seed)
+    initial = ContactLocalizationNet(TINY_NETWORK)
+    trained = ContactLocalizationNet(TINY_NETWORK)
+    trained.load_state_dict(state_dict)
+    for net in (initial, trained):
+        net.eval()
+        with torch.no_grad():
+            out = net({"patch_points": batch["patch_points"], "patch_normals": batch["patch_normals"], **blocks})
+            loss, parts = localization_loss(
+                out, batch["block"], batch["p_object"], blocks["block_centres"], batch["weight"], TINY_TRAINING.loss
+            )
+        losses.append(parts)
+    return losses[0], losses[1]
+
+
 def _state(path: Path) -> dict:
     return load_torch(path, "checkpoint")
 
@@ -138,9 +166,13 @@ def test_tiny_run_learns_and_writes_a_complete_checkpoint(builtin_models, tmp_pa
     assert checkpoint["calibration"]["temperature"] > 0
     history = [json.loads(line) for line in (path.parent / "log.jsonl").read_text().splitlines()]
     assert [h["epoch"] for h in history] == [1, 2, 3]
-    # The training loss falls and validation beats chance (1 / blocks) at block retrieval.
-    assert history[-1]["train_loss"] < 0.8 * history[0]["train_loss"]
-    assert history[-1]["val_virtual_topk"] > 5 / model.num_blocks
+    # On a fixed batch of training patches the trained network retrieves blocks better than the initial one:
+    # lower block cross-entropy, higher top-K recall. (The total loss is not comparable across the two: the
+    # top-K margin applies only to samples already within the top K, so it grows as recall does.)
+    initial, trained = _fixed_batch_losses(builtin_models, tmp_path_factory, checkpoint["state_dict"])
+    assert trained["cls"] < initial["cls"] - 0.1
+    assert trained["topk_recall"] > initial["topk_recall"] + 0.1
+    assert history[-1]["val_virtual_topk"] >= TINY_NETWORK.candidates / model.num_blocks
     assert (path.parent / "log.csv").read_text().startswith("stage,epoch,step")
     assert (path.parent / "curves.png").stat().st_size > 1000
 
@@ -251,3 +283,26 @@ def test_augmentations_keep_labels_and_shapes(builtin_models, tmp_path_factory):
     assert np.min(np.linalg.norm(model.points_object - cropped.p_object, axis=1)) < 1e-6
     assert np.linalg.norm(cropped.p_object - dataset.p_object[3]) < 0.008
     np.testing.assert_allclose(np.linalg.norm(cropped.normals, axis=1), 1.0, atol=1e-4)
+
+
+def test_press_patches_look_like_pad_contacts(builtin_models):
+    from yoto.training.press import PressPatchConfig, generate_press_patches
+
+    model = builtin_models["figurine"]
+    config = PressPatchConfig(count=25, depth_m=(0.0008, 0.0008), seed=3)
+    dataset = generate_press_patches(model, config)
+    assert len(dataset) == 25 and dataset.meta["kind"] == "press"
+    half_diagonal = 0.5 * float(np.hypot(*config.pad_size_m))
+    for i in range(len(dataset)):
+        members = dataset.indices[dataset.offsets[i] : dataset.offsets[i + 1]]
+        points = model.points_object[members].astype(np.float64)
+        assert len(members) >= config.min_points
+        # Inside the pad (around the target, offset at most max_offset) and labelled with one of its points.
+        assert np.linalg.norm(points - points.mean(axis=0), axis=1).max() <= half_diagonal + config.max_offset_m
+        assert np.min(np.linalg.norm(points - dataset.p_object[i], axis=1)) == 0.0
+        # Pressed 0.8 mm deep: along its own axis the contact spans about the depth, far less than its width.
+        canonical, _ = dataset.patch(i)
+        assert np.ptp(canonical[:, 2]) < 0.3 * np.ptp(canonical[:, :2], axis=0).max()
+    # Deterministic for its seed.
+    again = generate_press_patches(model, config)
+    np.testing.assert_array_equal(again.indices, dataset.indices)

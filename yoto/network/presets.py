@@ -57,6 +57,7 @@ PRESETS: dict[str, NetworkConfig] = {
     "paper": NetworkConfig(),
     # Fast on a 2-core CPU: fewer points and narrower layers; same scales, shared kNN, per-point linear edge terms.
     "cpu": NetworkConfig(
+        rotation_invariant=True,
         points_per_patch=128,
         points_per_block=256,
         centre_fraction=0.25,

@@ -31,7 +31,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--real-pairs", help="folder of contact pairs with ground truth for stage 2 (searched recursively)"
     )
     parser.add_argument("--val-pairs", help="folder of held-out pairs validated every epoch (not the --real-pairs)")
-    parser.add_argument("--run", default="default", help="run name: WORKSPACE/runs/RUN (default: default)")
+    parser.add_argument(
+        "--run", dest="run_name", default="default", help="run name: WORKSPACE/runs/RUN (default: default)"
+    )
     parser.add_argument("--run-dir", help="run folder (overrides --run)")
     parser.add_argument("--seed", type=int, help="override the preset's seed")
     parser.add_argument("--workspace", help="workspace folder (default: $YOTO_WORKSPACE or ./yoto_workspace)")
@@ -70,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         result = measure_training_speed(config, args.objects, args.workspace)
         print(result.summary())
         return 0
-    run_dir = args.run_dir or runs_dir(args.workspace) / args.run
+    run_dir = args.run_dir or runs_dir(args.workspace) / args.run_name
     path = train(
         config,
         args.objects,
