@@ -18,11 +18,13 @@ from yoto.errors import YotoError
 STAGE_CLI_MODULES = [
     "yoto.demo",
     "yoto.objects.cli",
-    "yoto.sensor.cli",
     "yoto.patches.cli",
     "yoto.simulate.cli",
+    "yoto.training.cli",
+    "yoto.localize.cli",
     "yoto.pose.cli",
     "yoto.evaluation.cli",
+    "yoto.sensor.cli",
 ]
 
 

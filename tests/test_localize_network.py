@@ -1,0 +1,158 @@
+"""The network localizer: candidates, beliefs, block-feature cache, errors for missing or foreign checkpoints."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from test_training import cut_contact, tiny_run, write_cut_pairs  # noqa: E402
+
+from yoto.errors import InputError  # noqa: E402
+from yoto.localize import make_localizer  # noqa: E402
+from yoto.localize.network import NetworkLocalizer, UnknownObjectWarning, measure_latency  # noqa: E402
+from yoto.network.candidates import Candidate, candidates_of, fit_temperature, softmax  # noqa: E402
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    """Small tensors gain nothing from threads, and on a shared machine extra threads only spin."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def localizer(builtin_models, tmp_path_factory):
+    return make_localizer("yoto", str(tiny_run(builtin_models, tmp_path_factory)))
+
+
+def test_localizer_returns_ranked_candidates_with_beliefs(localizer, builtin_models, rng):
+    model = builtin_models["fruit"]
+    points, _, p_true = cut_contact(model, int(rng.integers(len(model.points_object))), rng)
+    candidates = localizer.localize(points, model)
+    assert isinstance(localizer, NetworkLocalizer) and localizer.name == "yoto" and not localizer.needs_ground_truth
+    assert 1 <= len(candidates) <= localizer.hypotheses
+    # The paper's answer first, then the other hypotheses by score.
+    assert candidates[0].details["hypothesis"] == 0
+    rest = [c.score for c in candidates[1:]]
+    assert rest == sorted(rest, reverse=True)
+    probabilities = np.array([c.probability for c in candidates])
+    assert ((probabilities >= 0) & (probabilities <= 1)).all() and probabilities.sum() == pytest.approx(1.0)
+    blocks = [c.block for c in candidates]
+    assert len(set(blocks)) == len(blocks)
+    for candidate in candidates:
+        # On the model's scale, unit kNN-aggregated normals, scores = coarse + confidence.
+        assert np.abs(candidate.p_object).max() < model.mesh_scale_m
+        np.testing.assert_allclose(candidate.n_object, model.aggregated_normal(candidate.p_object, 20))
+        details = candidate.details
+        assert candidate.score == pytest.approx(details["coarse_score"] + details["fine_confidence"], abs=1e-3)
+    json.dumps([c.details for c in candidates])  # JSON-serialisable
+    coarse = candidates[0].details["coarse_top_logits"]
+    assert coarse == sorted(coarse, reverse=True) and len(coarse) == localizer.config.candidates
+
+
+def test_block_features_are_computed_once_per_model(localizer, builtin_models, rng):
+    model = builtin_models["fruit"]
+    first = localizer.prepare_object(model)
+    assert localizer.prepare_object(model) is first
+    points, _, _ = cut_contact(model, 123, rng)
+    batch = localizer.localize_many([points, points], model)
+    single = localizer.localize(points, model)
+    np.testing.assert_allclose(batch[0][0].p_object, single[0].p_object, atol=1e-6)
+    latency = measure_latency(localizer, [points] * 3, model)
+    assert latency["calls"] == 3 and 0 < latency["median_ms"] <= latency["p90_ms"] * 1.0001
+
+
+def test_other_objects_work_but_warn(localizer, builtin_models, rng):
+    figurine = builtin_models["figurine"]
+    points, _, _ = cut_contact(figurine, 500, rng)
+    with pytest.warns(UnknownObjectWarning, match="not one this localizer was trained on"):
+        candidates = localizer.localize(points, figurine)
+    assert candidates and candidates[0].details["trained_object"] is False
+
+
+def test_missing_checkpoints_give_clear_errors(tmp_path, monkeypatch):
+    with pytest.raises(InputError, match="localizer checkpoint not found"):
+        NetworkLocalizer.from_checkpoint(tmp_path / "nope.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(InputError, match="not a readable"):
+        NetworkLocalizer.from_checkpoint(tmp_path / "junk.pt")
+    monkeypatch.setattr("yoto.localize.network.default_checkpoint_path", lambda: tmp_path / "default.pt")
+    with pytest.raises(InputError, match="yoto train"):
+        NetworkLocalizer.from_checkpoint(None)
+
+
+def test_candidates_merge_close_hypotheses_and_sum_beliefs():
+    ranking = {
+        "best": np.array([[0, 0, 0]]),
+        "pools": np.array([[[4], [7], [9]]]),
+        "positions": np.array([[[[0.0, 0, 0]], [[0.002, 0, 0]], [[0.05, 0, 0]]]]),
+        "scores": np.array([[[1.0], [3.0], [2.0]]]),
+        "confidence": np.zeros((1, 3, 1)),
+        "logits": np.zeros((1, 10)),
+    }
+    found = candidates_of(ranking, 0, temperature=1.0, merge_radius_m=0.005)
+    beliefs = softmax(np.array([1.0, 3.0, 2.0]), 1.0)
+    # Hypothesis 0 (the paper's answer) first; block 7 lies 2 mm from it and merges into it.
+    assert [c.block for c in found] == [4, 9]
+    assert found[0].probability == pytest.approx(beliefs[0] + beliefs[1])
+    assert found[1].probability == pytest.approx(beliefs[2])
+    by_score = candidates_of(ranking, 0, temperature=1.0, merge_radius_m=0.0, paper_first=False)
+    assert [c.block for c in by_score] == [7, 9, 4]
+    assert isinstance(by_score[0], Candidate)
+
+
+def test_fitted_temperature_follows_how_often_the_top_score_is_right():
+    scores = [np.array([2.0, 0.0])] * 10
+    confident = fit_temperature(scores, [np.array([True, False])] * 10)
+    unsure = fit_temperature(scores, [np.array([True, False])] * 6 + [np.array([False, True])] * 4)
+    assert confident < 0.5 < unsure  # always right: sharpen; right 60%: soften
+    assert softmax(np.array([2.0, 0.0]), unsure)[0] == pytest.approx(0.6, abs=0.05)
+
+
+def test_localize_cli_writes_the_contact_in_both_frames(localizer, builtin_models, tmp_path, rng):
+    from yoto.cli import main
+    from yoto.io import write_ply_points
+    from yoto.workspace import object_model_path
+
+    model = builtin_models["fruit"]
+    model.save(object_model_path("fruit", tmp_path))
+    points, _, _ = cut_contact(model, 777, rng)
+    cloud = write_ply_points(tmp_path / "contact.ply", points)
+    out = tmp_path / "result.json"
+    code = main(
+        [
+            "localize",
+            str(cloud),
+            "--object",
+            "fruit",
+            "--workspace",
+            str(tmp_path),
+            "--checkpoint",
+            str(localizer.source),
+            "--out",
+            str(out),
+        ]
+    )
+    assert code == 0
+    result = json.loads(out.read_text())
+    contact = result["contact"]
+    p_mesh = model.T_mesh_object[:3, :3] @ np.array(contact["p_object"]) + model.T_mesh_object[:3, 3]
+    np.testing.assert_allclose(contact["p_mesh"], p_mesh, atol=1e-9)
+    assert 0 <= contact["probability"] <= 1 and result["candidates"][0] == contact
+
+
+def test_pose_stage_uses_the_network_localizer(localizer, builtin_models, tmp_path, rng):
+    from yoto.contacts import read_contact_pair
+    from yoto.pose.pipeline import estimate_pose
+
+    model = builtin_models["fruit"]
+    (path,) = write_cut_pairs(model, tmp_path, 1, rng)
+    estimate = estimate_pose(read_contact_pair(path), model, localizer)
+    assert estimate.method == "yoto" and 0.0 <= estimate.confidence <= 1.0
+    assert estimate.latency_ms["localize_left"] > 0

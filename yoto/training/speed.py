@@ -1,0 +1,98 @@
+"""Training throughput: samples per second of real training steps (`yoto train --speed-test`).
+
+Each timed step is a full optimisation step of `yoto train`: draw and augment a batch of virtual patches,
+encode them and all of the object's blocks (with gradients), loss, backward, AdamW step. Steps cycle over
+the objects as training does. Warm-up steps are excluded; the median and spread of the rest are reported
+as wall-clock and as process CPU time (on a shared machine, CPU time per step shows what the code costs
+when the wall clock is inflated by other processes).
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from yoto.errors import require_torch
+from yoto.objects.build import load_object_model
+from yoto.patches.virtual import VirtualPatchConfig
+
+
+@dataclass
+class SpeedResult:
+    """Timings of training steps."""
+
+    step_s: np.ndarray  # wall-clock seconds per timed step
+    cpu_s: np.ndarray  # process CPU seconds per timed step
+    batch_sizes: np.ndarray  # samples per timed step
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def samples_per_s(self) -> float:
+        return float(np.median(self.batch_sizes) / np.median(self.step_s))
+
+    def to_dict(self) -> dict[str, Any]:
+        batch = float(np.median(self.batch_sizes))
+        return {
+            **self.info,
+            "steps": len(self.step_s),
+            "step_ms_median": 1000 * float(np.median(self.step_s)),
+            "step_ms_p10_p90": [1000 * float(np.percentile(self.step_s, q)) for q in (10, 90)],
+            "samples_per_s_median": self.samples_per_s,
+            "samples_per_s_best_decile": batch / float(np.percentile(self.step_s, 10)),
+            "cpu_ms_per_step_median": 1000 * float(np.median(self.cpu_s)),
+            "samples_per_cpu_s": batch / float(np.median(self.cpu_s)),
+        }
+
+    def summary(self) -> str:
+        d = self.to_dict()
+        return (
+            f"{d['parameters']:,} parameters, batch {d['batch_size']}, {d['threads']} threads, {d['steps']} steps: "
+            f"median step {d['step_ms_median']:.0f} ms -> {d['samples_per_s_median']:.0f} training samples/s "
+            f"(best decile {d['samples_per_s_best_decile']:.0f}/s; {d['samples_per_cpu_s']:.0f} samples per CPU-second;"
+            f" load average {d['load_average'][0]:.1f} on {d['cpu_count']} CPUs)"
+        )
+
+
+def measure_training_speed(
+    config: Any, objects: list[str], workspace: str | Path | None = None, steps: int = 30, warmup: int = 5
+) -> SpeedResult:
+    """Time `steps` training steps (after `warmup` untimed ones) of `config` on `objects`."""
+    torch = require_torch("timing training")
+    from yoto.network.model import ContactLocalizationNet, count_parameters
+    from yoto.training.train import StepRunner, _load_objects, _optimizer, plan_epoch
+
+    models = [load_object_model(name, workspace) for name in objects]
+    data = _load_objects(objects, models, workspace, config, VirtualPatchConfig(), progress=False)
+    torch.manual_seed(config.seed)
+    net = ContactLocalizationNet(config.network)
+    runner = StepRunner(net, data, config, torch.device("cpu"), None)
+    rng = np.random.default_rng(config.seed)
+    plan = plan_epoch(data, config.stage1, config.batch_size, rng, use_real=False)
+    optimizer, scheduler = _optimizer(net, config.stage1, config, len(plan))
+    wall, cpu, sizes = [], [], []
+    for i, (obj_index, entries) in enumerate(plan[: warmup + steps]):
+        tick, cpu_tick = time.perf_counter(), time.process_time()
+        runner.step(obj_index, entries, rng, 1.0, optimizer, scheduler)
+        if i >= warmup:
+            wall.append(time.perf_counter() - tick)
+            cpu.append(time.process_time() - cpu_tick)
+            sizes.append(len(entries))
+    info = {
+        "objects": list(objects),
+        "blocks": [o.blocks.num_blocks for o in data],
+        "parameters": count_parameters(net),
+        "batch_size": config.batch_size,
+        "block_refresh_every": config.block_refresh_every,
+        "threads": torch.get_num_threads(),
+        "load_average": list(os.getloadavg()),
+        "cpu_count": os.cpu_count(),
+        "cpu": platform.processor() or platform.machine(),
+        "torch": str(torch.__version__),
+    }
+    return SpeedResult(np.array(wall), np.array(cpu), np.array(sizes), info)
