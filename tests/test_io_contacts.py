@@ -100,6 +100,7 @@ def test_pair_round_trip(tmp_path, rng):
     assert read.has_ground_truth
     # Pose results next to the pairs are not mistaken for pairs.
     (tmp_path / "pair_0007.pose.json").write_text("{}")
+    (tmp_path / "simulation.json").write_text("{}")  # the simulator's folder settings
     assert find_pair_files([tmp_path]) == [path]
 
 

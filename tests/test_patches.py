@@ -204,3 +204,23 @@ def test_a_simulated_gelsight_contact_and_a_virtual_patch_of_the_same_region_agr
     # Sub-0.1 mm agreement in height, and clearly better than another region of the same object.
     assert max(gaps) < 0.1e-3
     assert np.median(control_gaps) > 2 * np.median(gaps)
+
+
+def test_closed_form_smallest_eigenvectors_match_eigh(rng):
+    """The fast path of the PCA normals against numpy's eigh, including near-degenerate matrices."""
+    from yoto.pointcloud import smallest_eigenvectors
+
+    points = rng.normal(size=(2000, 10, 3)) * np.array([1.0, 0.5, 0.01])
+    points[:50] = rng.normal(size=(50, 10, 3))  # nearly isotropic
+    points[50:60, :, 2] = 0.0  # exactly planar
+    centred = points - points.mean(axis=1, keepdims=True)
+    covariances = np.matmul(centred.transpose(0, 2, 1), centred)
+    fast = smallest_eigenvectors(covariances)
+    values, vectors = np.linalg.eigh(covariances)
+    reference = vectors[:, :, 0]
+    well_separated = (values[:, 1] - values[:, 0]) > 1e-3 * values[:, 2]
+    assert np.allclose(np.abs(np.einsum("ni,ni->n", fast, reference))[well_separated], 1.0, atol=1e-9)
+    assert np.allclose(np.linalg.norm(fast, axis=1), 1.0)
+    # Where eigenvalues nearly tie, any vector of the smallest eigenspace will do: check the Rayleigh quotient.
+    rayleigh = np.einsum("ni,nij,nj->n", fast, covariances, fast)
+    assert np.all(rayleigh <= values[:, 0] + 1e-6 * values[:, 2])

@@ -159,11 +159,13 @@ def write_contact_pair(path: str | Path, pair: ContactPair) -> Path:
 
 
 POSE_RESULT_SUFFIX = ".pose.json"
+FOLDER_SETTINGS_FILE = "simulation.json"  # written by `yoto simulate pairs` beside its pair files
 
 
 def is_pair_file_name(path: Path) -> bool:
-    """Pair files are the folder's JSON files other than hidden files and pose results."""
-    return not path.name.startswith(".") and not path.name.endswith(POSE_RESULT_SUFFIX)
+    """Pair files are a folder's JSON files other than hidden files, pose results and the folder's settings."""
+    name = path.name
+    return not name.startswith(".") and not name.endswith(POSE_RESULT_SUFFIX) and name != FOLDER_SETTINGS_FILE
 
 
 def find_pair_files(inputs: list[str | Path]) -> list[Path]:

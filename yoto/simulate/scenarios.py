@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from yoto.contacts import SIDES, ContactPair, TactileContact, write_contact_pair
+from yoto.contacts import ContactPair, FOLDER_SETTINGS_FILE, SIDES, TactileContact, write_contact_pair
 from yoto.errors import InputError, YotoError
 from yoto.geometry import (
     invert_transform,
@@ -54,7 +54,7 @@ PAIR_REJECTION_REASONS = {
     "ill_conditioned": "the contacts are near-coaxial: sigma_2/sigma_1 of [d, n_L, n_R] is below the floor",
     "sensors_collide": "the two sensor bodies would collide with each other",
 }
-SETTINGS_FILE = "simulation.json"
+SETTINGS_FILE = FOLDER_SETTINGS_FILE
 
 # Mean norm of a 3-D standard normal vector, and mean |x| of a 1-D one: turn "mean error" into a std.
 _MEAN_NORM_3D = float(np.sqrt(8.0 / np.pi))
