@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from yoto.contacts import ContactPair, FOLDER_SETTINGS_FILE, SIDES, TactileContact, write_contact_pair
+from yoto.contacts import FOLDER_SETTINGS_FILE, SIDES, ContactPair, TactileContact, write_contact_pair
 from yoto.errors import InputError, YotoError
 from yoto.geometry import (
     invert_transform,
