@@ -306,3 +306,16 @@ def test_press_patches_look_like_pad_contacts(builtin_models):
     # Deterministic for its seed.
     again = generate_press_patches(model, config)
     np.testing.assert_array_equal(again.indices, dataset.indices)
+
+
+def test_pairs_of_one_object_can_train_the_model_of_its_scan(builtin_models, tmp_path, rng):
+    """Contacts recorded on the real object train the model built from its scan (same mesh frame)."""
+    from yoto.training.data import load_contact_samples
+
+    model = builtin_models["fruit"]
+    scan_model = replace(model, name="fruit_scan")
+    write_cut_pairs(model, tmp_path, 2, rng)
+    samples, files = load_contact_samples([tmp_path], {"fruit_scan": scan_model})
+    assert len(files) == 2 and samples["fruit_scan"] == []  # without the mapping the pairs are not this model's
+    samples, _ = load_contact_samples([tmp_path], {"fruit_scan": scan_model}, {"fruit": "fruit_scan"})
+    assert len(samples["fruit_scan"]) == 4

@@ -32,6 +32,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--val-pairs", help="folder of held-out pairs validated every epoch (not the --real-pairs)")
     parser.add_argument(
+        "--pair-objects",
+        nargs="+",
+        default=[],
+        metavar="PAIR_OBJECT=MODEL",
+        help="train MODEL with the pairs of PAIR_OBJECT, e.g. drill=drill_scan (a scan's model with contacts "
+        "recorded on the real object)",
+    )
+    parser.add_argument(
         "--run", dest="run_name", default="default", help="run name: WORKSPACE/runs/RUN (default: default)"
     )
     parser.add_argument("--run-dir", help="run folder (overrides --run)")
@@ -50,6 +58,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--speed-test", action="store_true", help="time training steps instead of training (see benchmarks/)"
     )
     parser.set_defaults(run=run)
+
+
+def parse_pair_objects(values: list[str]) -> dict[str, str]:
+    from yoto.errors import InputError
+
+    mapping = {}
+    for value in values:
+        source, _, target = value.partition("=")
+        if not source or not target:
+            raise InputError(f"--pair-objects {value!r}: expected PAIR_OBJECT=MODEL, e.g. drill=drill_scan")
+        mapping[source] = target
+    return mapping
 
 
 def run(args: argparse.Namespace) -> int:
@@ -80,6 +100,7 @@ def run(args: argparse.Namespace) -> int:
         run_dir=run_dir,
         real_pairs_dir=args.real_pairs,
         val_pairs_dir=args.val_pairs,
+        pair_objects=parse_pair_objects(args.pair_objects),
         resume=not args.no_resume,
         overwrite=args.overwrite,
         device=args.device,

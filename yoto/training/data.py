@@ -121,19 +121,22 @@ def find_pair_files_recursive(inputs: list[str | Path]) -> list[Path]:
 
 
 def load_contact_samples(
-    pair_inputs: list[str | Path], models: dict[str, ObjectModel]
+    pair_inputs: list[str | Path], models: dict[str, ObjectModel], pair_objects: dict[str, str] | None = None
 ) -> tuple[dict[str, list[ContactSample]], list[Path]]:
     """Labelled canonical samples from contact-pair files with ground truth, grouped by object name.
 
-    Pairs of objects not in `models` are skipped with a note; contacts without ground truth, or that cannot
-    be canonicalized, are skipped with a warning. Returns the samples and the pair files read.
+    `pair_objects` maps a pair file's object name to the model it trains (e.g. "drill" -> "drill_scan": contacts
+    recorded on the real drill train the model built from its scan, whose mesh frame is the drill's). Pairs of
+    objects not in `models` are skipped with a note; contacts without ground truth, or that cannot be
+    canonicalized, are skipped with a warning. Returns the samples and the pair files read.
     """
+    pair_objects = pair_objects or {}
     samples: dict[str, list[ContactSample]] = {name: [] for name in models}
     files = find_pair_files_recursive(pair_inputs)
     skipped_objects: set[str] = set()
     for path in files:
         pair = read_contact_pair(path)
-        model = models.get(pair.object_name)
+        model = models.get(pair_objects.get(pair.object_name, pair.object_name))
         if model is None:
             skipped_objects.add(pair.object_name)
             continue

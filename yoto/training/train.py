@@ -531,6 +531,7 @@ def train(
     device: str | None = None,
     progress: bool = True,
     max_steps: int | None = None,
+    pair_objects: dict[str, str] | None = None,
 ) -> Path:
     """Train (or keep, or resume) the localization network on `objects`; returns the checkpoint path.
 
@@ -538,7 +539,8 @@ def train(
     virtual patches are generated with `patch_config` if missing. real_pairs_dir: contact pairs with ground
     truth for stage 2 (stage 2 runs only with them). val_pairs_dir: held-out pairs validated every epoch
     (never the fine-tuning ones). max_steps: stop after this many steps in all (tests, speed checks); the
-    result is then not a finished run and no model.pt is written.
+    result is then not a finished run and no model.pt is written. pair_objects: pair-file object name ->
+    trained object name, for training a model of a scan with contacts recorded on the real object.
     """
     torch = require_torch("training the localization network")
     if not objects:
@@ -552,9 +554,9 @@ def train(
     real_samples: dict[str, list[ContactSample]] = {}
     val_samples: dict[str, list[ContactSample]] = {}
     if real_pairs_dir is not None:
-        real_samples, real_files = load_contact_samples([real_pairs_dir], by_name)
+        real_samples, real_files = load_contact_samples([real_pairs_dir], by_name, pair_objects)
     if val_pairs_dir is not None:
-        val_samples, val_files = load_contact_samples([val_pairs_dir], by_name)
+        val_samples, val_files = load_contact_samples([val_pairs_dir], by_name, pair_objects)
     if real_files and val_files:
         overlap = {pair_files_digest([p]) for p in real_files} & {pair_files_digest([p]) for p in val_files}
         if overlap:
