@@ -133,6 +133,8 @@ def test_localize_cli_writes_the_contact_in_both_frames(localizer, builtin_model
             "fruit",
             "--workspace",
             str(tmp_path),
+            "--method",
+            "yoto",
             "--checkpoint",
             str(localizer.source),
             "--out",

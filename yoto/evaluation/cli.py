@@ -22,7 +22,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("-n", "--pairs", type=int, default=100, help="dual contacts per object")
     parser.add_argument("--seed", type=int, default=7, help="evaluation seed (training pairs must use others)")
     parser.add_argument(
-        "--methods", nargs="*", default=["oracle", "icp"], choices=["oracle", "icp"], help="baseline rows to run"
+        "--methods",
+        nargs="*",
+        default=["oracle", "icp", "match"],
+        choices=["oracle", "icp", "match"],
+        help="rows without a checkpoint to run",
     )
     parser.add_argument(
         "--yoto",
@@ -78,7 +82,7 @@ def parse_yoto_rows(values: list[str]):
 def run(args: argparse.Namespace) -> int:
     from yoto.evaluation.bench import BenchConfig, MethodSpec, run_benchmark
 
-    labels = {"oracle": "Oracle (true contacts)", "icp": "ICP (30 starts)"}
+    labels = {"oracle": "Oracle (true contacts)", "icp": "ICP (30 starts)", "match": "Matched filter (no training)"}
     methods = [MethodSpec(label=labels[m], method=m) for m in args.methods] + parse_yoto_rows(args.yoto)
     config = BenchConfig(
         num_pairs=args.pairs,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from yoto.localize.base import ContactLocalizer, OracleLocalizer
 
-METHODS = ("oracle", "icp", "yoto")
+METHODS = ("oracle", "icp", "match", "yoto")
 
 
 def make_localizer(method: str, checkpoint: str | None = None) -> ContactLocalizer:
@@ -15,6 +15,10 @@ def make_localizer(method: str, checkpoint: str | None = None) -> ContactLocaliz
         from yoto.localize.icp import IcpLocalizer
 
         return IcpLocalizer()
+    if method == "match":
+        from yoto.localize.match import MatchLocalizer
+
+        return MatchLocalizer()
     if method == "yoto":
         from yoto.localize.network import NetworkLocalizer
 

@@ -8,14 +8,20 @@ import argparse
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "localize",
-        help="locate tactile contacts on an object model with the trained network",
+        help="locate tactile contacts on an object model",
         description="Locate each tactile cloud (PLY, sensor frame, metres) on the object model: the contact "
         "location and outward normal (mesh file's frame and YOTO's object frame), its block, scores and the "
         "other candidates, best first.",
     )
     parser.add_argument("clouds", nargs="+", help="tactile point clouds (PLY, sensor frame, metres)")
     parser.add_argument("--object", required=True, help="object name (workspace or built-in) or model file")
-    parser.add_argument("--checkpoint", help="trained localizer (default: the weights shipped with YOTO)")
+    parser.add_argument(
+        "--method",
+        choices=["match", "yoto", "icp"],
+        default="match",
+        help="localizer: the training-free matched filter (default), the YOTO network, or the ICP baseline",
+    )
+    parser.add_argument("--checkpoint", help="network weights for --method yoto (default: the weights shipped)")
     parser.add_argument("--workspace", help="workspace folder holding object models")
     parser.add_argument("--out", help="write the results as JSON here (one file; a list when several clouds)")
     parser.add_argument("--candidates", type=int, default=3, help="candidates to print per cloud")
@@ -55,12 +61,13 @@ def run(args: argparse.Namespace) -> int:
 
     from yoto.contacts import validate_tactile_points
     from yoto.io import read_ply_points, write_json_atomic
-    from yoto.localize.network import NetworkLocalizer
+    from yoto.localize import make_localizer
     from yoto.objects.build import load_object_model
 
-    localizer = NetworkLocalizer.from_checkpoint(args.checkpoint)
+    localizer = make_localizer(args.method, args.checkpoint)
     model = load_object_model(args.object, args.workspace)
-    localizer.prepare_object(model)
+    if hasattr(localizer, "prepare_object"):
+        localizer.prepare_object(model)  # per-object set-up outside the timed localization
     results = []
     for cloud in args.clouds:
         points, _ = read_ply_points(cloud)

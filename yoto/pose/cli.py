@@ -13,9 +13,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "Writes one NAME.pose.json per pair (SPEC pose result, mesh file's frame).",
     )
     parser.add_argument("pairs", nargs="+", help="contact pair JSON files or folders of them")
-    parser.add_argument("--method", choices=["yoto", "icp", "oracle"], default="yoto", help="contact localizer")
+    parser.add_argument(
+        "--method",
+        choices=["match", "yoto", "icp", "oracle"],
+        default="match",
+        help="contact localizer: the training-free matched filter (default), the YOTO network, ICP, or the "
+        "ground truth",
+    )
     parser.add_argument("--oracle", action="store_true", help="shorthand for --method oracle (ground-truth contacts)")
-    parser.add_argument("--checkpoint", help="trained localizer (default: the weights shipped with YOTO)")
+    parser.add_argument("--checkpoint", help="network weights for --method yoto (default: the weights shipped)")
     parser.add_argument("--model", help="object model file or name to use for every pair (default: each pair's object)")
     parser.add_argument("--workspace", help="workspace folder holding object models")
     parser.add_argument("--out", help="folder for the pose results (default: next to each pair file)")

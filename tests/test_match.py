@@ -1,0 +1,159 @@
+"""The training-free matched-filter localizer: simulated GelSight contacts found on the object, their sensor
+poses, ambiguity on featureless surfaces, and clear errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("open3d")
+
+from yoto.errors import DegenerateGeometryError  # noqa: E402
+from yoto.geometry import rotation_angle_rad  # noqa: E402
+from yoto.localize import make_localizer  # noqa: E402
+from yoto.localize.match import MapGrid, MatchConfig, MatchLocalizer, plane_costs  # noqa: E402
+from yoto.simulate.scenarios import PairSimulator  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def fruit_contacts(builtin_models):
+    """Six simulated GelSight contacts on the bumpy fruit, with their true contact points and sensor poses."""
+    model = builtin_models["fruit"]
+    simulator = PairSimulator(model)
+    contacts = []
+    for index in range(3):
+        simulated = simulator.pair(seed=11, index=index)
+        for side, contact in simulated.contacts.items():
+            contacts.append(
+                (
+                    simulated.pair.contact(side).points_sensor,
+                    simulated.p_object_true[side],
+                    contact.press.T_object_sensor,
+                )
+            )
+    return model, contacts
+
+
+def test_finds_contacts_on_a_distinctive_surface(fruit_contacts):
+    """The fruit's bumps make a contact's height map unique: the best candidate is the true place, and its
+    sensor pose (a by-product of the match) is the true one."""
+    model, contacts = fruit_contacts
+    localizer = make_localizer("match")
+    assert isinstance(localizer, MatchLocalizer) and not localizer.needs_ground_truth
+    hits = 0
+    for points_sensor, p_true, T_object_sensor_true in contacts:
+        candidates = localizer.localize(points_sensor, model)
+        assert 1 <= len(candidates) <= localizer.config.num_candidates
+        probabilities = np.array([c.probability for c in candidates])
+        assert ((probabilities >= 0) & (probabilities <= 1)).all() and probabilities.sum() <= 1.0 + 1e-9
+        assert np.all(np.diff([c.score for c in candidates]) <= 1e-12)  # best first
+        best = candidates[0]
+        if np.linalg.norm(best.p_object - p_true) < 1.5e-3:
+            hits += 1
+            T_object_sensor = np.array(best.details["match_T_object_sensor"])
+            # The press axis is well determined; the roll about it only as well as the contact's shape allows.
+            press_axis_cos = T_object_sensor[:3, 2] @ T_object_sensor_true[:3, 2]
+            assert np.degrees(np.arccos(min(press_axis_cos, 1.0))) < 3.0
+            assert np.degrees(rotation_angle_rad(T_object_sensor, T_object_sensor_true)) < 15.0
+            assert best.details["match_residual_mm"] < 0.1
+    assert hits >= 5
+
+
+def test_every_rotation_of_the_sensor_is_searched(builtin_models, fruit_contacts):
+    """Rolling the tactile cloud about the sensor axis leaves the answer in place. (Without the free-space
+    term: these contacts cover the whole pad, and a rolled copy would claim the pad's corners saw nothing.)"""
+    from yoto.geometry import rotation_about_axis
+
+    model, contacts = fruit_contacts
+    localizer = MatchLocalizer(MatchConfig(free_space=False))
+    for points_sensor, p_true, _ in contacts[:3]:
+        found = localizer.localize(points_sensor, model)[0].p_object
+        assert np.linalg.norm(found - p_true) < 2.5e-3
+        for angle in (0.7, 2.9):
+            rolled = points_sensor @ rotation_about_axis(np.array([0.0, 0.0, 1.0]), angle).T
+            assert np.linalg.norm(localizer.localize(rolled, model)[0].p_object - found) < 1.0e-3
+
+
+def test_a_flat_face_is_ambiguous_not_wrong(builtin_models):
+    """Pressing a flat region matches many places; every candidate still lies on the surface, facing the sensor."""
+    import trimesh
+
+    from yoto.objects.model import ObjectModelConfig, build_object_model
+
+    box = build_object_model(trimesh.creation.box((0.12, 0.08, 0.05)), "box", ObjectModelConfig(num_points=40_000))
+    x, y = np.meshgrid(np.arange(-4e-3, 4e-3, 1e-4), np.arange(-4e-3, 4e-3, 1e-4))
+    depth = 0.3e-3
+    points_sensor = np.stack([x.ravel(), y.ravel(), np.full(x.size, -depth)], axis=1)
+    candidates = MatchLocalizer().localize(points_sensor, box)
+    assert len(candidates) >= 3
+    spread = np.ptp(np.array([c.p_object for c in candidates]), axis=0).max()
+    assert spread > 0.01  # distinct places, none singled out
+    for candidate in candidates:
+        distance = np.abs(box.mesh_object.nearest.signed_distance(candidate.p_object[None]))[0]
+        assert distance < 0.5e-3
+
+
+def test_plane_costs_remove_offset_and_tilt():
+    """The matched filter's cost is zero for a height map equal to the anchor's up to a plane, and the plane
+    it reports is that plane."""
+    grid = MapGrid(0.0015, 0.0105)
+    x, y = grid.centres.T
+    rng = np.random.default_rng(3)
+    anchor = rng.normal(0.0, 3e-4, grid.size).astype(np.float32)
+    beta_true = np.array([2e-4, 0.05, -0.03])
+    contact = anchor + beta_true[0] + beta_true[1] * x + beta_true[2] * y
+    mask = np.ones((1, grid.size), dtype=np.float32)
+    valid = np.ones((grid.size, 1), dtype=np.float32)
+    heights = anchor[:, None]
+    cost, beta = plane_costs(
+        mask, contact[None].astype(np.float32), valid, heights, heights * heights, grid.centres, True, 5e-4
+    )
+    assert cost[0, 0] < 1e-12
+    np.testing.assert_allclose(beta[:, 0, 0], beta_true, rtol=1e-2, atol=1e-6)
+    # Offset only: the tilt is left as error.
+    cost_offset, _ = plane_costs(
+        mask, contact[None].astype(np.float32), valid, heights, heights * heights, grid.centres, False, 5e-4
+    )
+    assert cost_offset[0, 0] > 1e-8
+
+
+def test_anchor_maps_are_built_once(builtin_models):
+    model = builtin_models["figurine"]
+    localizer = MatchLocalizer()
+    first = localizer.prepare_object(model)
+    assert localizer.prepare_object(model) is first
+    assert first.heights.shape == (len(first.points_object), first.grid.size)
+    # Anchors on the surface at about the configured spacing, each with most of its disc on the surface.
+    assert np.abs(np.linalg.norm(first.normals_object, axis=1) - 1.0).max() < 1e-6
+    assert np.median(first.valid.mean(axis=1)) > 0.8
+    assert (
+        0.5 * model.meta["surface_area_m2"] / 0.002**2
+        < len(first.points_object)
+        < 1.5 * model.meta["surface_area_m2"] / 0.002**2
+    )
+
+
+def test_too_small_a_contact_is_an_error(builtin_models):
+    """A contact of about one height-map cell (here 1 mm across) cannot be matched: a clear error, not a guess."""
+    disc = np.random.default_rng(0).uniform(-0.5e-3, 0.5e-3, (400, 3)) * np.array([1.0, 1.0, 0.1])
+    with pytest.raises(DegenerateGeometryError, match="too small to match"):
+        MatchLocalizer().localize(disc, builtin_models["fruit"])
+
+
+def test_pose_command_defaults_to_the_matched_filter(builtin_models, tmp_path, rng, capsys):
+    """`yoto pose` with no method on pair files another program wrote (plain surface samples, not this project's
+    simulator): most poses of the bumpy fruit come out right, without any training."""
+    import json
+
+    from test_pose import write_foreign_pairs
+
+    from yoto.cli import main
+
+    model = builtin_models["fruit"]
+    model_path = model.save(tmp_path / "fruit.npz")
+    paths = write_foreign_pairs(model, tmp_path / "pairs", rng, 4)
+    assert main(["pose", str(tmp_path / "pairs"), "--model", str(model_path)]) == 0
+    assert "(match)" in capsys.readouterr().out
+    errors = [json.loads(path.with_suffix(".pose.json").read_text())["error"] for path in paths]
+    good = [e["translation_mm"] < 2.0 and e["rotation_deg"] < 3.0 for e in errors]
+    assert sum(good) >= 3, errors
