@@ -57,7 +57,8 @@ class MatchConfig:
     remove_tilt: bool = True  # fit and remove a plane (offset + tilt) instead of a constant offset
     contact_pixel_m: float = 0.0002  # pixel of the contact's local height image
     contact_erode_px: int = 1  # the contact image's mask is eroded by this many pixels (the rim is gel, not object)
-    free_margin_m: float = 0.0001  # free space: the object may reach this far past the gel plane unseen
+    free_margin_m: float = 0.0001  # free space: the object may reach this far past the gel plane unseen ...
+    free_margin_quantile: float = 0.02  # ... or as deep as the cloud's shallowest points (this quantile of depth)
     free_clearance_m: float = 0.0005  # free space: cells this close to the contact are not judged
     pad_size_m: tuple[float, float] = GELSIGHT_MINI.pad_size_m  # sensed area of the gel (x, y extents)
     nms_radius_m: float = 0.004  # matched-filter candidates closer than this are one
@@ -253,6 +254,7 @@ class ContactImage:
     touched: np.ndarray  # (S, S) pixels within the free-space clearance of the contact
     pixel_m: float
     half_m: float  # the image spans [-half, half] in x and y
+    free_margin_m: float  # unseen surface may press the gel this deep without contradicting the contact
 
     def sample(self, x: np.ndarray, y: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Bilinear heights at local (x, y) and whether all four pixels are in `mask`."""
@@ -328,7 +330,12 @@ def contact_image(points_sensor: np.ndarray, radius_m: float, config: MatchConfi
         mask = ndimage.binary_erosion(filled, iterations=config.contact_erode_px)
     clearance = int(np.ceil(config.free_clearance_m / pixel))
     touched = ndimage.binary_dilation(filled, iterations=clearance) if clearance > 0 else filled
-    return ContactImage(centre, normal, basis, heights, filled, mask, touched, pixel, half)
+    # A sensor may report only the deeper part of a contact (a reconstruction's mask keeps pixels pressed at
+    # least some fraction of the deepest): surface pressing the gel less deep than the cloud's shallowest
+    # points may lie where nothing was reported.
+    shallowest = float(np.quantile(-points_sensor[:, 2], config.free_margin_quantile))
+    free_margin = max(config.free_margin_m, shallowest + config.free_margin_m)
+    return ContactImage(centre, normal, basis, heights, filled, mask, touched, pixel, half, free_margin)
 
 
 @dataclass
@@ -440,7 +447,7 @@ def free_space_penalty(
     x, y = anchors.grid.centres.T
     h = anchors.heights[anchor_index].astype(np.float64)
     surface = h + beta[0][:, None] + beta[1][:, None] * x + beta[2][:, None] * y
-    depth = np.minimum(contact.gel_heights[roll_index] - config.free_margin_m - surface, config.ray_start_m)
+    depth = np.minimum(contact.gel_heights[roll_index] - contact.image.free_margin_m - surface, config.ray_start_m)
     judged = contact.free[roll_index] & (anchors.valid[anchor_index] > 0)
     return np.sum(np.where(judged, np.maximum(depth, 0.0) ** 2, 0.0), axis=1)
 
@@ -564,7 +571,7 @@ def free_space_violation(
     p_object = model.points_object[np.concatenate([np.asarray(m, dtype=np.int64) for m in members])].astype(np.float64)
     offsets = p_object - T_object_sensor[owner, :3, 3]
     p_sensor = np.einsum("ni,nij->nj", offsets, T_object_sensor[owner, :3, :3])
-    depth = -p_sensor[:, 2] - config.free_margin_m
+    depth = -p_sensor[:, 2] - image.free_margin_m
     over = (np.abs(p_sensor[:, 0]) <= pad[0]) & (np.abs(p_sensor[:, 1]) <= pad[1]) & (depth > 0)
     local = (p_sensor[over] - image.centre_sensor) @ image.basis_sensor
     _, away = image.sample(local[:, 0], local[:, 1], ~image.touched)
