@@ -577,8 +577,7 @@ def free_space_violation(
     _, away = image.sample(local[:, 0], local[:, 1], ~image.touched)
     depth = np.minimum(depth[over][away], config.residual_tau_m)
     violation = np.bincount(owner[over][away], weights=depth**2, minlength=len(T_object_sensor))
-    out = violation * point_area / sample_area / tactile_samples
-    return out
+    return violation * point_area / sample_area / tactile_samples
 
 
 # ------------------------------------------------------------------------------------------------ localizer
