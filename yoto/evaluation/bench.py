@@ -379,7 +379,7 @@ def format_markdown(report: dict[str, Any]) -> str:
     if icp:
         for label in full_labels:
             method = next(m for m in report["methods"] if m["label"] == label)
-            if method["method"] == "yoto":
+            if method["method"] in ("yoto", "match"):
                 ratio = (
                     report["all"][icp]["contact_latency_ms"]["median"]
                     / report["all"][label]["contact_latency_ms"]["median"]
@@ -390,7 +390,7 @@ def format_markdown(report: dict[str, Any]) -> str:
     for label in full_labels:
         bins = report["all"][label]["confidence_bins"]
         method = next(m for m in report["methods"] if m["label"] == label)
-        if bins and method["method"] == "yoto":
+        if bins and method["method"] in ("yoto", "match"):
             lines += [
                 "",
                 f"## {label}: pose error by confidence quartile (all objects)",
@@ -399,7 +399,7 @@ def format_markdown(report: dict[str, Any]) -> str:
                 "|---:|---:|---:|---:|",
             ]
             lines += [
-                f"| {b['confidence_min']:.3f} | {b['pairs']} | {b['translation_mm_median']:.2f} "
+                f"| {b['confidence_min']:.3g} | {b['pairs']} | {b['translation_mm_median']:.2f} "
                 f"| {b['rotation_deg_median']:.2f} |"
                 for b in bins
             ]
