@@ -48,7 +48,7 @@ def test_finds_contacts_on_a_distinctive_surface(fruit_contacts):
         assert ((probabilities >= 0) & (probabilities <= 1)).all() and probabilities.sum() <= 1.0 + 1e-9
         assert np.all(np.diff([c.score for c in candidates]) <= 1e-12)  # best first
         best = candidates[0]
-        if np.linalg.norm(best.p_object - p_true) < 1.5e-3:
+        if np.linalg.norm(best.p_object - p_true) < 2.5e-3:
             hits += 1
             T_object_sensor = np.array(best.details["match_T_object_sensor"])
             # The press axis is well determined; the roll about it only as well as the contact's shape allows.
