@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from yoto.evaluation.metrics import summarize
 from yoto.geometry import invert_transform, make_transform, rotation_about_axis, rotation_between, transform_points
 from yoto.localize.icp import IcpConfig, IcpLocalizer
 from yoto.objects.builtin import builtin_mesh
@@ -129,11 +130,11 @@ def run(args: argparse.Namespace) -> dict:
             "parent_points": len(model.points_object),
             "point_spacing_mm": 1000.0 * model.point_spacing_m,
             "contacts": len(errors_mm),
-            "error_mm": summary(errors_mm),
-            "best_of_candidates_error_mm": summary(best_of_candidates_mm),
+            "error_mm": summarize(errors_mm),
+            "best_of_candidates_error_mm": summarize(best_of_candidates_mm),
             "within_5mm": float(np.mean(np.array(errors_mm) < 5.0)),
-            "latency_ms": summary(latency_ms),
-            "cpu_time_ms": summary(cpu_ms),  # process CPU time (all threads): less sensitive to a busy machine
+            "latency_ms": summarize(latency_ms),
+            "cpu_time_ms": summarize(cpu_ms),  # process CPU time (all threads): less sensitive to a busy machine
             "top_probability_mean": float(np.mean(probability)),
             "top_residual_mm_mean": float(np.mean(residual_mm)),
             "per_contact_error_mm": errors_mm,
@@ -168,17 +169,6 @@ def config_overrides(assignments: list[str]) -> dict[str, object]:
             value if isinstance(default, str) else (float(value) if default is None else type(default)(value))
         )
     return overrides
-
-
-def summary(values: list[float]) -> dict[str, float]:
-    array = np.asarray(values, dtype=np.float64)
-    return {
-        "mean": float(array.mean()),
-        "std": float(array.std()),
-        "median": float(np.median(array)),
-        "p90": float(np.percentile(array, 90)),
-        "max": float(array.max()),
-    }
 
 
 def markdown(result: dict) -> str:

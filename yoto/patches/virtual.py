@@ -232,6 +232,19 @@ def generate_virtual_patches(
             f"no virtual patch could be generated for {model.name!r} (rejections: {rejections}); is the parent cloud "
             f"too sparse for {config.min_points}-{config.max_points} points within {config.max_radius_m * 1000:.0f} mm?"
         )
+    meta = {
+        "config": asdict(config),
+        "rejections": rejections,
+        "attempted": config.num_variants * config.attempts_per_variant,
+        "variant_angles_deg": np.degrees(angles).tolist(),
+    }
+    return dataset_from_columns(model, columns, np.array(columns["variant"], dtype=np.int32), meta)
+
+
+def dataset_from_columns(
+    model: ObjectModel, columns: dict[str, list], variant: np.ndarray, meta: dict
+) -> VirtualPatchDataset:
+    """Assemble a dataset from per-patch lists (indices, rotation, translation, p, block, radius)."""
     sizes = np.array([len(i) for i in columns["indices"]])
     p_object = np.array(columns["p"])
     blocks = np.array(columns["block"], dtype=np.int32)
@@ -245,13 +258,8 @@ def generate_virtual_patches(
         block=blocks,
         offset_object=p_object - model.block_centres_object[blocks],
         radius_m=np.array(columns["radius"]),
-        variant=np.array(columns["variant"], dtype=np.int32),
-        meta={
-            "config": asdict(config),
-            "rejections": rejections,
-            "attempted": config.num_variants * config.attempts_per_variant,
-            "variant_angles_deg": np.degrees(angles).tolist(),
-        },
+        variant=variant,
+        meta=meta,
     )
 
 

@@ -29,7 +29,7 @@ from yoto.errors import DegenerateGeometryError, InputError
 from yoto.geometry import normalize, rotation_about_axis
 from yoto.objects.model import ObjectModel
 from yoto.patches.canonical import canonicalize_patch
-from yoto.patches.virtual import VirtualPatchDataset
+from yoto.patches.virtual import VirtualPatchDataset, dataset_from_columns
 from yoto.workspace import patch_dataset_path
 
 log = logging.getLogger("yoto")
@@ -129,27 +129,8 @@ def generate_press_patches(model: ObjectModel, config: PressPatchConfig = PressP
         columns["radius"].append(float(np.linalg.norm(member_points - canonical.centroid_source, axis=1).max()))
     if not columns["p"]:
         raise InputError(f"no press-shaped patch could be cut from {model.name!r} (rejections: {rejections})")
-    sizes = np.array([len(i) for i in columns["indices"]])
-    p_object = np.array(columns["p"])
-    blocks = np.array(columns["block"], dtype=np.int32)
-    return VirtualPatchDataset(
-        model=model,
-        indices=np.concatenate(columns["indices"]),
-        offsets=np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
-        rotation_canonical_object=np.array(columns["rotation"]),
-        translation_canonical=np.array(columns["translation"]),
-        p_object=p_object,
-        block=blocks,
-        offset_object=p_object - model.block_centres_object[blocks],
-        radius_m=np.array(columns["radius"]),
-        variant=np.zeros(len(blocks), dtype=np.int32),
-        meta={
-            "kind": "press",
-            "config": asdict(config),
-            "rejections": rejections,
-            "attempted": attempts,
-        },
-    )
+    meta = {"kind": "press", "config": asdict(config), "rejections": rejections, "attempted": attempts}
+    return dataset_from_columns(model, columns, np.zeros(len(columns["p"]), dtype=np.int32), meta)
 
 
 def press_patches(
