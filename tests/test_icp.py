@@ -11,6 +11,7 @@ from conftest import TOL
 
 pytest.importorskip("open3d")
 
+from yoto.contacts import contact_in_sensor  # noqa: E402
 from yoto.errors import DegenerateGeometryError, InputError  # noqa: E402
 from yoto.geometry import (  # noqa: E402
     make_transform,
@@ -21,8 +22,8 @@ from yoto.geometry import (  # noqa: E402
 )
 from yoto.localize import make_localizer  # noqa: E402
 from yoto.localize.icp import IcpConfig, IcpLocalizer, registration_residual, sample_starts  # noqa: E402
+from yoto.localize.ranking import BeliefConfig  # noqa: E402
 from yoto.patches.canonical import prepare_tactile_cloud  # noqa: E402
-from yoto.solver import contact_in_sensor  # noqa: E402
 
 Z_AXIS = np.array([0.0, 0.0, 1.0])
 PATCH_RADIUS_M = 0.006
@@ -135,7 +136,7 @@ def test_thirty_starts_on_a_distinctive_region_find_the_contact(builtin_models, 
 def test_candidates_are_ranked_distinct_and_carry_a_belief(builtin_models, rng):
     model = builtin_models["figurine"]
     points_sensor, _, _ = cut_patch(model, parent_index(model, FIGURINE_EAR_TIP_MESH), 0.7)
-    config = IcpConfig(num_starts=12, num_candidates=4)
+    config = IcpConfig(num_starts=12, belief=BeliefConfig(num_candidates=4))
     candidates = IcpLocalizer(config).localize(points_sensor, model)
     assert 1 <= len(candidates) <= 4
     scores = [c.score for c in candidates]
@@ -152,7 +153,7 @@ def test_candidates_are_ranked_distinct_and_carry_a_belief(builtin_models, rng):
         assert a.block == int(model.block_of_points(a.p_object)[0])
         assert model.kdtree.query(a.p_object)[0] < TOL["float32"]  # snapped onto the parent cloud
         for b in candidates[i + 1 :]:
-            assert np.linalg.norm(a.p_object - b.p_object) >= config.dedup_radius_m
+            assert np.linalg.norm(a.p_object - b.p_object) >= config.belief.dedup_radius_m
     json.dumps([c.details for c in candidates])  # result files can hold them
 
 
@@ -161,10 +162,11 @@ def test_belief_matches_the_documented_softmax(builtin_models, rng):
     model = builtin_models["fruit"]
     index = parent_index(model, CURVED_PLACES_MESH["fruit"][0])
     points_sensor, _, _ = cut_patch(model, index, 0.0)
-    config = IcpConfig(num_starts=8, num_candidates=20, dedup_radius_m=0.0)  # every registration is returned
+    every_registration = BeliefConfig(num_candidates=20, dedup_radius_m=0.0)
+    config = IcpConfig(num_starts=8, belief=every_registration)
     candidates = IcpLocalizer(config).localize(points_sensor, model)
     residuals_m = np.array([c.details["icp_residual_mm"] for c in candidates]) / 1000.0
-    weights = np.exp(-0.5 * (np.append(residuals_m, config.null_residual_m) / config.temperature_m) ** 2)
+    weights = np.exp(-0.5 * (np.append(residuals_m, config.belief.null_residual_m) / config.belief.temperature_m) ** 2)
     np.testing.assert_allclose([c.probability for c in candidates], weights[:-1] / weights.sum(), atol=1e-9)
     assert len(candidates) == config.num_starts
 

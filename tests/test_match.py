@@ -43,7 +43,7 @@ def test_finds_contacts_on_a_distinctive_surface(fruit_contacts):
     hits = 0
     for points_sensor, p_true, T_object_sensor_true in contacts:
         candidates = localizer.localize(points_sensor, model)
-        assert 1 <= len(candidates) <= localizer.config.num_candidates
+        assert 1 <= len(candidates) <= localizer.config.belief.num_candidates
         probabilities = np.array([c.probability for c in candidates])
         assert ((probabilities >= 0) & (probabilities <= 1)).all() and probabilities.sum() <= 1.0 + 1e-9
         assert np.all(np.diff([c.score for c in candidates]) <= 1e-12)  # best first

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from yoto.cli import main
-from yoto.contacts import ContactPair, TactileContact, read_contact_pair, write_contact_pair
+from yoto.contacts import ContactEstimate, ContactPair, TactileContact, read_contact_pair, write_contact_pair
 from yoto.evaluation.metrics import pose_errors
 from yoto.geometry import (
     invert_transform,
@@ -20,7 +20,6 @@ from yoto.geometry import (
 )
 from yoto.localize.base import OracleLocalizer
 from yoto.pose.pipeline import PAPER, PoseConfig, estimate_pose
-from yoto.solver import ContactEstimate
 
 
 def foreign_tactile_cloud(

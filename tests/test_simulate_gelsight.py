@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from yoto.contacts import contact_in_sensor
 from yoto.geometry import make_transform, normalize, random_rotations, rotation_about_axis, transform_points
 from yoto.sensor.spec import GELSIGHT_MINI
 from yoto.simulate.gelsight import (
@@ -18,7 +19,6 @@ from yoto.simulate.gelsight import (
     reconstruct_points,
     simulate_contact,
 )
-from yoto.solver import contact_in_sensor
 
 pytest.importorskip("open3d")
 

@@ -9,19 +9,18 @@ import numpy as np
 import pytest
 
 from yoto.cli import main
-from yoto.contacts import SIDES, read_contact_pair
+from yoto.contacts import SIDES, contact_in_sensor, read_contact_pair
 from yoto.geometry import invert_transform, make_transform, rotation_about_axis, rotation_angle_rad, transform_points
+from yoto.pose.solver import oracle_pose_errors
 from yoto.simulate.gelsight import PressConfig, ReconstructionNoise
 from yoto.simulate.scenarios import (
     PairSimulator,
     ScenarioConfig,
     boxes_overlap,
     calibration_error,
-    oracle_pose_errors,
     simulate_pairs,
     write_pairs,
 )
-from yoto.solver import contact_in_sensor
 
 pytest.importorskip("open3d")
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from conftest import TOL
 
+from yoto.contacts import ContactEstimate, WorldContact, contact_in_sensor
 from yoto.errors import DegenerateGeometryError
 from yoto.geometry import (
     make_transform,
@@ -16,7 +17,7 @@ from yoto.geometry import (
     rotation_angle_rad,
     transform_points,
 )
-from yoto.solver import ContactEstimate, WorldContact, contact_in_sensor, solve_pose
+from yoto.pose.solver import solve_pose
 
 
 def _observe(T_world_object, p_object, n_object):

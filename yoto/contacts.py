@@ -1,4 +1,8 @@
-"""Tactile contacts and the contact-pair file (SPEC: "Dual contact").
+"""Tactile contacts: what a sensor measured, where a localizer put it, and the contact-pair file (SPEC: "Dual contact").
+
+- `TactileContact` / `ContactPair`: tactile clouds (sensor frame) with the sensors' calibrated poses.
+- `contact_in_sensor` / `WorldContact`: a contact's centre and outward normal as the sensor measured it.
+- `ContactEstimate`: a contact located on the object model (object frame), the output of every localizer.
 
 A pair file is JSON with fixed keys; its point clouds are PLY files next to it:
     {"object": NAME,
@@ -18,11 +22,16 @@ from typing import Any
 import numpy as np
 
 from yoto.errors import InputError
-from yoto.geometry import validate_transform
+from yoto.geometry import normalize, rotate_vectors, transform_points, validate_transform
 from yoto.io import read_json, read_ply_points, write_json_atomic, write_ply_points
+from yoto.pointcloud import covariance_eigh
 
 SIDES = ("left", "right")
 MIN_TACTILE_POINTS = 30  # fewer contact points than this cannot define a local surface
+WELL_CONDITIONED = 0.15  # sigma_2 / sigma_1 of [d, n_L, n_R] below this: rotation about one axis is weakly fixed
+LOCAL_FIT_RADIUS_M = 0.002  # radius of the surface patch fitted at the contact centre of a tactile cloud
+LOCAL_FIT_MIN_POINTS = 12
+LINE_POINTS = 8  # points averaged where the centroid's normal line meets the cloud
 
 
 @dataclass
@@ -52,6 +61,75 @@ class ContactPair:
     @property
     def has_ground_truth(self) -> bool:
         return self.T_world_mesh_true is not None and all(side in self.p_mesh_true for side in SIDES)
+
+
+@dataclass
+class ContactEstimate:
+    """One contact located on the object model (object frame), with what the localizer knows of it."""
+
+    p_object: np.ndarray  # (3,) contact location
+    n_object: np.ndarray  # (3,) outward unit normal there (kNN-aggregated from the parent cloud)
+    block: int = -1  # block index, -1 if the localizer has no blocks
+    score: float = 0.0  # the localizer's own ranking score (higher is better); comparable within a method
+    probability: float = 1.0  # the localizer's belief in this candidate, in [0, 1]
+    details: dict = field(default_factory=dict)  # method-specific extras for result files
+
+
+@dataclass
+class WorldContact:
+    """One contact as the sensor measured it: location and outward object normal, sensor and world frames."""
+
+    p_sensor: np.ndarray
+    n_sensor: np.ndarray
+    p_world: np.ndarray
+    n_world: np.ndarray
+
+
+def contact_in_sensor(points_sensor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Contact centre and outward object normal of a tactile cloud, in the sensor frame.
+
+    The normal is that of a plane fitted to the points around the centroid, signed to point out of the
+    object, i.e. toward the sensor (-z). The centre is where the line through the centroid along that
+    normal meets the cloud (the surface point nearest the centroid, which is how ground-truth contact
+    locations are defined); it is read off the few points closest to the line, so curvature adds no bias.
+    """
+    centroid = points_sensor.mean(axis=0)
+    offsets = points_sensor - centroid
+    # Plain distances beat building a KD-tree for one query on a dense (~20k-point) tactile cloud.
+    nearest = points_sensor[np.argmin(np.einsum("ij,ij->i", offsets, offsets))]
+    squared = np.einsum("ij,ij->i", points_sensor - nearest, points_sensor - nearest)
+    neighbours = np.flatnonzero(squared <= LOCAL_FIT_RADIUS_M**2)
+    if len(neighbours) < LOCAL_FIT_MIN_POINTS:
+        neighbours = np.argsort(squared)[:LOCAL_FIT_MIN_POINTS]
+    _, _, eigenvectors = covariance_eigh(points_sensor[neighbours])
+    normal = eigenvectors[:, 0] if eigenvectors[2, 0] <= 0 else -eigenvectors[:, 0]
+    along = offsets @ normal
+    off_line = np.linalg.norm(offsets - along[:, None] * normal, axis=1)
+    closest_to_line = np.argpartition(off_line, min(LINE_POINTS, len(off_line) - 1))[:LINE_POINTS]
+    return centroid + along[closest_to_line].mean() * normal, normal
+
+
+def contact_in_world(contact: TactileContact) -> WorldContact:
+    """The measured contact centre and outward normal of a tactile contact, in its sensor's and the world frame."""
+    p_sensor, n_sensor = contact_in_sensor(contact.points_sensor)
+    return WorldContact(
+        p_sensor=p_sensor,
+        n_sensor=n_sensor,
+        p_world=transform_points(contact.T_world_sensor, p_sensor),
+        n_world=rotate_vectors(contact.T_world_sensor, n_sensor),
+    )
+
+
+def dual_contact_directions(offset: np.ndarray, n_left: np.ndarray, n_right: np.ndarray) -> np.ndarray:
+    """(3, 3) unit columns [d, n_left, n_right]: the directions that fix a pose from two contacts (paper Sec. 3.4)."""
+    return np.stack([normalize(offset), normalize(n_left), normalize(n_right)], axis=1)
+
+
+def dual_contact_conditioning(offset: np.ndarray, n_left: np.ndarray, n_right: np.ndarray) -> tuple[float, np.ndarray]:
+    """sigma_2 / sigma_1 of [d, n_left, n_right] and its singular values: 0 when the three are parallel
+    (near-coaxial contacts leave the rotation about that axis free)."""
+    singular_values = np.linalg.svd(dual_contact_directions(offset, n_left, n_right), compute_uv=False)
+    return float(singular_values[1] / singular_values[0]), singular_values
 
 
 def validate_tactile_points(points: np.ndarray, source: str | Path | None) -> np.ndarray:
@@ -185,8 +263,14 @@ def find_pair_files(inputs: list[str | Path]) -> list[Path]:
 
 __all__ = [
     "SIDES",
+    "WELL_CONDITIONED",
+    "ContactEstimate",
     "ContactPair",
     "TactileContact",
+    "WorldContact",
+    "contact_in_sensor",
+    "contact_in_world",
+    "dual_contact_conditioning",
     "find_pair_files",
     "read_contact_pair",
     "validate_tactile_points",

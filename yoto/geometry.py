@@ -48,12 +48,83 @@ def normalize(vectors: np.ndarray, eps: float = 1e-12) -> np.ndarray:
     return vectors / np.maximum(norms, eps)
 
 
+def skew(vectors: np.ndarray) -> np.ndarray:
+    """Cross-product matrices [v]_x of (..., 3) vectors, shape (..., 3, 3): [v]_x @ w = v x w."""
+    v = np.asarray(vectors, dtype=np.float64)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    return out
+
+
+def so3_exp(rotation_vectors: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) (axis times angle in radians; Rodrigues)."""
+    omega = np.asarray(rotation_vectors, dtype=np.float64)
+    angle = np.linalg.norm(omega, axis=-1)
+    k = skew(omega / np.maximum(angle, 1e-300)[..., None])
+    s, c = np.sin(angle)[..., None, None], np.cos(angle)[..., None, None]
+    return np.eye(3) + s * k + (1.0 - c) * (k @ k)
+
+
+def so3_log(rotations: np.ndarray) -> np.ndarray:
+    """Rotation vectors (..., 3) of rotation matrices (..., 3, 3), angles in [0, pi]; the inverse of `so3_exp`."""
+    r = np.asarray(rotations, dtype=np.float64)[..., :3, :3]
+    axis_sin = np.stack([r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], -1)
+    cos_angle = np.clip((np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    angle = np.arctan2(np.linalg.norm(axis_sin, axis=-1) / 2.0, cos_angle)  # accurate at every angle
+    # angle / (2 sin angle), with its limit 1/2 at angle 0
+    factor = np.where(angle < 1e-9, 0.5, angle / (2.0 * np.sin(np.maximum(angle, 1e-9))))
+    out = axis_sin * factor[..., None]
+    # Near pi, sin(angle) vanishes and the antisymmetric part loses the axis: read it off the symmetric part,
+    # (R + R^T) / 2 = cos(angle) I + (1 - cos(angle)) a a^T, and take its sign from the antisymmetric part.
+    near_pi = (angle > np.pi - 0.1).reshape(-1)
+    if near_pi.any():
+        flat_r, flat_cos = r.reshape(-1, 3, 3)[near_pi], cos_angle.reshape(-1)[near_pi]
+        outer = ((flat_r + np.swapaxes(flat_r, 1, 2)) / 2.0 - flat_cos[:, None, None] * np.eye(3)) / (1.0 - flat_cos)[
+            :, None, None
+        ]
+        column = np.argmax(np.diagonal(outer, axis1=1, axis2=2), axis=1)
+        axis = normalize(outer[np.arange(len(flat_r)), :, column])
+        axis *= np.where(np.einsum("ij,ij->i", axis, axis_sin.reshape(-1, 3)[near_pi]) < 0.0, -1.0, 1.0)[:, None]
+        flat_out = out.reshape(-1, 3).copy()
+        flat_out[near_pi] = axis * angle.reshape(-1)[near_pi][:, None]
+        out = flat_out.reshape(out.shape)
+    return out
+
+
+def _so3_left_jacobian(omega: np.ndarray) -> np.ndarray:
+    """V(omega) of SE(3)'s exponential: t = V(omega) @ rho, (..., 3) -> (..., 3, 3)."""
+    angle = np.linalg.norm(omega, axis=-1)[..., None, None]
+    k = skew(omega)
+    small = angle < 1e-6
+    safe = np.where(small, 1.0, angle)
+    a = np.where(small, 0.5 - angle**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    b = np.where(small, 1.0 / 6.0 - angle**2 / 120.0, (safe - np.sin(safe)) / safe**3)
+    return np.eye(3) + a * k + b * (k @ k)
+
+
+def se3_exp(twists: np.ndarray) -> np.ndarray:
+    """Poses (..., 4, 4) of twists (..., 6) = (rotation vector omega, rho): the group exponential of SE(3)."""
+    xi = np.asarray(twists, dtype=np.float64)
+    out = np.zeros(xi.shape[:-1] + (4, 4))
+    out[..., :3, :3] = so3_exp(xi[..., :3])
+    out[..., :3, 3] = np.einsum("...ij,...j->...i", _so3_left_jacobian(xi[..., :3]), xi[..., 3:])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def se3_log(transforms: np.ndarray) -> np.ndarray:
+    """Twists (..., 6) = (omega, rho) of poses (..., 4, 4); the inverse of `se3_exp`."""
+    t = np.asarray(transforms, dtype=np.float64)
+    omega = so3_log(t[..., :3, :3])
+    rho = np.linalg.solve(_so3_left_jacobian(omega), t[..., :3, 3][..., None])[..., 0]
+    return np.concatenate([omega, rho], axis=-1)
+
+
 def rotation_about_axis(axis: np.ndarray, angle_rad: float) -> np.ndarray:
-    """Rotation by `angle_rad` about the unit `axis` (Rodrigues' formula)."""
+    """Rotation by `angle_rad` about the (not necessarily unit) `axis` (Rodrigues' formula)."""
     axis = np.asarray(axis, dtype=np.float64)
-    axis = axis / np.linalg.norm(axis)
-    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    return np.eye(3) + np.sin(angle_rad) * k + (1.0 - np.cos(angle_rad)) * (k @ k)
+    return so3_exp(axis / np.linalg.norm(axis) * angle_rad)
 
 
 def rotation_between(source: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -77,19 +148,74 @@ def rotation_between(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     return rotation_about_axis(axis / sin_angle, np.arctan2(sin_angle, cos_angle))
 
 
-def random_rotations(rng: np.random.Generator, count: int) -> np.ndarray:
-    """`count` rotations drawn uniformly from SO(3), shape (count, 3, 3)."""
-    quaternions = rng.normal(size=(count, 4))
-    quaternions /= np.linalg.norm(quaternions, axis=1, keepdims=True)
-    w, x, y, z = quaternions.T
+def tangent_basis(axes: np.ndarray, reference: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vectors (u, v) completing each unit axis z (..., 3) to a right-handed frame (u, v, z).
+
+    u is `reference` (one (3,) vector for all) projected onto the plane normal to z when given (e.g. the sensor's
+    x axis, to keep a contact's frame aligned with the image); otherwise z x e, with e the coordinate axis least
+    aligned with z (deterministic). v = z x u.
+    """
+    z = np.asarray(axes, dtype=np.float64)
+    if reference is None:
+        helper = np.eye(3)[np.argmin(np.abs(z), axis=-1)]
+        u = normalize(np.cross(z, helper))
+    else:
+        ref = np.asarray(reference, dtype=np.float64)
+        u = normalize(ref - np.sum(ref * z, axis=-1, keepdims=True) * z)
+    return u, np.cross(z, u)
+
+
+def quaternion_xyzw_to_rotation(quaternions: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of quaternions (..., 4) in (x, y, z, w) order (ROS, TUM); normalised first."""
+    q = normalize(np.asarray(quaternions, dtype=np.float64))
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     return np.stack(
         [
             np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=-1),
             np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=-1),
             np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1),
         ],
-        axis=1,
+        axis=-2,
     )
+
+
+def rotation_to_quaternion_xyzw(rotations: np.ndarray) -> np.ndarray:
+    """Unit quaternions (..., 4), (x, y, z, w) order with w >= 0, of rotation matrices (..., 3, 3)."""
+    r = np.asarray(rotations, dtype=np.float64)[..., :3, :3]
+    # Shepperd's method: start from the largest of the four squared components, which is never small.
+    diagonal = np.diagonal(r, axis1=-2, axis2=-1)
+    squares = np.stack(
+        [
+            1 + diagonal[..., 0] - diagonal[..., 1] - diagonal[..., 2],
+            1 - diagonal[..., 0] + diagonal[..., 1] - diagonal[..., 2],
+            1 - diagonal[..., 0] - diagonal[..., 1] + diagonal[..., 2],
+            1 + diagonal[..., 0] + diagonal[..., 1] + diagonal[..., 2],
+        ],
+        axis=-1,
+    )
+    largest = np.argmax(squares, axis=-1)
+    big = np.sqrt(np.maximum(np.take_along_axis(squares, largest[..., None], -1)[..., 0], 1e-300)) / 2.0
+    sxy, sxz, syz = r[..., 0, 1] + r[..., 1, 0], r[..., 0, 2] + r[..., 2, 0], r[..., 1, 2] + r[..., 2, 1]
+    dx, dy, dz = r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]
+    quarter = 1.0 / (4.0 * big)
+    candidates = np.stack(
+        [
+            np.stack([big, sxy * quarter, sxz * quarter, dx * quarter], -1),
+            np.stack([sxy * quarter, big, syz * quarter, dy * quarter], -1),
+            np.stack([sxz * quarter, syz * quarter, big, dz * quarter], -1),
+            np.stack([dx * quarter, dy * quarter, dz * quarter, big], -1),
+        ],
+        axis=-2,
+    )
+    q = np.take_along_axis(candidates, largest[..., None, None], -2)[..., 0, :]
+    q = normalize(q)
+    return q * np.where(q[..., 3:] < 0.0, -1.0, 1.0)
+
+
+def random_rotations(rng: np.random.Generator, count: int) -> np.ndarray:
+    """`count` rotations drawn uniformly from SO(3), shape (count, 3, 3)."""
+    quaternions = rng.normal(size=(count, 4))  # uniform on the unit 3-sphere once normalised
+    return quaternion_xyzw_to_rotation(quaternions[:, [1, 2, 3, 0]])
 
 
 def random_perturbation(rng: np.random.Generator, translation_std_m: float, rotation_std_rad: float) -> np.ndarray:

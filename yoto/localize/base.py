@@ -10,8 +10,8 @@ from typing import Protocol
 
 import numpy as np
 
+from yoto.contacts import ContactEstimate
 from yoto.objects.model import ObjectModel
-from yoto.solver import ContactEstimate
 
 
 class ContactLocalizer(Protocol):

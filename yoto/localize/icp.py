@@ -31,14 +31,10 @@ residual is its point-to-plane distance, capped at tau; an outlier counts tau. T
 r = sqrt(mean(residual^2)) combines fit and coverage in one number (fitness * rmse^2 + (1 - fitness) * tau^2
 under the square root). `score = 1 - r / tau` lies in [0, 1], 1 for a perfect fit.
 
-Belief. Distinct registrations (their contact locations further apart than `dedup_radius_m`; all of them,
-not only the few returned) get weights exp(-(r / T)^2 / 2) with T = `temperature_m` (0.1 mm, a few times
-the 0.02-0.03 mm residual of a right fit of a simulated cloud with 0.03 mm noise; real GelSight residuals are
-not measured yet), next to a "none of these" weight at the residual `null_residual_m` (0.3 mm);
-`probability` is each weight over the sum. Registrations that fit equally well
-share the belief (a sphere-like object, or a flat patch, spreads it thin), probabilities sum to less than
-one, and a poor best fit keeps a low probability. The pose pipeline multiplies these beliefs into its joint
-choice of the two contacts and into its confidence. Set both to your sensor's residual scale.
+Belief. Distinct registrations get beliefs from their residuals exactly as the matched filter's candidates do
+(`yoto.localize.ranking`): T = 0.1 mm, a few times the 0.02-0.03 mm residual of a right fit of a simulated cloud
+with 0.03 mm noise (real GelSight residuals are not measured yet), a "none of these" residual of 0.3 mm. Set both
+(`IcpConfig.belief`) to your sensor's residual scale.
 
 Convergence. Open3D stops a run when fitness and inlier RMSE change by less than `convergence_tolerance`
 between iterations; the comparison is absolute (despite the names `relative_*`), and the RMSE is in metres.
@@ -52,15 +48,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from yoto.contacts import validate_tactile_points
+from yoto.contacts import ContactEstimate, contact_in_sensor, validate_tactile_points
 from yoto.errors import DegenerateGeometryError, InputError, require_open3d
 from yoto.geometry import make_transform, rotate_vectors, rotation_about_axis, rotation_between, transform_points
+from yoto.localize.ranking import BeliefConfig, rank_registrations
 from yoto.objects.model import ObjectModel
 from yoto.patches.canonical import prepare_tactile_cloud
-from yoto.solver import ContactEstimate, contact_in_sensor
+from yoto.registration import truncated_plane_fit
 
 MIN_SOURCE_POINTS = 10  # fewer down-sampled tactile points leave point-to-plane ICP underdetermined or noise-fitted
-NORMAL_AGREEMENT = 0.5  # cos 60 deg: an inlier's tactile and parent normals must agree this well
 ESTIMATIONS = ("point_to_plane", "generalized")
 COVARIANCE_NEIGHBOURS = 20  # k of the local covariances generalized ICP needs (Open3D's usual choice)
 
@@ -77,20 +73,17 @@ class IcpConfig:
     crop_margin_m: float = 0.005  # each start registers to the parent points within patch radius + this
     voxel_spacing_m: float | None = None  # tactile-cloud voxel size; None: the model's point spacing
     inlier_distance_m: float | None = None  # tau of the score; None: twice the voxel spacing, at least 1 mm
-    temperature_m: float = 1e-4  # T of the belief: residual differences well below T do not separate candidates
-    null_residual_m: float = 3e-4  # residual of the "none of these" hypothesis
-    dedup_radius_m: float = 0.003  # registrations whose contacts lie closer than this are one candidate
-    num_candidates: int = 5  # ranked candidates returned
+    belief: BeliefConfig = BeliefConfig(num_candidates=5)  # distinct registrations and their beliefs
     normal_neighbours: int = 20  # k of the kNN-aggregated model normal at a candidate
     seed: int = 0  # start sampling seed (mixed with a hash of the tactile cloud)
 
     def __post_init__(self):
-        if self.num_starts < 1 or self.num_candidates < 1 or self.max_iterations < 1:
-            raise InputError("num_starts, num_candidates and max_iterations must be at least 1")
+        if self.num_starts < 1 or self.max_iterations < 1:
+            raise InputError("num_starts and max_iterations must be at least 1")
         if self.estimation not in ESTIMATIONS:
             raise InputError(f"unknown ICP estimation {self.estimation!r} (use one of {', '.join(ESTIMATIONS)})")
-        if self.max_correspondence_m <= 0 or self.crop_margin_m < 0 or self.temperature_m <= 0:
-            raise InputError("max_correspondence_m and temperature_m must be positive, crop_margin_m non-negative")
+        if self.max_correspondence_m <= 0 or self.crop_margin_m < 0:
+            raise InputError("max_correspondence_m must be positive, crop_margin_m non-negative")
 
 
 @dataclass
@@ -176,18 +169,13 @@ def registration_residual(
     See the module docstring; all three are measured against the full parent cloud, so they rank
     registrations from different starts on the same footing.
     """
-    points_object = transform_points(T_object_sensor, points_sensor)
-    normals_object = rotate_vectors(T_object_sensor, normals_sensor)
-    distances, nearest = model.kdtree.query(points_object, distance_upper_bound=tau_m)
-    found = np.isfinite(distances)
-    nearest = np.where(found, nearest, 0)
-    parent_normals = model.normals_object[nearest].astype(np.float64)
-    inlier = found & (np.einsum("ij,ij->i", normals_object, parent_normals) >= NORMAL_AGREEMENT)
-    plane = np.abs(np.einsum("ij,ij->i", points_object - model.points_object[nearest], parent_normals))
-    residuals = np.where(inlier, np.minimum(plane, tau_m), tau_m)
-    fitness = float(inlier.mean())
-    inlier_rmse = float(np.sqrt(np.mean(plane[inlier] ** 2))) if inlier.any() else 0.0
-    return float(np.sqrt(np.mean(residuals**2))), fitness, inlier_rmse
+    fit = truncated_plane_fit(
+        model,
+        transform_points(T_object_sensor, points_sensor)[None],
+        tau_m,
+        facing_surface=rotate_vectors(T_object_sensor, normals_sensor)[None],
+    )
+    return float(fit.rms_m[0]), float(fit.inlier_fraction[0]), float(fit.inlier_rms_m[0])
 
 
 def _input_seed(points_sensor: np.ndarray) -> int:
@@ -316,19 +304,13 @@ class IcpLocalizer:
     ) -> list[ContactEstimate]:
         """Deduplicate registrations by contact location, attach beliefs, return the best few."""
         config = self.config
-        order = sorted(range(len(registrations)), key=lambda i: (-registrations[i].score, i))
-        kept: list[tuple[Registration, np.ndarray]] = []
-        for i in order:
-            p_object = model.nearest_surface_point(transform_points(registrations[i].T_object_sensor, c_sensor))
-            if all(np.linalg.norm(p_object - other) >= config.dedup_radius_m for _, other in kept):
-                kept.append((registrations[i], p_object))
-        residuals = np.array([reg.residual_m for reg, _ in kept] + [config.null_residual_m])  # last: "none of these"
-        exponents = -0.5 * (residuals / config.temperature_m) ** 2
-        # Subtract the largest exponent before exponentiating, so that small weights do not all underflow to 0.
-        weights = np.exp(exponents - exponents.max())
-        probabilities = weights[:-1] / weights.sum()
+        p_all = np.array(
+            [model.nearest_surface_point(transform_points(reg.T_object_sensor, c_sensor)) for reg in registrations]
+        )
+        ranking = rank_registrations(p_all, np.array([reg.residual_m for reg in registrations]), config.belief)
         candidates = []
-        for (reg, p_object), probability in zip(kept[: config.num_candidates], probabilities, strict=False):
+        for i, probability in zip(ranking.indices, ranking.probabilities, strict=True):
+            reg, p_object = registrations[i], p_all[i]
             candidates.append(
                 ContactEstimate(
                     p_object=p_object,
@@ -342,7 +324,7 @@ class IcpLocalizer:
                         "icp_inlier_rmse_mm": 1000.0 * reg.inlier_rmse_m,
                         "icp_T_object_sensor": reg.T_object_sensor.tolist(),
                         "icp_refined": reg.refined,
-                        "icp_distinct_registrations": len(kept),
+                        "icp_distinct_registrations": ranking.distinct,
                     },
                 )
             )

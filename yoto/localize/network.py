@@ -18,13 +18,13 @@ from typing import Any
 
 import numpy as np
 
+from yoto.contacts import ContactEstimate
 from yoto.errors import InputError, require_torch
 from yoto.network.candidates import candidates_of, rank_hypotheses, rotated_copies
 from yoto.network.inputs import BlockSet, inference_points, make_block_set
 from yoto.network.presets import NetworkConfig
 from yoto.objects.model import ObjectModel
 from yoto.patches.canonical import canonicalize_patch, prepare_tactile_cloud
-from yoto.solver import ContactEstimate
 
 log = logging.getLogger("yoto")
 

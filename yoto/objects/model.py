@@ -23,6 +23,7 @@ from yoto.geometry import invert_transform, make_transform, normalize, rotation_
 from yoto.io import load_npz, save_npz_atomic
 from yoto.objects.mesh import RepairReport
 from yoto.pointcloud import covariance_eigh, estimate_normals
+from yoto.raycast import MeshRaycaster
 
 log = logging.getLogger("yoto")
 
@@ -82,6 +83,11 @@ class ObjectModel:
         """The repaired mesh expressed in the object frame."""
         vertices = transform_points(self.T_object_mesh, self.mesh_vertices_mesh)
         return trimesh.Trimesh(vertices=vertices, faces=self.mesh_faces, process=False)
+
+    @cached_property
+    def raycaster(self) -> MeshRaycaster:
+        """Ray casting on the repaired mesh, object frame (needs Open3D), built on first use."""
+        return MeshRaycaster(self.mesh_object.vertices, self.mesh_object.faces)
 
     @cached_property
     def point_spacing_m(self) -> float:

@@ -19,13 +19,21 @@ from typing import Any
 
 import numpy as np
 
-from yoto.contacts import POSE_RESULT_SUFFIX, SIDES, ContactPair
+from yoto.contacts import (
+    POSE_RESULT_SUFFIX,
+    SIDES,
+    WELL_CONDITIONED,
+    ContactEstimate,
+    ContactPair,
+    WorldContact,
+    contact_in_world,
+)
 from yoto.errors import DegenerateGeometryError
 from yoto.geometry import rotate_vectors, transform_points
 from yoto.localize.base import ContactLocalizer
 from yoto.objects.model import ObjectModel
 from yoto.pose.refine import RefineConfig, SurfaceFit, contact_samples, refine_pose, surface_fit
-from yoto.solver import WELL_CONDITIONED, ContactEstimate, PoseSolution, WorldContact, contact_in_world, solve_pose
+from yoto.pose.solver import PoseSolution, solve_pose
 
 # Scales of the checks: how far a true pair of contacts typically disagrees with the sensors.
 SEPARATION_SCALE_M = 0.004

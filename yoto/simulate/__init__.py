@@ -4,7 +4,7 @@
   `reconstruct_points` (reconstruction noise), the configs `PressConfig`, `GelModel`, `ReconstructionNoise`,
   `SensorBody`.
 - `yoto.simulate.scenarios`: `PairSimulator`, `simulate_pairs` (in-memory pairs), `write_pairs` (pair files),
-  `ScenarioConfig`, `oracle_pose_errors`.
+  `ScenarioConfig`.
 - `yoto.simulate.scan`: `degrade_mesh`, `ScanConfig`.
 
 Nothing is imported here, so `yoto --help` stays fast; import the submodules.

@@ -128,9 +128,18 @@ def _run_pairs(args: argparse.Namespace) -> int:
     if args.min_conditioning is not None:
         config = dataclasses.replace(config, min_conditioning=args.min_conditioning)
 
+    from yoto.pose.solver import oracle_pose_errors
+
     out_dir = args.out or pairs_dir(model.name, args.workspace)
     report = write_pairs(
-        model, out_dir, args.count, seed=args.seed, config=config, overwrite=args.overwrite, progress=not args.quiet
+        model,
+        out_dir,
+        args.count,
+        seed=args.seed,
+        config=config,
+        overwrite=args.overwrite,
+        progress=not args.quiet,
+        check=lambda pair: oracle_pose_errors(model, pair),
     )
     print(report.summary())
     return 0

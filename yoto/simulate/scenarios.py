@@ -23,12 +23,18 @@ from typing import Any
 
 import numpy as np
 
-from yoto.contacts import FOLDER_SETTINGS_FILE, SIDES, ContactPair, TactileContact, write_contact_pair
+from yoto.contacts import (
+    FOLDER_SETTINGS_FILE,
+    SIDES,
+    WELL_CONDITIONED,
+    ContactPair,
+    TactileContact,
+    dual_contact_conditioning,
+    write_contact_pair,
+)
 from yoto.errors import InputError, YotoError
 from yoto.geometry import (
-    invert_transform,
     make_transform,
-    normalize,
     random_perturbation,
     random_rotations,
     rotation_angle_rad,
@@ -45,7 +51,6 @@ from yoto.simulate.gelsight import (
     finish_contact,
     press_contact,
 )
-from yoto.solver import WELL_CONDITIONED
 
 log = logging.getLogger("yoto")
 
@@ -359,8 +364,12 @@ def write_pairs(
     overwrite: bool = False,
     reconstruct: Callable[[np.ndarray], np.ndarray] | None = None,
     progress: bool = False,
+    check: Callable[[ContactPair], tuple[float, float]] | None = None,
 ) -> SimulationReport:
     """Write pairs 0..count-1 as pair files (SPEC format) into `out_dir`; resumable and idempotent.
+
+    `check`, if given, measures each written pair (e.g. the pose stage's `oracle_pose_errors`: translation in
+    metres, rotation in radians); the report summarises it as a sanity check.
 
     Pair files already present are kept unless `overwrite`. A folder made with other settings (object,
     seed, config) is refused unless `overwrite`, which then also removes that run's pairs beyond `count`:
@@ -413,7 +422,8 @@ def write_pairs(
             report.written.append(write_contact_pair(out_dir / pair_file_name(index), simulated.pair))
             report.attempts += simulated.attempts
             report.rejections.update(simulated.rejections)
-            report.oracle_errors.append(oracle_pose_errors(model, simulated.pair))
+            if check is not None:
+                report.oracle_errors.append(check(simulated.pair))
             if bar is not None:
                 bar.update(1)
     finally:
@@ -426,9 +436,7 @@ def write_pairs(
 # ------------------------------------------------------------------------------------------------ checks
 def direction_conditioning(offset: np.ndarray, n_first: np.ndarray, n_second: np.ndarray) -> float:
     """sigma_2 / sigma_1 of the unit columns [d, n_first, n_second], as the solver measures it."""
-    directions = np.stack([normalize(offset), normalize(n_first), normalize(n_second)], axis=1)
-    singular_values = np.linalg.svd(directions, compute_uv=False)
-    return float(singular_values[1] / singular_values[0])
+    return dual_contact_conditioning(offset, n_first, n_second)[0]
 
 
 def boxes_overlap(
@@ -469,24 +477,3 @@ def format_rejections(rejections: Counter) -> str:
     if not rejections:
         return "none"
     return ", ".join(f"{reason} {count}" for reason, count in rejections.most_common())
-
-
-def oracle_pose_errors(model: ObjectModel, pair: ContactPair) -> tuple[float, float]:
-    """Translation (m) and rotation (rad) error of the solver fed ground-truth contacts and model normals.
-
-    The tactile clouds give the world side (`contact_in_world`); the true contact locations and the model's
-    aggregated normals there give the object side. This is the floor of the geometric chain.
-    """
-    from yoto.solver import ContactEstimate, contact_in_world, solve_pose
-
-    if not pair.has_ground_truth:
-        raise InputError("the pair has no ground truth", pair.path)
-    T_object_mesh = invert_transform(model.T_mesh_object)
-    estimates = []
-    for side in SIDES:
-        p_object = transform_points(T_object_mesh, pair.p_mesh_true[side])
-        estimates.append(ContactEstimate(p_object, model.aggregated_normal(p_object)))
-    solution = solve_pose(*estimates, contact_in_world(pair.left), contact_in_world(pair.right))
-    T_world_object_true = pair.T_world_mesh_true @ model.T_mesh_object
-    translation_error = float(np.linalg.norm(solution.T_world_object[:3, 3] - T_world_object_true[:3, 3]))
-    return translation_error, rotation_angle_rad(solution.T_world_object, T_world_object_true)

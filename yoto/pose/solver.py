@@ -9,42 +9,32 @@ the translation aligns the two contact points on average.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from yoto.contacts import TactileContact
-from yoto.errors import DegenerateGeometryError
-from yoto.geometry import make_transform, normalize, procrustes_rotation, rotate_vectors, transform_points
-from yoto.pointcloud import covariance_eigh
+from yoto.contacts import (
+    SIDES,
+    WELL_CONDITIONED,
+    ContactEstimate,
+    ContactPair,
+    WorldContact,
+    contact_in_world,
+    dual_contact_conditioning,
+    dual_contact_directions,
+)
+from yoto.errors import DegenerateGeometryError, InputError
+from yoto.geometry import (
+    invert_transform,
+    make_transform,
+    normalize,
+    procrustes_rotation,
+    rotation_angle_rad,
+    transform_points,
+)
+from yoto.objects.model import ObjectModel
 
 MIN_CONTACT_SEPARATION_M = 0.002  # closer contacts leave the contact-to-contact direction undefined
-WELL_CONDITIONED = 0.15  # sigma_2 / sigma_1 of Q_object below this: rotation about one axis is weakly fixed
-LOCAL_FIT_RADIUS_M = 0.002  # radius of the surface patch fitted at the contact centre of a tactile cloud
-LOCAL_FIT_MIN_POINTS = 12
-LINE_POINTS = 8  # points averaged where the centroid's normal line meets the cloud
-
-
-@dataclass
-class ContactEstimate:
-    """One contact located on the object model (object frame), with what the localizer knows of it."""
-
-    p_object: np.ndarray  # (3,) contact location
-    n_object: np.ndarray  # (3,) outward unit normal there (kNN-aggregated from the parent cloud)
-    block: int = -1  # block index, -1 if the localizer has no blocks
-    score: float = 0.0  # the localizer's own ranking score (higher is better); comparable within a method
-    probability: float = 1.0  # the localizer's belief in this candidate, in [0, 1]
-    details: dict = field(default_factory=dict)  # method-specific extras for result files
-
-
-@dataclass
-class WorldContact:
-    """One contact as the sensor measured it: location and outward object normal, sensor and world frames."""
-
-    p_sensor: np.ndarray
-    n_sensor: np.ndarray
-    p_world: np.ndarray
-    n_world: np.ndarray
 
 
 @dataclass
@@ -71,40 +61,6 @@ class PoseSolution:
         return notes
 
 
-def contact_in_sensor(points_sensor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Contact centre and outward object normal of a tactile cloud, in the sensor frame.
-
-    The normal is that of a plane fitted to the points around the centroid, signed to point out of the
-    object, i.e. toward the sensor (-z). The centre is where the line through the centroid along that
-    normal meets the cloud (the surface point nearest the centroid, which is how ground-truth contact
-    locations are defined); it is read off the few points closest to the line, so curvature adds no bias.
-    """
-    centroid = points_sensor.mean(axis=0)
-    offsets = points_sensor - centroid
-    # Plain distances beat building a KD-tree for one query on a dense (~20k-point) tactile cloud.
-    nearest = points_sensor[np.argmin(np.einsum("ij,ij->i", offsets, offsets))]
-    squared = np.einsum("ij,ij->i", points_sensor - nearest, points_sensor - nearest)
-    neighbours = np.flatnonzero(squared <= LOCAL_FIT_RADIUS_M**2)
-    if len(neighbours) < LOCAL_FIT_MIN_POINTS:
-        neighbours = np.argsort(squared)[:LOCAL_FIT_MIN_POINTS]
-    _, _, eigenvectors = covariance_eigh(points_sensor[neighbours])
-    normal = eigenvectors[:, 0] if eigenvectors[2, 0] <= 0 else -eigenvectors[:, 0]
-    along = offsets @ normal
-    off_line = np.linalg.norm(offsets - along[:, None] * normal, axis=1)
-    closest_to_line = np.argpartition(off_line, min(LINE_POINTS, len(off_line) - 1))[:LINE_POINTS]
-    return centroid + along[closest_to_line].mean() * normal, normal
-
-
-def contact_in_world(contact: TactileContact) -> WorldContact:
-    p_sensor, n_sensor = contact_in_sensor(contact.points_sensor)
-    return WorldContact(
-        p_sensor=p_sensor,
-        n_sensor=n_sensor,
-        p_world=transform_points(contact.T_world_sensor, p_sensor),
-        n_world=rotate_vectors(contact.T_world_sensor, n_sensor),
-    )
-
-
 def _angle(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.arccos(np.clip(normalize(a) @ normalize(b), -1.0, 1.0)))
 
@@ -125,14 +81,13 @@ def solve_pose(
                 f"the two contacts are {np.linalg.norm(offset) * 1000:.2f} mm apart {frame}: the pose needs two "
                 "distinct contacts"
             )
-    q_object = np.stack([normalize(offset_object), normalize(left.n_object), normalize(right.n_object)], axis=1)
-    q_world = np.stack([normalize(offset_world), normalize(left_world.n_world), normalize(right_world.n_world)], axis=1)
+    q_object = dual_contact_directions(offset_object, left.n_object, right.n_object)
+    q_world = dual_contact_directions(offset_world, left_world.n_world, right_world.n_world)
     rotation, _ = procrustes_rotation(q_world, q_object)
     translation = 0.5 * (
         (left_world.p_world - rotation @ left.p_object) + (right_world.p_world - rotation @ right.p_object)
     )
-    singular_values = np.linalg.svd(q_object, compute_uv=False)
-    conditioning = float(singular_values[1] / singular_values[0])
+    conditioning, singular_values = dual_contact_conditioning(offset_object, left.n_object, right.n_object)
     aligned = rotation @ q_object
     pairs = ((0, 1), (0, 2), (1, 2))
     angle_errors = np.array(
@@ -148,3 +103,23 @@ def solve_pose(
         direction_angle_errors_rad=angle_errors,
         alignment_residual_rad=max(_angle(aligned[:, i], q_world[:, i]) for i in range(3)),
     )
+
+
+def oracle_pose_errors(model: ObjectModel, pair: ContactPair) -> tuple[float, float]:
+    """Translation (m) and rotation (rad) error of the solver fed ground-truth contacts and model normals.
+
+    The tactile clouds give the world side (`contact_in_world`); the true contact locations and the model's
+    aggregated normals there give the object side (`model` is an ObjectModel). This is the floor of the
+    geometric chain.
+    """
+    if not pair.has_ground_truth:
+        raise InputError("the pair has no ground truth", pair.path)
+    T_object_mesh = invert_transform(model.T_mesh_object)
+    estimates = []
+    for side in SIDES:
+        p_object = transform_points(T_object_mesh, pair.p_mesh_true[side])
+        estimates.append(ContactEstimate(p_object, model.aggregated_normal(p_object)))
+    solution = solve_pose(*estimates, contact_in_world(pair.left), contact_in_world(pair.right))
+    T_world_object_true = pair.T_world_mesh_true @ model.T_mesh_object
+    translation_error = float(np.linalg.norm(solution.T_world_object[:3, 3] - T_world_object_true[:3, 3]))
+    return translation_error, rotation_angle_rad(solution.T_world_object, T_world_object_true)

@@ -1,0 +1,67 @@
+"""Settings of the matched filter: what shapes the anchor maps (built once per object) and what each query uses."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from yoto.errors import InputError
+from yoto.localize.ranking import BeliefConfig
+from yoto.registration import GaussNewtonConfig
+from yoto.sensor.spec import GELSIGHT_MINI
+
+
+@dataclass(frozen=True)
+class AnchorConfig:
+    """What the anchor maps of an object are made of; the anchor cache is keyed on this alone."""
+
+    anchor_spacing_m: float = 0.002  # anchors: one parent point per voxel of this size
+    anchor_normal_neighbours: int = 50  # k of an anchor's aggregated normal (smooth, stable)
+    map_radius_m: float = 0.0105  # height maps cover the disc of this radius around the contact / anchor
+    cell_m: float = 0.0015  # height-map cell size
+    ray_start_m: float = 0.005  # anchor rays start this far in front of the tangent plane
+    ray_reach_m: float = 0.005  # surface further than this behind the tangent plane counts as absent
+    nms_radius_m: float = 0.004  # matched-filter candidates closer than this are one (anchor neighbourhoods)
+
+    def __post_init__(self):
+        if self.cell_m <= 0 or self.map_radius_m <= self.cell_m or self.anchor_spacing_m <= 0:
+            raise InputError("cell_m and anchor_spacing_m must be positive and map_radius_m larger than a cell")
+
+
+@dataclass(frozen=True)
+class MatchConfig:
+    """The matched-filter localizer: its anchor maps, and how one contact is matched, refined and ranked."""
+
+    anchors: AnchorConfig = AnchorConfig()
+    rolls: int = 36  # sensor roll angles tried by the fine stage (360 / rolls degrees apart)
+    coarse_rolls: int = 24  # roll angles of the coarse stage, which scores every anchor on half the cells
+    shortlist: int = 1500  # anchors (best by the coarse stage) scored by the fine stage
+    air_penalty_m: float = 0.0005  # a contact cell with no anchor surface costs like this height error
+    remove_tilt: bool = True  # fit and remove a plane (offset + tilt) instead of a constant offset
+    contact_pixel_m: float = 0.0002  # pixel of the contact's local height image
+    contact_erode_px: int = 1  # the contact image's mask is eroded by this many pixels (the rim is gel, not object)
+    free_margin_m: float = 0.0001  # free space: the object may reach this far past the gel plane unseen ...
+    free_margin_quantile: float = 0.02  # ... or as deep as the cloud's shallowest points (this quantile of depth)
+    free_clearance_m: float = 0.0005  # free space: cells this close to the contact are not judged
+    pad_size_m: tuple[float, float] = GELSIGHT_MINI.pad_size_m  # sensed area of the gel (x, y extents)
+    refine_candidates: int = 20  # best matched-filter candidates refined by ICP
+    icp_points: int = 300  # tactile points used by the per-candidate ICP
+    icp: GaussNewtonConfig = field(
+        default_factory=lambda: GaussNewtonConfig(
+            iterations=8,
+            max_distance_m=0.002,
+            surface_noise_m=0.00003,
+            prior_rotation_rad=float(np.radians(10.0)),
+            prior_translation_m=0.003,
+        )
+    )  # the per-candidate point-to-plane ICP, its start as a weak prior
+    residual_tau_m: float = 0.0005  # truncation of the ranking residual
+    belief: BeliefConfig = BeliefConfig()  # distinct candidates and their beliefs from the ranking residuals
+    normal_neighbours: int = 20  # k of the aggregated model normal reported with a candidate
+    free_space: bool = True  # penalise poses that push the object into the gel where the sensor saw nothing
+    refine: bool = True  # refine the candidates by ICP (False: matched-filter poses only)
+
+    def __post_init__(self):
+        if self.rolls < 1 or self.coarse_rolls < 1 or self.refine_candidates < 1:
+            raise InputError("rolls, coarse_rolls and refine_candidates must be at least 1")

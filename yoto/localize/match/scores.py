@@ -1,0 +1,121 @@
+"""Scores of a contact against the anchors: plane-corrected height differences and the free-space test."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from yoto.localize.match.anchors import AnchorMaps
+from yoto.localize.match.config import MatchConfig
+from yoto.localize.match.contact import ContactImage, ContactMaps
+from yoto.objects.model import ObjectModel
+
+
+def plane_costs(
+    mt: np.ndarray,
+    t: np.ndarray,
+    ma: np.ndarray,
+    h: np.ndarray,
+    hh: np.ndarray,
+    centres: np.ndarray,
+    remove_tilt: bool,
+    air_penalty_m: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Cost (R, A) of every (roll, anchor) and the fitted plane beta = (offset, slope x, slope y), (3, R, A).
+
+    Inputs: the contact's mask and heights (R, C) at the cell centres (C, 2) for each roll, and the anchors'
+    validity, heights and squared heights as (C, A) columns (heights 0 where invalid). With d = t - h over the
+    cells both cover, cost = (min_beta sum (d - beta . (1, x, y))^2 + air_penalty^2 * contact cells where the
+    anchor has no surface) / contact cells; without `remove_tilt` beta is the offset alone. Every sum over
+    cells is one matrix product of (rolls x cells) contact terms with (cells x anchors) anchor terms.
+    """
+    x, y = centres.T.astype(np.float32)
+    mtt = mt * t
+    total = mt.sum(axis=1, keepdims=True)
+    if remove_tilt:
+        first = np.concatenate([mt, mt * x, mt * y, mt * x * x, mt * x * y, mt * y * y, mtt, mtt * x, mtt * y, mtt * t])
+        n, sx, sy, sxx, sxy, syy, st, stx, sty, stt = np.split(first @ ma, 10)
+        sh, shx, shy, sth = np.split(np.concatenate([mt, mt * x, mt * y, mtt]) @ h, 4)
+        b0, b1, b2 = st - sh, stx - shx, sty - shy
+        sdd = stt - 2.0 * sth + mt @ hh
+        # Normal equations G beta = b, G = [[n, sx, sy], [sx, sxx, sxy], [sy, sxy, syy]], solved by cofactors.
+        c00, c01, c02 = sxx * syy - sxy * sxy, sy * sxy - sx * syy, sx * sxy - sy * sxx
+        c11, c12, c22 = n * syy - sy * sy, sx * sy - n * sxy, n * sxx - sx * sx
+        det = n * c00 + sx * c01 + sy * c02
+        spread = sxx + syy
+        # A plane needs cells spread in two directions: det is ~ n * (second moments)^2 when it is well posed.
+        solvable = (n >= 6) & (det > 1e-2 * n * spread * spread / 4.0)
+        inv = np.where(solvable, 1.0 / np.where(solvable, det, 1.0), 0.0)
+        beta = np.stack(
+            [
+                (c00 * b0 + c01 * b1 + c02 * b2) * inv,
+                (c01 * b0 + c11 * b1 + c12 * b2) * inv,
+                (c02 * b0 + c12 * b1 + c22 * b2) * inv,
+            ]
+        )
+        safe_n = np.maximum(n, 1.0)
+        sse = np.where(solvable, sdd - (beta[0] * b0 + beta[1] * b1 + beta[2] * b2), sdd - b0 * b0 / safe_n)
+        beta[0] = np.where(solvable, beta[0], b0 / safe_n)
+    else:
+        n, st, stt = np.split(np.concatenate([mt, mtt, mtt * t]) @ ma, 3)
+        sh, sth = np.split(np.concatenate([mt, mtt]) @ h, 2)
+        safe_n = np.maximum(n, 1.0)
+        sse = stt - 2.0 * sth + mt @ hh - (st - sh) ** 2 / safe_n
+        beta = np.zeros((3,) + n.shape, dtype=np.float32)
+        beta[0] = (st - sh) / safe_n
+    cost = (np.maximum(sse, 0.0) + air_penalty_m**2 * (total - n)) / np.maximum(total, 1.0)
+    return cost, beta
+
+
+def free_space_penalty(
+    contact: ContactMaps,
+    anchors: AnchorMaps,
+    anchor_index: np.ndarray,
+    roll_index: np.ndarray,
+    beta: np.ndarray,
+    config: MatchConfig,
+) -> np.ndarray:
+    """(K,) sum over free pad cells of the squared depth by which the anchor's surface would push into the gel.
+
+    Under a hypothesis the contact-frame height of the anchor's surface at a cell is h + beta . (1, x, y); the
+    gel plane lies at `gel_heights`. Surface nearer the sensor than the plane (less a margin) on a cell where
+    the sensor saw no contact contradicts the hypothesis.
+    """
+    x, y = anchors.grid.centres.T
+    h = anchors.heights[anchor_index].astype(np.float64)
+    surface = h + beta[0][:, None] + beta[1][:, None] * x + beta[2][:, None] * y
+    depth = np.minimum(
+        contact.gel_heights[roll_index] - contact.image.free_margin_m - surface, config.anchors.ray_start_m
+    )
+    judged = contact.free[roll_index] & (anchors.valid[anchor_index] > 0)
+    return np.sum(np.where(judged, np.maximum(depth, 0.0) ** 2, 0.0), axis=1)
+
+
+def free_space_violation(
+    model: ObjectModel, image: ContactImage, T_object_sensor: np.ndarray, config: MatchConfig
+) -> np.ndarray:
+    """(K,) mean squared depth (capped at tau) by which the object would push into the gel unseen, per tactile sample.
+
+    Parent points near the sensor are mapped into the sensor frame; those over the pad, beyond the gel
+    plane by more than the margin, and not near the observed contact, each contribute their depth squared,
+    weighted by the area they represent relative to a tactile sample's.
+    """
+    pad = np.asarray(config.pad_size_m) / 2.0
+    reach = float(np.hypot(*pad)) + 0.002
+    tactile_samples = max(int(image.mask.sum()), 1)
+    sample_area = image.pixel_m**2
+    point_area = model.point_spacing_m**2
+    members = model.kdtree.query_ball_point(T_object_sensor[:, :3, 3], reach)
+    counts = np.array([len(m) for m in members])
+    if counts.sum() == 0:
+        return np.zeros(len(T_object_sensor))
+    owner = np.repeat(np.arange(len(T_object_sensor)), counts)
+    p_object = model.points_object[np.concatenate([np.asarray(m, dtype=np.int64) for m in members])].astype(np.float64)
+    offsets = p_object - T_object_sensor[owner, :3, 3]
+    p_sensor = np.einsum("ni,nij->nj", offsets, T_object_sensor[owner, :3, :3])
+    depth = -p_sensor[:, 2] - image.free_margin_m
+    over = (np.abs(p_sensor[:, 0]) <= pad[0]) & (np.abs(p_sensor[:, 1]) <= pad[1]) & (depth > 0)
+    local = (p_sensor[over] - image.centre_sensor) @ image.basis_sensor
+    _, away = image.sample(local[:, 0], local[:, 1], ~image.touched)
+    depth = np.minimum(depth[over][away], config.residual_tau_m)
+    violation = np.bincount(owner[over][away], weights=depth**2, minlength=len(T_object_sensor))
+    return violation * point_area / sample_area / tactile_samples

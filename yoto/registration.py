@@ -1,0 +1,190 @@
+"""Point-to-plane registration of tactile points onto a surface cloud: the residual and the local solver.
+
+Every stage that asks "how well do these points lie on the object?" or "move this pose until they do" calls
+these two functions: the matched filter (per-candidate refinement and ranking), the ICP baseline (ranking
+registrations), the pose stage (verification and joint refinement of both contacts) and tracking.
+
+`surface` is anything with `points_object` (N, 3), `normals_object` (N, 3) outward unit normals and a
+`kdtree` over the points (an `ObjectModel`, or a crop of one). Poses map a `source` frame (the sensor, or the
+world) into the surface's frame, written `T_surface_source`, batched as (K, 4, 4).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from yoto.geometry import so3_exp, so3_log
+
+NORMAL_AGREEMENT = 0.5  # cos 60 deg: a point's expected normal and the surface normal must agree this well
+
+
+class SurfaceCloud(Protocol):
+    points_object: np.ndarray
+    normals_object: np.ndarray
+    kdtree: cKDTree
+
+
+def _transform_batch(T_surface_source: np.ndarray, points_source: np.ndarray) -> np.ndarray:
+    """(K, M, 3) points under each of K poses; `points_source` is (M, 3) shared or (K, M, 3)."""
+    rotation, translation = T_surface_source[:, :3, :3], T_surface_source[:, :3, 3]
+    return np.matmul(points_source, np.transpose(rotation, (0, 2, 1))) + translation[:, None, :]
+
+
+def plane_distances(
+    surface: SurfaceCloud,
+    points_surface: np.ndarray,
+    reach_m: float,
+    facing_surface: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Signed point-to-plane distance of each point (..., 3) to its nearest surface point within `reach_m`.
+
+    Returns (distance, matched, nearest_points, nearest_normals), each of the points' leading shape (the last two
+    with a trailing 3). `matched` is False where no surface point lies within reach or, when `facing_surface`
+    (unit normals the points should have, broadcastable to the points) is given, where the surface normal
+    disagrees with it by more than 60 degrees (the other side of a thin part). Unmatched distances are 0.
+    """
+    shape = points_surface.shape[:-1]
+    flat = points_surface.reshape(-1, 3)
+    gaps, index = surface.kdtree.query(flat, distance_upper_bound=reach_m)
+    found = np.isfinite(gaps)
+    index = np.where(found, index, 0)
+    nearest = surface.points_object[index].astype(np.float64)
+    normals = surface.normals_object[index].astype(np.float64)
+    if facing_surface is not None:
+        expected = np.broadcast_to(facing_surface, points_surface.shape).reshape(-1, 3)
+        found &= np.einsum("ij,ij->i", normals, expected) > NORMAL_AGREEMENT
+    distance = np.where(found, np.einsum("ij,ij->i", flat - nearest, normals), 0.0)
+    return distance.reshape(shape), found.reshape(shape), nearest.reshape(shape + (3,)), normals.reshape(shape + (3,))
+
+
+@dataclass
+class PlaneFit:
+    """How well points lie on the surface under each of K poses (arrays of shape (K,))."""
+
+    rms_m: np.ndarray  # truncated RMS: each point's |distance| capped at tau, unmatched points count tau
+    inlier_fraction: np.ndarray  # share of points matched within `inlier_m` of the surface
+    inlier_rms_m: np.ndarray  # RMS distance over the matched points (0 where there are none)
+
+
+def truncated_plane_fit(
+    surface: SurfaceCloud,
+    points_surface: np.ndarray,
+    tau_m: float,
+    reach_m: float | None = None,
+    facing_surface: np.ndarray | None = None,
+    inlier_m: float | None = None,
+) -> PlaneFit:
+    """Truncated point-to-plane fit of (K, M, 3) surface-frame points (see `PlaneFit`).
+
+    The truncation tau makes one number of fit and coverage: a right pose scores near the sensor's noise, a wrong
+    one near tau. `reach_m` (default tau) is how far a nearest surface point may lie; search a little further than
+    tau when the surface cloud is coarse, since a point on the surface can lie a point spacing from the nearest
+    sample. `inlier_m` (default tau) defines the inlier fraction.
+    """
+    distance, matched, _, _ = plane_distances(
+        surface, points_surface, tau_m if reach_m is None else reach_m, facing_surface
+    )
+    magnitude = np.abs(distance)
+    residual = np.where(matched, np.minimum(magnitude, tau_m), tau_m)
+    inliers = matched & (magnitude < (tau_m if inlier_m is None else inlier_m))
+    count = matched.sum(axis=-1)
+    inlier_rms = np.sqrt(np.sum(np.where(matched, magnitude**2, 0.0), axis=-1) / np.maximum(count, 1))
+    return PlaneFit(
+        rms_m=np.sqrt(np.mean(residual**2, axis=-1)),
+        inlier_fraction=inliers.mean(axis=-1),
+        inlier_rms_m=np.where(count > 0, inlier_rms, 0.0),
+    )
+
+
+@dataclass(frozen=True)
+class GaussNewtonConfig:
+    """Damped point-to-plane Gauss-Newton with the starting pose as a Gaussian prior."""
+
+    iterations: int = 8  # iterations at most
+    max_distance_m: float = 0.002  # correspondences further than this are ignored
+    surface_noise_m: float = 3e-5  # 1-sigma of a point's distance from the true surface (weights)
+    prior_rotation_rad: float = float(np.radians(10.0))  # 1-sigma of the prior on the start: rotation ...
+    prior_translation_m: float = 0.003  # ... and translation of the pivot
+    translation_only_iterations: int = 0  # first iterations move translation only
+    step_tolerance_m: float = 1e-7  # stop when every update is smaller than this (metres; radians likewise)
+
+
+def point_to_plane_gauss_newton(
+    surface: SurfaceCloud,
+    points_source: np.ndarray,
+    T_surface_source: np.ndarray,
+    config: GaussNewtonConfig,
+    pivot_source: np.ndarray | None = None,
+    facing_source: np.ndarray | None = None,
+) -> np.ndarray:
+    """(K, 4, 4) poses that bring the (M, 3) source points onto the surface, from K starting poses at once.
+
+    Each iteration solves a small rigid correction by Gauss-Newton on the linearised point-to-plane residuals,
+    Huber-weighted at a robust scale (at least `surface_noise_m`), plus a Gaussian prior that ties the pose to
+    its start: where the surface constrains the pose the data wins; directions it leaves free (sliding on a
+    plane, spinning on a sphere) stay where they started.
+
+    The correction rotates about a pivot: the source point `pivot_source` as it moves with the pose (a contact's
+    centre: rotation and translation then decouple), or, when None, the surface frame's origin. The prior is on
+    the rotation and on the pivot's displacement since the start. `facing_source` (3,): the points' expected
+    outward normal in the source frame; correspondences whose surface normal disagrees are dropped. The first
+    `translation_only_iterations` move translation only: while a translation error dominates the residuals,
+    noise in the normals would otherwise leak it into rotations the surface cannot observe.
+    """
+    poses = np.array(T_surface_source, dtype=np.float64).reshape(-1, 4, 4)
+    start = poses.copy()
+    count = len(poses)
+    prior = np.diag([1.0 / config.prior_rotation_rad**2] * 3 + [1.0 / config.prior_translation_m**2] * 3)
+    # The source point whose displacement the prior measures: the pivot, or the source point at the origin.
+    if pivot_source is None:
+        anchor_source = np.einsum("kji,kj->ki", start[:, :3, :3], -start[:, :3, 3])  # T_start^-1 @ 0
+    else:
+        anchor_source = np.broadcast_to(np.asarray(pivot_source, dtype=np.float64), (count, 3))
+    anchor_start = np.einsum("kij,kj->ki", start[:, :3, :3], anchor_source) + start[:, :3, 3]
+    for iteration in range(config.iterations):
+        rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
+        p = _transform_batch(poses, points_source)
+        facing = None if facing_source is None else (rotation @ facing_source)[:, None, :]
+        r, use, _, n = plane_distances(surface, p, config.max_distance_m, facing)
+        if pivot_source is None:
+            centres = np.zeros((count, 3))
+        else:
+            centres = np.einsum("kij,kj->ki", rotation, anchor_source) + translation
+        magnitude = np.abs(r)
+        scale = np.maximum(config.surface_noise_m, 1.4826 * _row_medians(magnitude, use))
+        weights = np.where(use, np.minimum(1.0, scale[:, None] / np.maximum(magnitude, 1e-12)), 0.0)
+        weights /= config.surface_noise_m**2
+        jacobian = np.concatenate([np.cross(p - centres[:, None, :], n), n], axis=2)  # (K, M, 6): d r / d (w, tau)
+        anchor_now = np.einsum("kij,kj->ki", rotation, anchor_source) + translation
+        deviation = np.concatenate(
+            [so3_log(rotation @ np.transpose(start[:, :3, :3], (0, 2, 1))), anchor_now - anchor_start], axis=1
+        )
+        weighted = jacobian * weights[:, :, None]
+        hessian = np.transpose(weighted, (0, 2, 1)) @ jacobian + prior
+        gradient = (np.transpose(weighted, (0, 2, 1)) @ r[:, :, None])[:, :, 0] + deviation @ prior
+        if iteration < config.translation_only_iterations:
+            step = np.zeros((count, 6))
+            step[:, 3:] = -np.linalg.solve(hessian[:, 3:, 3:], gradient[:, 3:, None])[:, :, 0]
+        else:
+            step = -np.linalg.solve(hessian, gradient[:, :, None])[:, :, 0]
+        delta = so3_exp(step[:, :3])
+        # p -> delta (p - c) + c + tau, composed onto each pose
+        poses[:, :3, :3] = delta @ rotation
+        poses[:, :3, 3] = np.einsum("kij,kj->ki", delta, translation - centres) + centres + step[:, 3:]
+        if np.abs(step).max() < config.step_tolerance_m and iteration >= config.translation_only_iterations:
+            break
+    return poses
+
+
+def _row_medians(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Median of each row's masked entries (0 for a row with none), without NaN warnings."""
+    ordered = np.sort(np.where(mask, values, np.inf), axis=1)
+    count = mask.sum(axis=1)
+    rows = np.arange(len(values))
+    low = ordered[rows, np.maximum(count - 1, 0) // 2]
+    high = ordered[rows, np.maximum(count, 1) // 2 - (count == 0)]
+    return np.where(count > 0, 0.5 * (low + high), 0.0)
