@@ -32,9 +32,9 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from yoto.evaluation.metrics import summarize
 from yoto.geometry import invert_transform, make_transform, rotation_about_axis, rotation_between, transform_points
 from yoto.localize.icp import IcpConfig, IcpLocalizer
+from yoto.metrics import summarize
 from yoto.objects.builtin import builtin_mesh
 from yoto.objects.model import ObjectModel, ObjectModelConfig, build_object_model
 from yoto.sensor.spec import GELSIGHT_MINI

@@ -35,9 +35,9 @@ def main() -> None:
     import torch
 
     from yoto.contacts import SIDES, read_contact_pair
-    from yoto.evaluation.metrics import pose_errors, summarize
     from yoto.geometry import invert_transform, transform_points
     from yoto.localize.network import NetworkLocalizer
+    from yoto.metrics import pose_errors, summarize
     from yoto.objects.build import load_object_model
     from yoto.pose.pipeline import estimate_pose
     from yoto.training.data import dominant_block, find_pair_files_recursive

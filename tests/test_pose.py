@@ -9,7 +9,6 @@ import pytest
 
 from yoto.cli import main
 from yoto.contacts import ContactEstimate, ContactPair, TactileContact, read_contact_pair, write_contact_pair
-from yoto.evaluation.metrics import pose_errors
 from yoto.geometry import (
     invert_transform,
     make_transform,
@@ -19,6 +18,7 @@ from yoto.geometry import (
     transform_points,
 )
 from yoto.localize.base import OracleLocalizer
+from yoto.metrics import pose_errors
 from yoto.pose.pipeline import PAPER, PoseConfig, estimate_pose
 
 

@@ -86,8 +86,8 @@ def test_real_round_trip_and_points(real_presses, two_fold):
 def test_oracle_pose_through_real_calibrated_images(real_presses, builtin_models):
     """Contacts rendered with the real sensor's optics and reconstructed: the oracle pose stays within a few
     degrees, so the image path's errors reach the pose figures at the size the benchmark reports."""
-    from yoto.evaluation.metrics import pose_errors
     from yoto.localize.base import OracleLocalizer
+    from yoto.metrics import pose_errors
     from yoto.pose.pipeline import estimate_pose
     from yoto.sensor.optical import image_path_reconstructor
     from yoto.simulate.scenarios import PairSimulator

@@ -52,8 +52,8 @@ def run_demo(
     out: str | Path | None = None,
 ) -> int:
     from yoto.contacts import SIDES
-    from yoto.evaluation.metrics import pose_errors
     from yoto.localize import make_localizer
+    from yoto.metrics import pose_errors
     from yoto.objects.build import load_object_model
     from yoto.objects.builtin import builtin_object_names
     from yoto.pose.pipeline import estimate_pose

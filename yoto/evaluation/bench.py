@@ -25,9 +25,9 @@ from tqdm import tqdm
 from yoto import __version__
 from yoto.contacts import SIDES
 from yoto.errors import InputError, YotoError
-from yoto.evaluation.metrics import pose_errors, summarize
 from yoto.geometry import transform_points
 from yoto.io import read_json, write_bytes_atomic, write_json_atomic, write_text_atomic
+from yoto.metrics import pose_errors, summarize
 from yoto.objects.build import build_object, load_object_model
 from yoto.objects.mesh import MESH_SUFFIXES
 from yoto.objects.model import ObjectModel

@@ -38,9 +38,9 @@ def run(args: argparse.Namespace) -> int:
 
     from yoto.contacts import find_pair_files, read_contact_pair
     from yoto.errors import YotoError
-    from yoto.evaluation.metrics import pose_errors
     from yoto.io import write_json_atomic
     from yoto.localize import make_localizer
+    from yoto.metrics import pose_errors
     from yoto.objects.build import load_object_model
     from yoto.pose.pipeline import PAPER, PoseConfig, estimate_pose, pose_result_path
 

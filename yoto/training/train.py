@@ -32,8 +32,8 @@ from typing import Any
 import numpy as np
 
 from yoto.errors import InputError, require_torch
-from yoto.evaluation.metrics import summarize
 from yoto.io import read_json, write_bytes_atomic, write_json_atomic, write_text_atomic
+from yoto.metrics import summarize
 from yoto.network.candidates import candidates_of, fit_temperature, rank_hypotheses, rotated_copies
 from yoto.network.inputs import inference_points, make_block_set
 from yoto.network.presets import PRESETS as NETWORK_PRESETS

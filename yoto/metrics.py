@@ -1,16 +1,24 @@
-"""Error measures shared by `yoto pose` summaries and the benchmark."""
+"""Error measures shared by `yoto pose` summaries, training validation and the benchmark."""
 
 from __future__ import annotations
+
+from typing import Protocol
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from yoto.geometry import rotation_angle_rad, transform_points
-from yoto.objects.model import ObjectModel
+
+
+class ModelPoints(Protocol):
+    """What an error measure needs of an object model (an `ObjectModel` has it)."""
+
+    T_mesh_object: np.ndarray
+    points_object: np.ndarray
 
 
 def pose_errors(
-    T_world_mesh_estimate: np.ndarray, T_world_mesh_true: np.ndarray, model: ObjectModel
+    T_world_mesh_estimate: np.ndarray, T_world_mesh_true: np.ndarray, model: ModelPoints
 ) -> dict[str, float]:
     """Translation error (mm) of the object's centroid, rotation error (deg), ADD and ADD-S (mm).
 
