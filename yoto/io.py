@@ -91,7 +91,8 @@ def save_npz_atomic(path: str | Path, arrays: dict[str, np.ndarray], meta: dict[
     """Save arrays and a JSON metadata dict (stored as the `meta_json` entry) into one npz file."""
     buffer = io.BytesIO()
     meta_entry = np.frombuffer(json.dumps(meta, default=_to_jsonable).encode("utf-8"), dtype=np.uint8)
-    np.savez(buffer, meta_json=meta_entry, **arrays)
+    entries: dict[str, Any] = {"meta_json": meta_entry, **arrays}  # Any: numpy's stub also types allow_pickle
+    np.savez(buffer, **entries)
     return write_bytes_atomic(path, buffer.getvalue())
 
 

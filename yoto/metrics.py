@@ -13,8 +13,11 @@ from yoto.geometry import rotation_angle_rad, transform_points
 class ModelPoints(Protocol):
     """What an error measure needs of an object model (an `ObjectModel` has it)."""
 
-    T_mesh_object: np.ndarray
-    points_object: np.ndarray
+    @property
+    def T_mesh_object(self) -> np.ndarray: ...
+
+    @property
+    def points_object(self) -> np.ndarray: ...
 
 
 def pose_errors(

@@ -23,9 +23,16 @@ NORMAL_AGREEMENT = 0.5  # cos 60 deg: a point's expected normal and the surface 
 
 
 class SurfaceCloud(Protocol):
-    points_object: np.ndarray
-    normals_object: np.ndarray
-    kdtree: cKDTree
+    """What registration needs of a surface (an ObjectModel has it)."""
+
+    @property
+    def points_object(self) -> np.ndarray: ...
+
+    @property
+    def normals_object(self) -> np.ndarray: ...
+
+    @property
+    def kdtree(self) -> cKDTree: ...
 
 
 def _transform_batch(T_surface_source: np.ndarray, points_source: np.ndarray) -> np.ndarray:
@@ -110,7 +117,9 @@ class GaussNewtonConfig:
     prior_rotation_rad: float = float(np.radians(10.0))  # 1-sigma of the prior on the start: rotation ...
     prior_translation_m: float = 0.003  # ... and translation of the pivot
     translation_only_iterations: int = 0  # first iterations move translation only
-    step_tolerance_m: float = 1e-7  # stop when every update is smaller than this (metres; radians likewise)
+    step_tolerance_m: float = 1e-7  # stop when every translation update is below this ...
+    step_tolerance_rad: float = 1e-7  # ... and every rotation update below this (also in translation-only
+    # iterations: a start that needs no translation is not rotated)
 
 
 def point_to_plane_gauss_newton(
@@ -175,7 +184,10 @@ def point_to_plane_gauss_newton(
         # p -> delta (p - c) + c + tau, composed onto each pose
         poses[:, :3, :3] = delta @ rotation
         poses[:, :3, 3] = np.einsum("kij,kj->ki", delta, translation - centres) + centres + step[:, 3:]
-        if np.abs(step).max() < config.step_tolerance_m and iteration >= config.translation_only_iterations:
+        if (
+            np.linalg.norm(step[:, 3:], axis=1).max() < config.step_tolerance_m
+            and np.linalg.norm(step[:, :3], axis=1).max() < config.step_tolerance_rad
+        ):
             break
     return poses
 

@@ -45,6 +45,7 @@ from __future__ import annotations
 import hashlib
 import threading
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -99,7 +100,7 @@ class Registration:
     refined: bool  # False when ICP ended worse than it started (it diverged) and the start was kept
 
 
-_TARGETS: dict[str, object] = {}  # model fingerprint -> open3d.geometry.PointCloud with normals, object frame
+_TARGETS: dict[str, Any] = {}  # model fingerprint -> open3d.geometry.PointCloud with normals, object frame
 _TARGETS_LOCK = threading.Lock()
 _TARGET_CACHE_SIZE = 8
 

@@ -131,7 +131,16 @@ def _sample_ball(distances: np.ndarray, config: VirtualPatchConfig) -> tuple[flo
     return "too_many_points"
 
 
-def _generate_variant(variant: int, angle_rad: float) -> dict[str, np.ndarray | dict]:
+@dataclass
+class _VariantPatches:
+    """The accepted patches of one parent variant (per-patch lists, keyed like the dataset's columns)."""
+
+    variant: int
+    records: dict[str, list]
+    rejections: dict[str, int]
+
+
+def _generate_variant(variant: int, angle_rad: float) -> _VariantPatches:
     """All attempts of one parent variant. Deterministic from (seed, variant)."""
     assert _STATE is not None
     model, config = _STATE.model, _STATE.config
@@ -186,7 +195,7 @@ def _generate_variant(variant: int, angle_rad: float) -> dict[str, np.ndarray | 
             records["block"].append(int(np.argmax(block_votes)) if block_votes.sum() else -1)
             records["radius"].append(radius)
             break
-    return {"variant": variant, "records": records, "rejections": rejections}
+    return _VariantPatches(variant, records, rejections)
 
 
 def generate_virtual_patches(
@@ -221,12 +230,12 @@ def generate_virtual_patches(
     columns: dict[str, list] = {
         k: [] for k in ("indices", "rotation", "translation", "p", "block", "radius", "variant")
     }
-    for result in sorted(results, key=lambda r: r["variant"]):
-        for reason, count in result["rejections"].items():
+    for result in sorted(results, key=lambda r: r.variant):
+        for reason, count in result.rejections.items():
             rejections[reason] += count
-        for key, values in result["records"].items():
+        for key, values in result.records.items():
             columns[key].extend(values)
-        columns["variant"].extend([result["variant"]] * len(result["records"]["p"]))
+        columns["variant"].extend([result.variant] * len(result.records["p"]))
     if not columns["p"]:
         raise InputError(
             f"no virtual patch could be generated for {model.name!r} (rejections: {rejections}); is the parent cloud "

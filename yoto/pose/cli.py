@@ -42,12 +42,13 @@ def run(args: argparse.Namespace) -> int:
     from yoto.localize import make_localizer
     from yoto.metrics import pose_errors
     from yoto.objects.build import load_object_model
+    from yoto.objects.model import ObjectModel
     from yoto.pose.pipeline import PAPER, PoseConfig, estimate_pose, pose_result_path
 
     method = "oracle" if args.oracle else args.method
     pose_config = PAPER if args.paper else PoseConfig()
     localizer = make_localizer(method, args.checkpoint)
-    models: dict[str, object] = {}
+    models: dict[str, ObjectModel] = {}
     failures, errors = 0, []
     for path in find_pair_files(args.pairs):
         try:

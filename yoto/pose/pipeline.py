@@ -210,7 +210,7 @@ def pose_from_candidates(
         )
     best = choose_hypothesis(candidates, world, model, points_world if config.verify else None, config)
     T_world_object, fit, refined = best.solution.T_world_object, best.fit, False
-    if config.refine:
+    if config.refine and points_world is not None:
         T_world_object, fit = refine_pose(model, T_world_object, points_world, config.refine_config)
         refined = T_world_object is not best.solution.T_world_object
     conditioning_factor = min(1.0, best.solution.conditioning / WELL_CONDITIONED)

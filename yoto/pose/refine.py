@@ -81,6 +81,7 @@ def refine_pose(
         prior_rotation_rad=config.prior_rotation_rad,
         prior_translation_m=config.prior_translation_m,
         translation_only_iterations=config.translation_only_iterations,
+        step_tolerance_rad=1e-6,
     )
     T_object_world = point_to_plane_gauss_newton(model, points_world, invert_transform(T_world_object)[None], solver)
     refined = invert_transform(T_object_world[0])

@@ -109,17 +109,16 @@ def oracle_pose_errors(model: ObjectModel, pair: ContactPair) -> tuple[float, fl
     """Translation (m) and rotation (rad) error of the solver fed ground-truth contacts and model normals.
 
     The tactile clouds give the world side (`contact_in_world`); the true contact locations and the model's
-    aggregated normals there give the object side (`model` is an ObjectModel). This is the floor of the
-    geometric chain.
+    aggregated normals there give the object side. This is the floor of the geometric chain.
     """
     if not pair.has_ground_truth:
         raise InputError("the pair has no ground truth", pair.path)
     T_object_mesh = invert_transform(model.T_mesh_object)
-    estimates = []
-    for side in SIDES:
-        p_object = transform_points(T_object_mesh, pair.p_mesh_true[side])
-        estimates.append(ContactEstimate(p_object, model.aggregated_normal(p_object)))
-    solution = solve_pose(*estimates, contact_in_world(pair.left), contact_in_world(pair.right))
+    left, right = (
+        ContactEstimate(p_object, model.aggregated_normal(p_object))
+        for p_object in (transform_points(T_object_mesh, pair.p_mesh_true[side]) for side in SIDES)
+    )
+    solution = solve_pose(left, right, contact_in_world(pair.left), contact_in_world(pair.right))
     T_world_object_true = pair.T_world_mesh_true @ model.T_mesh_object
     translation_error = float(np.linalg.norm(solution.T_world_object[:3, 3] - T_world_object_true[:3, 3]))
     return translation_error, rotation_angle_rad(solution.T_world_object, T_world_object_true)

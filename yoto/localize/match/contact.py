@@ -44,7 +44,9 @@ class ContactImage:
             (x0, y0 + 1, (1 - wx) * wy),
             (x0 + 1, y0 + 1, wx * wy),
         )
-        heights = sum(self.heights[i, j] * w for i, j, w in corners)
+        heights = np.zeros(np.shape(wx))
+        for i, j, w in corners:
+            heights += self.heights[i, j] * w
         inside = np.logical_and.reduce([mask[i, j] for i, j, _ in corners])
         return heights, inside
 
@@ -122,9 +124,9 @@ class ContactMaps:
     rolls_rad: np.ndarray  # (R,)
 
 
-def contact_maps(image: ContactImage, centres: np.ndarray, rolls: int, config: MatchConfig) -> ContactMaps:
+def contact_maps(image: ContactImage, centres: np.ndarray, roll_count: int, config: MatchConfig) -> ContactMaps:
     """Sample the contact image at the cell centres (C, 2) of every roll: anchor local = Rz(roll) contact local."""
-    rolls = np.arange(rolls) * (2.0 * np.pi / rolls)
+    rolls = np.arange(roll_count) * (2.0 * np.pi / roll_count)
     cos, sin = np.cos(rolls)[:, None], np.sin(rolls)[:, None]
     x = cos * centres[:, 0] + sin * centres[:, 1]  # Rz(-roll) applied to the cell centres
     y = -sin * centres[:, 0] + cos * centres[:, 1]
