@@ -13,9 +13,12 @@ SHARED_DATA = Path(os.environ.get("YOTO_SHARED_DATA", Path(__file__).resolve().p
 
 # Tolerances, in one place. Float-precision recoveries are compared with FLOAT; metric tolerances carry units.
 TOL = {
-    "float": 1e-9,  # float64 round trips of exact math
-    "float_round_trip": 1e-12,  # exp/log and quaternion round trips (a few ulps of values near 1)
+    "float": 1e-9,  # float64 results of exact math (sums, products, solves of well-conditioned systems)
+    "float_round_trip": 1e-12,  # exp/log, quaternion and orthogonality round trips (a few ulps of values near 1)
     "float32": 1e-5,  # values that passed through float32 storage, metres
+    "float32_unit": 1e-6,  # unit vectors that passed through float32 storage
+    "ply_text_m": 1e-8,  # coordinates written to and read back from PLY files
+    "arccos_rad": 1e-6,  # angles read off arccos near 1 (its derivative diverges there)
     "pose_exact_m": 1e-9,  # noise-free pose recovery, translation
     "pose_exact_rad": 1e-9,  # noise-free pose recovery, rotation
 }

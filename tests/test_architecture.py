@@ -1,7 +1,7 @@
 """The package's layering: which stage may import which (read from the source, imports inside functions too).
 
-    core -> objects -> sensor / simulate / patches -> network -> training
-                                                    network -> localize -> pose -> evaluation
+    core -> objects -> sensor / simulate / patches -> network / rig -> training
+                                                    network -> localize -> pose -> tracking -> evaluation
 Inference (localize, pose, evaluation) never imports training. Command-line wrappers (`*/cli.py`, `yoto/cli.py`,
 `yoto/demo.py`) compose every stage and sit on top. No two modules import each other at import time.
 """
@@ -24,13 +24,15 @@ RANK = {
     "patches": 2,
     "simulate": 2,
     "network": 3,
+    "rig": 3,  # recordings in: calibration chain, bags, labelling (reads sensor images, writes contact files)
     "training": 4,
     "localize": 4,
     "pose": 5,
-    "evaluation": 6,
+    "tracking": 6,  # after the touch: needs the pose stage's estimate
+    "evaluation": 7,
 }
 TOP = 99  # command-line wrappers and the demo
-INFERENCE = {"localize", "pose", "evaluation"}
+INFERENCE = {"localize", "pose", "tracking", "evaluation", "rig"}
 
 
 def stage_of(module: str) -> str:

@@ -78,7 +78,7 @@ def test_starts_put_the_contact_on_the_surface_with_normals_aligned(builtin_mode
     distances, indices = model.kdtree.query(c_object)
     assert distances.max() < TOL["float32"]
     normals = np.einsum("sij,j->si", starts[:, :3, :3], n_sensor)
-    assert np.abs(np.einsum("si,si->s", normals, model.normals_object[indices]) - 1.0).max() < 1e-6
+    assert np.abs(np.einsum("si,si->s", normals, model.normals_object[indices]) - 1.0).max() < TOL["float32_unit"]
     # The spin about the normal is random: the images of the sensor x axis are spread, not all alike.
     assert np.linalg.norm(starts[:, :3, 0].mean(axis=0)) < 0.5
     allowed = np.arange(10)
@@ -167,7 +167,7 @@ def test_belief_matches_the_documented_softmax(builtin_models, rng):
     candidates = IcpLocalizer(config).localize(points_sensor, model)
     residuals_m = np.array([c.details["icp_residual_mm"] for c in candidates]) / 1000.0
     weights = np.exp(-0.5 * (np.append(residuals_m, config.belief.null_residual_m) / config.belief.temperature_m) ** 2)
-    np.testing.assert_allclose([c.probability for c in candidates], weights[:-1] / weights.sum(), atol=1e-9)
+    np.testing.assert_allclose([c.probability for c in candidates], weights[:-1] / weights.sum(), atol=TOL["float"])
     assert len(candidates) == config.num_starts
 
 

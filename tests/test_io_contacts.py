@@ -39,14 +39,14 @@ def test_ply_reader_reads_every_flavour(tmp_path, rng, fmt):
         path.write_bytes(header.encode() + records.tobytes())
     read_points, read_normals = read_ply_points(path)
     assert np.allclose(read_points, points, atol=TOL["float"])
-    assert np.allclose(read_normals, normals, atol=1e-6)
+    assert np.allclose(read_normals, normals, atol=TOL["float32_unit"])
 
 
 def test_ply_round_trip_and_errors(tmp_path, rng):
     points = rng.normal(size=(100, 3)) * 0.01
     path = write_ply_points(tmp_path / "a.ply", points)
     read, normals = read_ply_points(path)
-    assert normals is None and np.allclose(read, points, atol=1e-9)
+    assert normals is None and np.allclose(read, points, atol=TOL["float"])
 
     truncated = tmp_path / "truncated.ply"
     truncated.write_bytes(path.read_bytes()[:-10])
@@ -93,7 +93,7 @@ def test_pair_round_trip(tmp_path, rng):
     read = read_contact_pair(path)
     assert read.object_name == "fruit" and read.extra == {"note": "kept"}
     for side in ("left", "right"):
-        assert np.allclose(read.contact(side).points_sensor, pair.contact(side).points_sensor, atol=1e-8)
+        assert np.allclose(read.contact(side).points_sensor, pair.contact(side).points_sensor, atol=TOL["ply_text_m"])
         assert np.allclose(read.contact(side).T_world_sensor, pair.contact(side).T_world_sensor, atol=TOL["float"])
         assert np.allclose(read.p_mesh_true[side], pair.p_mesh_true[side])
     assert np.allclose(read.T_world_mesh_true, pair.T_world_mesh_true, atol=TOL["float"])

@@ -50,7 +50,7 @@ def test_canonical_form_is_invariant_to_the_patch_frame_up_to_in_plane_rotation(
     for rotation in random_rotations(rng, 10):
         T = make_transform(rotation, rng.normal(size=3))
         moved = canonicalize_patch(transform_points(T, points), rotate_vectors(T, normals))
-        assert _in_plane_aligned(reference.points, moved.points) < 1e-9
+        assert _in_plane_aligned(reference.points, moved.points) < TOL["float"]
 
 
 def test_flat_patch_takes_its_sign_from_the_normals(rng):
@@ -124,7 +124,7 @@ def test_generator_labels_and_determinism(builtin_models, tmp_path):
     for i in range(0, len(dataset), 17):
         points, normals = dataset.patch(i)
         members = dataset.indices[dataset.offsets[i] : dataset.offsets[i + 1]]
-        assert np.allclose(points.mean(axis=0), 0.0, atol=1e-6)
+        assert np.allclose(points.mean(axis=0), 0.0, atol=TOL["float32_unit"])
         radial = np.linalg.norm(points[:, :2], axis=1)
         assert points[radial < 0.3 * radial.max(), 2].mean() < points[radial > 0.7 * radial.max(), 2].mean()
         # Labels: p is the patch point nearest the centroid, in the unrotated object frame.
@@ -182,7 +182,7 @@ def test_a_simulated_gelsight_contact_and_a_virtual_patch_of_the_same_region_agr
             continue
         prepared, prepared_normals = prepare_tactile_cloud(contact.points_sensor, model.point_spacing_m)
         real = canonicalize_patch(prepared, prepared_normals)
-        assert np.allclose(real.points.mean(axis=0), 0.0, atol=1e-9)
+        assert np.allclose(real.points.mean(axis=0), 0.0, atol=TOL["float"])
         assert real.concave_direction_source[2] > 0.9  # into the object: along the sensor's +z
 
         # The same surface region on the parent cloud: the parent points under the contact's footprint.
@@ -219,7 +219,7 @@ def test_closed_form_smallest_eigenvectors_match_eigh(rng):
     values, vectors = np.linalg.eigh(covariances)
     reference = vectors[:, :, 0]
     well_separated = (values[:, 1] - values[:, 0]) > 1e-3 * values[:, 2]
-    assert np.allclose(np.abs(np.einsum("ni,ni->n", fast, reference))[well_separated], 1.0, atol=1e-9)
+    assert np.allclose(np.abs(np.einsum("ni,ni->n", fast, reference))[well_separated], 1.0, atol=TOL["float"])
     assert np.allclose(np.linalg.norm(fast, axis=1), 1.0)
     # Where eigenvalues nearly tie, any vector of the smallest eigenspace will do: check the Rayleigh quotient.
     rayleigh = np.einsum("ni,nij,nj->n", fast, covariances, fast)

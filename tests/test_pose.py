@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import TOL
 
 from yoto.cli import main
 from yoto.contacts import ContactEstimate, ContactPair, TactileContact, read_contact_pair, write_contact_pair
@@ -84,7 +85,7 @@ def test_oracle_recovers_poses_from_foreign_pair_files(builtin_models, tmp_path,
         assert errors["translation_mm"] < 1.5 and errors["rotation_deg"] < 3.0
         assert result["error"]["translation_mm"] == pytest.approx(errors["translation_mm"])
         # Result contact locations are in the mesh frame: the oracle returns the truth.
-        assert np.allclose(result["left"]["p_object"], pair.p_mesh_true["left"], atol=1e-6)
+        assert np.allclose(result["left"]["p_object"], pair.p_mesh_true["left"], atol=TOL["float32_unit"])
         errors_deg.append(errors["rotation_deg"])
         assert set(result) >= {"T_world_object", "left", "right", "confidence", "conditioning", "latency_ms"}
         assert 0.0 <= result["confidence"] <= 1.0
