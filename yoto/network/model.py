@@ -18,7 +18,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from yoto.network.encoder import PointEncoder
+from yoto.network.encoder import PointEncoder, scale_gradient
 from yoto.network.presets import NetworkConfig
 
 
@@ -166,14 +166,6 @@ class ContactLocalizationNet(nn.Module):
             "best": best,
             "p_object": positions[torch.arange(len(best)), best],
         }
-
-
-def scale_gradient(tensor: torch.Tensor, scale: float) -> torch.Tensor:
-    """The tensor unchanged in the forward pass, its gradient multiplied by `scale` in the backward pass."""
-    if scale == 1.0:
-        return tensor
-    detached = tensor.detach()
-    return detached if scale == 0.0 else detached + scale * (tensor - detached)
 
 
 def count_parameters(module: nn.Module) -> int:
