@@ -170,10 +170,3 @@ class ContactLocalizationNet(nn.Module):
 
 def count_parameters(module: nn.Module) -> int:
     return sum(p.numel() for p in module.parameters())
-
-
-def block_neighbours(block_centres: torch.Tensor, count: int) -> torch.Tensor:
-    """(NB, min(count, NB)) indices of each block's nearest block centres, itself first (ties by index)."""
-    distances = torch.cdist(block_centres.double(), block_centres.double())
-    distances = distances + torch.eye(len(block_centres), dtype=distances.dtype) * -1.0  # itself strictly first
-    return distances.topk(min(count, len(block_centres)), dim=1, largest=False, sorted=True).indices
