@@ -14,11 +14,11 @@ torch = pytest.importorskip("torch")
 from yoto.contacts import ContactPair, TactileContact, write_contact_pair  # noqa: E402
 from yoto.errors import InputError  # noqa: E402
 from yoto.geometry import invert_transform, make_transform, random_rotations, transform_points  # noqa: E402
+from yoto.network.checkpoint import LocalizerCheckpoint, TrainedObject, load_torch  # noqa: E402
 from yoto.network.presets import NetworkConfig  # noqa: E402
 from yoto.patches.generate import generate_patches  # noqa: E402
 from yoto.patches.virtual import VirtualPatchConfig  # noqa: E402
 from yoto.training.augment import AugmentConfig  # noqa: E402
-from yoto.training.checkpoint import load_localizer_checkpoint, load_torch  # noqa: E402
 from yoto.training.train import StageConfig, TrainConfig, epoch_batch_count, train  # noqa: E402
 from yoto.workspace import object_model_path  # noqa: E402
 
@@ -155,21 +155,19 @@ def _assert_same_weights(a: dict, b: dict) -> None:
 
 def test_tiny_run_learns_and_writes_a_complete_checkpoint(builtin_models, tmp_path_factory):
     path = tiny_run(builtin_models, tmp_path_factory)
-    checkpoint = load_localizer_checkpoint(path)
+    checkpoint = LocalizerCheckpoint.load(path)
     model = builtin_models["fruit"]
-    assert checkpoint["objects"] == [
-        {"name": "fruit", "fingerprint": model.fingerprint, "num_blocks": model.num_blocks}
-    ]
-    assert NetworkConfig.from_dict(checkpoint["network_config"]) == TINY_NETWORK
-    assert TrainConfig.from_dict(checkpoint["train_config"]) == TINY_TRAINING
-    assert checkpoint["seed"] == 0 and {"torch", "numpy", "yoto", "python"} <= set(checkpoint["versions"])
-    assert checkpoint["calibration"]["temperature"] > 0
+    assert checkpoint.objects == [TrainedObject("fruit", model.fingerprint, model.num_blocks)]
+    assert checkpoint.network_config == TINY_NETWORK
+    assert TrainConfig.from_dict(checkpoint.train_config) == TINY_TRAINING
+    assert checkpoint.seed == 0 and {"torch", "numpy", "yoto", "python"} <= set(checkpoint.versions)
+    assert checkpoint.calibration.temperature > 0
     history = [json.loads(line) for line in (path.parent / "log.jsonl").read_text().splitlines()]
     assert [h["epoch"] for h in history] == [1, 2, 3]
     # On a fixed batch of training patches the trained network retrieves blocks better than the initial one:
     # lower block cross-entropy, higher top-K recall. (The total loss is not comparable across the two: the
     # top-K margin applies only to samples already within the top K, so it grows as recall does.)
-    initial, trained = _fixed_batch_losses(builtin_models, tmp_path_factory, checkpoint["state_dict"])
+    initial, trained = _fixed_batch_losses(builtin_models, tmp_path_factory, checkpoint.state_dict)
     assert trained["cls"] < initial["cls"] - 0.1
     assert trained["topk_recall"] > initial["topk_recall"] + 0.1
     assert history[-1]["val_virtual_topk"] >= TINY_NETWORK.candidates / model.num_blocks
@@ -238,8 +236,8 @@ def test_stage_two_fine_tunes_on_contact_pairs(builtin_models, tmp_path_factory,
         patch_config=TINY_PATCHES,
         progress=False,
     )
-    checkpoint = load_localizer_checkpoint(path)
-    assert checkpoint["real_pairs"]["count"] == 8
+    checkpoint = LocalizerCheckpoint.load(path)
+    assert checkpoint.real_pairs is not None and checkpoint.real_pairs.count == 8
     history = [json.loads(line) for line in (path.parent / "log.jsonl").read_text().splitlines()]
     assert [h["stage"] for h in history] == ["stage1", "stage2"]
     assert history[-1]["val_real_count"] == 4

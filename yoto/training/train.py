@@ -35,6 +35,14 @@ from yoto.errors import InputError, require_torch
 from yoto.io import read_json, write_bytes_atomic, write_json_atomic, write_text_atomic
 from yoto.metrics import summarize
 from yoto.network.candidates import candidates_of, fit_temperature, rank_hypotheses, rotated_copies
+from yoto.network.checkpoint import (
+    Calibration,
+    LocalizerCheckpoint,
+    RealPairs,
+    TrainedObject,
+    load_torch,
+    save_torch_atomic,
+)
 from yoto.network.inputs import inference_points, make_block_set
 from yoto.network.presets import PRESETS as NETWORK_PRESETS
 from yoto.network.presets import NetworkConfig
@@ -42,15 +50,8 @@ from yoto.objects.build import load_object_model
 from yoto.objects.model import ObjectModel
 from yoto.patches.generate import generate_patches
 from yoto.patches.virtual import VirtualPatchConfig, VirtualPatchDataset
+from yoto.provenance import versions
 from yoto.training.augment import AugmentConfig
-from yoto.training.checkpoint import (
-    FORMAT_NAME,
-    FORMAT_VERSION,
-    STATE_FORMAT_NAME,
-    load_torch,
-    save_torch_atomic,
-    versions,
-)
 from yoto.training.data import ContactSample, ObjectData, Patch, draw_patch, load_contact_samples, pair_files_digest
 from yoto.training.losses import LossConfig, localization_loss
 from yoto.training.press import PressPatchConfig, press_patches
@@ -59,6 +60,7 @@ from yoto.workspace import runs_dir
 log = logging.getLogger("yoto")
 
 DEFAULT_RUN = "default"
+STATE_FORMAT_NAME = "yoto-training-state"
 CALIBRATION_TOLERANCE_M = 0.010  # a candidate counts as right within this distance (temperature fit)
 
 
@@ -699,21 +701,22 @@ def train(
         resume_state = None
         if stage_name == "stage1" and len(stages) > 1 and not (run_dir / "model_stage1.pt").exists():
             # The virtual-only network, for comparisons with the fine-tuned one (the paper's "virtual only").
-            snapshot = _localizer_payload(net, data, block_tensors, eval_sets, config, history, None)
-            save_torch_atomic(run_dir / "model_stage1.pt", snapshot)
+            _localizer_checkpoint(net, data, block_tensors, eval_sets, config, history, None).save(
+                run_dir / "model_stage1.pt"
+            )
 
     if stopped_early:
         log.info("stopped after %d steps (max_steps); no model written", steps_done)
         return state_path
-    payload = _localizer_payload(net, data, block_tensors, eval_sets, config, history, real_digest)
-    save_torch_atomic(final_path, payload)
+    checkpoint = _localizer_checkpoint(net, data, block_tensors, eval_sets, config, history, real_digest)
+    checkpoint.save(final_path)
     _write_logs(run_dir, history)
     plot_curves(run_dir, history)
-    log.info("%s: written (score temperature %.2f)", final_path, payload["calibration"]["temperature"])
+    log.info("%s: written (score temperature %.2f)", final_path, checkpoint.calibration.temperature)
     return final_path
 
 
-def _localizer_payload(
+def _localizer_checkpoint(
     net: Any,
     data: list[ObjectData],
     block_tensors: list[dict],
@@ -721,29 +724,20 @@ def _localizer_payload(
     config: TrainConfig,
     history: list[dict[str, Any]],
     real_digest: str | None,
-) -> dict[str, Any]:
-    """A localizer checkpoint (yoto.training.checkpoint) of the network as it is now, beliefs calibrated."""
+) -> LocalizerCheckpoint:
+    """The localizer checkpoint of the network as it is now, beliefs calibrated."""
     temperature = _calibrate(net, data, block_tensors, eval_sets, config)
-    return {
-        "format": FORMAT_NAME,
-        "format_version": FORMAT_VERSION,
-        "network_config": config.network.to_dict(),
-        "state_dict": {k: v.detach().float().cpu() for k, v in net.state_dict().items()},
-        "objects": [
-            {"name": o.name, "fingerprint": o.model.fingerprint, "num_blocks": o.model.num_blocks} for o in data
-        ],
-        "train_config": config.to_dict(),
-        "seed": config.seed,
-        "versions": versions(),
-        "real_pairs": {"digest": real_digest, "count": sum(len(o.real_train) for o in data)} if real_digest else None,
-        "metrics": dict(history[-1]) if history else {},
-        "calibration": {
-            "temperature": temperature,
-            "merge_radius_m": config.merge_radius_m,
-            "hypotheses": config.hypotheses,
-            "test_rotations": config.test_rotations,
-        },
-    }
+    return LocalizerCheckpoint(
+        network_config=config.network,
+        state_dict={k: v.detach().float().cpu() for k, v in net.state_dict().items()},
+        objects=[TrainedObject(o.name, o.model.fingerprint, o.model.num_blocks) for o in data],
+        train_config=config.to_dict(),
+        seed=config.seed,
+        versions=versions(),
+        real_pairs=RealPairs(real_digest, sum(len(o.real_train) for o in data)) if real_digest else None,
+        metrics=dict(history[-1]) if history else {},
+        calibration=Calibration(temperature, config.merge_radius_m, config.hypotheses, config.test_rotations),
+    )
 
 
 def _progress(total: int, description: str, enabled: bool) -> Any:
@@ -821,27 +815,20 @@ def export_weights(run_dir: str | Path, destination: str | Path, command: str = 
     """Copy a finished run's model.pt to `destination` (e.g. yoto/weights/default.pt) and write a JSON card
     next to it: how the weights were trained (command, config, objects, contacts, versions) and their
     validation metrics. Returns the two paths."""
-    from yoto.training.checkpoint import load_localizer_checkpoint
-
     source = Path(run_dir) / "model.pt"
     if not source.exists():
         raise InputError("no finished model in this run folder", run_dir)
-    checkpoint = load_localizer_checkpoint(source)
+    checkpoint = LocalizerCheckpoint.load(source).to_payload()
     destination = Path(destination)
     destination.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(source, destination)
-    metrics = checkpoint.get("metrics", {})
+    metrics = checkpoint["metrics"]
     card = {
         "weights": destination.name,
         "size_bytes": destination.stat().st_size,
         "command": command,
-        "objects": checkpoint["objects"],
-        "real_pairs": checkpoint.get("real_pairs"),
-        "seed": checkpoint["seed"],
-        "versions": checkpoint["versions"],
-        "network_config": checkpoint["network_config"],
-        "train_config": checkpoint["train_config"],
-        "calibration": checkpoint["calibration"],
+        **{key: checkpoint[key] for key in ("objects", "real_pairs", "seed", "versions", "network_config")},
+        **{key: checkpoint[key] for key in ("train_config", "calibration")},
         "validation": {k: v for k, v in metrics.items() if k.startswith("val_")},
         "final_epoch": {k: v for k, v in metrics.items() if not k.startswith("val_")},
     }
