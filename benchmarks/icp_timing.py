@@ -23,7 +23,6 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import sys
 import time
 from dataclasses import asdict, replace
@@ -37,6 +36,7 @@ from yoto.localize.icp import IcpConfig, IcpLocalizer
 from yoto.metrics import summarize
 from yoto.objects.builtin import builtin_mesh
 from yoto.objects.model import ObjectModel, ObjectModelConfig, build_object_model
+from yoto.provenance import git_commit
 from yoto.sensor.spec import GELSIGHT_MINI
 
 SAMPLING_M = 1e-4  # dense surface sampling of a pressed patch (a GelSight pixel is 0.063 mm)
@@ -89,13 +89,6 @@ def load_or_build(name: str, points: int | None, cache: Path) -> ObjectModel:
     return model
 
 
-def git_commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
 def run(args: argparse.Namespace) -> dict:
     import open3d
 
@@ -142,7 +135,7 @@ def run(args: argparse.Namespace) -> dict:
         print(f"{name}: done", file=sys.stderr, flush=True)
     return {
         "benchmark": "icp localization on pressed patches",
-        "commit": git_commit(),
+        "commit": git_commit(short=False),
         "versions": {"python": platform.python_version(), "numpy": np.__version__, "open3d": open3d.__version__},
         "device": {
             "cpu": platform.processor() or platform.machine(),

@@ -40,6 +40,7 @@ def main() -> None:
     from yoto.metrics import pose_errors, summarize
     from yoto.objects.build import load_object_model
     from yoto.pose.pipeline import estimate_pose
+    from yoto.provenance import run_info
     from yoto.training.data import dominant_block, find_pair_files_recursive
 
     torch.set_num_threads(args.threads)
@@ -87,6 +88,7 @@ def main() -> None:
             row["pose_contact_error_mm"] += [1000 * np.linalg.norm(c - t) for c, t in zip(chosen, truths, strict=True)]
 
     results = {
+        **run_info(),
         "checkpoint": str(localizer.source),
         "options": {k: v for k, v in options.items() if v is not None},
         "load_average": os.getloadavg(),

@@ -35,6 +35,7 @@ def main() -> None:
     from yoto.localize.network import NetworkLocalizer, measure_latency
     from yoto.network.candidates import rank_hypotheses
     from yoto.objects.build import load_object_model
+    from yoto.provenance import run_info
     from yoto.training.data import find_pair_files_recursive
 
     torch.set_num_threads(args.threads)
@@ -43,7 +44,7 @@ def main() -> None:
     for path in find_pair_files_recursive(args.pairs):
         pair = read_contact_pair(path)
         clouds[pair.object_name] += [pair.contact(side).points_sensor for side in SIDES]
-    results = {"threads": args.threads, "load_average": os.getloadavg(), "objects": {}}
+    results = {**run_info(), "threads": args.threads, "load_average": os.getloadavg(), "objects": {}}
     for name, object_clouds in clouds.items():
         model = load_object_model(name, args.workspace)
         tick = time.perf_counter()

@@ -31,8 +31,8 @@ def main() -> None:
 
     import torch
 
+    from yoto.training.config import preset
     from yoto.training.speed import measure_training_speed
-    from yoto.training.train import preset
 
     torch.set_num_threads(args.threads)
     config = preset(args.preset)

@@ -13,8 +13,14 @@ from test_training import cut_contact, tiny_run, write_cut_pairs  # noqa: E402
 
 from yoto.errors import InputError  # noqa: E402
 from yoto.localize import make_localizer  # noqa: E402
-from yoto.localize.network import NetworkLocalizer, UnknownObjectWarning, measure_latency  # noqa: E402
+from yoto.localize.network import (  # noqa: E402
+    NetworkLocalizer,
+    UnknownObjectWarning,
+    default_checkpoint_path,
+    measure_latency,
+)
 from yoto.network.candidates import Candidate, candidates_of, fit_temperature, softmax  # noqa: E402
+from yoto.network.checkpoint import LocalizerCheckpoint, load_torch, save_torch_atomic  # noqa: E402
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -85,6 +91,39 @@ def test_missing_checkpoints_give_clear_errors(tmp_path, monkeypatch):
     monkeypatch.setattr("yoto.localize.network.default_checkpoint_path", lambda: tmp_path / "default.pt")
     with pytest.raises(InputError, match="yoto train"):
         NetworkLocalizer.from_checkpoint(None)
+
+
+def test_foreign_old_and_damaged_checkpoints_are_refused_by_name(localizer, tmp_path):
+    payload = load_torch(localizer.source, "localizer checkpoint")
+    cases = {
+        "foreign.pt": ({**payload, "format": "someone-else"}, "not a YOTO localizer checkpoint"),
+        "old.pt": ({**payload, "format_version": 0}, "format version 0 is not supported"),
+        "damaged.pt": ({k: v for k, v in payload.items() if k != "state_dict"}, "incomplete or damaged"),
+        "list.pt": ([1, 2], "not a YOTO localizer checkpoint"),
+    }
+    for name, (content, message) in cases.items():
+        save_torch_atomic(tmp_path / name, content)
+        with pytest.raises(InputError, match=message) as error:
+            NetworkLocalizer.from_checkpoint(tmp_path / name)
+        assert error.value.path == tmp_path / name
+
+
+def test_the_shipped_weights_read_unchanged():
+    path = default_checkpoint_path()
+    if not path.is_file():
+        pytest.skip("this copy of YOTO has no shipped weights")
+    on_disk = load_torch(path, "localizer checkpoint")
+    checkpoint = LocalizerCheckpoint.load(path)
+    assert checkpoint.to_payload().keys() == on_disk.keys()
+    for key, value in checkpoint.to_payload().items():
+        if key == "state_dict":
+            assert value.keys() == on_disk[key].keys()
+            assert all(torch.equal(value[name], on_disk[key][name]) for name in value)
+        else:
+            assert value == on_disk[key], key
+    localizer = NetworkLocalizer.from_checkpoint(None)
+    assert sorted(localizer.trained_objects.values()) == sorted(o.name for o in checkpoint.objects)
+    assert localizer.temperature == checkpoint.calibration.temperature
 
 
 def test_candidates_merge_close_hypotheses_and_sum_beliefs():

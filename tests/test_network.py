@@ -19,7 +19,8 @@ from yoto.network.encoder import (  # noqa: E402
     neighbour_max,
     reference_edge_features,
 )
-from yoto.network.model import ContactLocalizationNet, block_neighbours  # noqa: E402
+from yoto.network.inputs import block_neighbours  # noqa: E402
+from yoto.network.model import ContactLocalizationNet  # noqa: E402
 from yoto.network.presets import PRESETS, NetworkConfig  # noqa: E402
 
 TINY = NetworkConfig(
@@ -164,7 +165,7 @@ def _forward_inputs(rng, batch=4, blocks=7):
         "block_normals": block_normals,
         "block_centres": centres,
         "block_rotations": rotations,
-        "block_neighbours": block_neighbours(centres, TINY.candidates),
+        "block_neighbours": torch.from_numpy(block_neighbours(centres.numpy(), TINY.candidates)),
     }
 
 
@@ -204,7 +205,7 @@ def test_forced_block_joins_the_pool_and_cached_block_features_match(rng):
 
 
 def test_block_neighbours_put_each_block_first():
-    centres = torch.tensor([[0.0, 0, 0], [1.0, 0, 0], [3.0, 0, 0], [0.0, 0, 0.5]])
+    centres = np.array([[0.0, 0, 0], [1.0, 0, 0], [3.0, 0, 0], [0.0, 0, 0.5]])
     neighbours = block_neighbours(centres, 3)
     assert neighbours.tolist() == [[0, 3, 1], [1, 0, 3], [2, 1, 0], [3, 0, 1]]
 

@@ -14,12 +14,16 @@ torch = pytest.importorskip("torch")
 from yoto.contacts import ContactPair, TactileContact, write_contact_pair  # noqa: E402
 from yoto.errors import InputError  # noqa: E402
 from yoto.geometry import invert_transform, make_transform, random_rotations, transform_points  # noqa: E402
+from yoto.network.checkpoint import LocalizerCheckpoint, TrainedObject  # noqa: E402
 from yoto.network.presets import NetworkConfig  # noqa: E402
 from yoto.patches.generate import generate_patches  # noqa: E402
 from yoto.patches.virtual import VirtualPatchConfig  # noqa: E402
 from yoto.training.augment import AugmentConfig  # noqa: E402
-from yoto.training.checkpoint import load_localizer_checkpoint, load_torch  # noqa: E402
-from yoto.training.train import StageConfig, TrainConfig, epoch_batch_count, train  # noqa: E402
+from yoto.training.batches import collate, epoch_batch_count  # noqa: E402
+from yoto.training.config import StageConfig, TrainConfig  # noqa: E402
+from yoto.training.data import load_objects  # noqa: E402
+from yoto.training.state import TrainingState  # noqa: E402
+from yoto.training.train import train  # noqa: E402
 from yoto.workspace import object_model_path  # noqa: E402
 
 TINY_NETWORK = NetworkConfig(
@@ -120,10 +124,9 @@ def _fixed_batch_losses(builtin_models, tmp_path_factory, state_dict) -> tuple[d
     from yoto.network.model import ContactLocalizationNet
     from yoto.training.data import draw_patch
     from yoto.training.losses import localization_loss
-    from yoto.training.train import _load_objects, collate
 
     workspace = tiny_workspace(builtin_models, tmp_path_factory)
-    (data,) = _load_objects(["fruit"], [builtin_models["fruit"]], workspace, TINY_TRAINING, TINY_PATCHES, False)
+    (data,) = load_objects(["fruit"], [builtin_models["fruit"]], workspace, TINY_TRAINING, TINY_PATCHES, False)
     rng = np.random.default_rng(1)
     batch = collate([draw_patch(data, "virtual", int(i), 48, rng, None) for i in data.virtual_train[:48]], 1.0)
     blocks = data.blocks.tensors()
@@ -143,10 +146,6 @@ def _fixed_batch_losses(builtin_models, tmp_path_factory, state_dict) -> tuple[d
     return losses[0], losses[1]
 
 
-def _state(path: Path) -> dict:
-    return load_torch(path, "checkpoint")
-
-
 def _assert_same_weights(a: dict, b: dict) -> None:
     assert a.keys() == b.keys()
     for key in a:
@@ -155,21 +154,19 @@ def _assert_same_weights(a: dict, b: dict) -> None:
 
 def test_tiny_run_learns_and_writes_a_complete_checkpoint(builtin_models, tmp_path_factory):
     path = tiny_run(builtin_models, tmp_path_factory)
-    checkpoint = load_localizer_checkpoint(path)
+    checkpoint = LocalizerCheckpoint.load(path)
     model = builtin_models["fruit"]
-    assert checkpoint["objects"] == [
-        {"name": "fruit", "fingerprint": model.fingerprint, "num_blocks": model.num_blocks}
-    ]
-    assert NetworkConfig.from_dict(checkpoint["network_config"]) == TINY_NETWORK
-    assert TrainConfig.from_dict(checkpoint["train_config"]) == TINY_TRAINING
-    assert checkpoint["seed"] == 0 and {"torch", "numpy", "yoto", "python"} <= set(checkpoint["versions"])
-    assert checkpoint["calibration"]["temperature"] > 0
+    assert checkpoint.objects == [TrainedObject("fruit", model.fingerprint, model.num_blocks)]
+    assert checkpoint.network_config == TINY_NETWORK
+    assert TrainConfig.from_dict(checkpoint.train_config) == TINY_TRAINING
+    assert checkpoint.seed == 0 and {"torch", "numpy", "yoto", "python"} <= set(checkpoint.versions)
+    assert checkpoint.calibration.temperature > 0
     history = [json.loads(line) for line in (path.parent / "log.jsonl").read_text().splitlines()]
     assert [h["epoch"] for h in history] == [1, 2, 3]
     # On a fixed batch of training patches the trained network retrieves blocks better than the initial one:
     # lower block cross-entropy, higher top-K recall. (The total loss is not comparable across the two: the
     # top-K margin applies only to samples already within the top K, so it grows as recall does.)
-    initial, trained = _fixed_batch_losses(builtin_models, tmp_path_factory, checkpoint["state_dict"])
+    initial, trained = _fixed_batch_losses(builtin_models, tmp_path_factory, checkpoint.state_dict)
     assert trained["cls"] < initial["cls"] - 0.1
     assert trained["topk_recall"] > initial["topk_recall"] + 0.1
     assert history[-1]["val_virtual_topk"] >= TINY_NETWORK.candidates / model.num_blocks
@@ -180,7 +177,7 @@ def test_tiny_run_learns_and_writes_a_complete_checkpoint(builtin_models, tmp_pa
 def test_training_is_bitwise_deterministic_and_idempotent(builtin_models, tmp_path_factory):
     first = tiny_run(builtin_models, tmp_path_factory)
     second = tiny_run(builtin_models, tmp_path_factory, run="run_repeat")
-    _assert_same_weights(_state(first)["state_dict"], _state(second)["state_dict"])
+    _assert_same_weights(LocalizerCheckpoint.load(first).state_dict, LocalizerCheckpoint.load(second).state_dict)
     # An up-to-date finished run is kept as it is.
     stamp = first.stat().st_mtime_ns
     workspace = tiny_workspace(builtin_models, tmp_path_factory)
@@ -195,11 +192,8 @@ def test_interrupted_training_resumes_to_the_same_weights(builtin_models, tmp_pa
     reference = tiny_run(builtin_models, tmp_path_factory)
     workspace = tiny_workspace(builtin_models, tmp_path_factory)
     run_dir = workspace / "runs" / "interrupted"
-    data_steps = None
     # Stop one step into epoch 2: state.pt holds epoch 1, model.pt does not exist yet.
-    from yoto.training.train import _load_objects
-
-    objects = _load_objects(["fruit"], [builtin_models["fruit"]], workspace, TINY_TRAINING, TINY_PATCHES, False)
+    objects = load_objects(["fruit"], [builtin_models["fruit"]], workspace, TINY_TRAINING, TINY_PATCHES, False)
     data_steps = epoch_batch_count(objects, TINY_TRAINING.stage1, TINY_TRAINING.batch_size, False)
     stopped = train(
         TINY_TRAINING,
@@ -211,10 +205,10 @@ def test_interrupted_training_resumes_to_the_same_weights(builtin_models, tmp_pa
         max_steps=data_steps + 1,
     )
     assert stopped.name == "state.pt" and not (run_dir / "model.pt").exists()
-    state = _state(stopped)
-    assert (state["stage_index"], state["epoch"], len(state["history"])) == (0, 1, 1)
+    state = TrainingState.load(stopped)
+    assert state is not None and (state.stage_index, state.epoch, len(state.history)) == (0, 1, 1)
     resumed = train(TINY_TRAINING, ["fruit"], workspace, run_dir, patch_config=TINY_PATCHES, progress=False)
-    _assert_same_weights(_state(reference)["state_dict"], _state(resumed)["state_dict"])
+    _assert_same_weights(LocalizerCheckpoint.load(reference).state_dict, LocalizerCheckpoint.load(resumed).state_dict)
     history = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines()]
     assert [h["epoch"] for h in history] == [1, 2, 3]
 
@@ -238,8 +232,8 @@ def test_stage_two_fine_tunes_on_contact_pairs(builtin_models, tmp_path_factory,
         patch_config=TINY_PATCHES,
         progress=False,
     )
-    checkpoint = load_localizer_checkpoint(path)
-    assert checkpoint["real_pairs"]["count"] == 8
+    checkpoint = LocalizerCheckpoint.load(path)
+    assert checkpoint.real_pairs is not None and checkpoint.real_pairs.count == 8
     history = [json.loads(line) for line in (path.parent / "log.jsonl").read_text().splitlines()]
     assert [h["stage"] for h in history] == ["stage1", "stage2"]
     assert history[-1]["val_real_count"] == 4

@@ -17,11 +17,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from yoto.contacts import ContactEstimate
-from yoto.errors import InputError, require_torch
+from yoto.errors import InputError
 from yoto.network.candidates import candidates_of, rank_hypotheses, rotated_copies
+from yoto.network.checkpoint import Calibration, LocalizerCheckpoint
 from yoto.network.inputs import BlockSet, inference_points, make_block_set
+from yoto.network.model import ContactLocalizationNet
 from yoto.network.presets import NetworkConfig
 from yoto.objects.model import ObjectModel
 from yoto.patches.canonical import canonicalize_patch, prepare_tactile_cloud
@@ -44,8 +47,8 @@ class UnknownObjectWarning(UserWarning):
 @dataclass
 class _ObjectCache:
     blocks: BlockSet
-    tensors: dict[str, Any]
-    features: Any  # (NB, D) torch tensor
+    tensors: dict[str, torch.Tensor]  # the blocks' entries of the network's input
+    features: torch.Tensor  # (NB, D)
     trained: bool
 
 
@@ -57,35 +60,29 @@ class NetworkLocalizer:
 
     def __init__(
         self,
-        net: Any,
-        checkpoint: dict[str, Any] | None = None,
+        net: ContactLocalizationNet,
+        checkpoint: LocalizerCheckpoint | None = None,
         hypotheses: int | None = None,
         rotations: int | None = None,
         temperature: float | None = None,
         merge_radius_m: float | None = None,
         source: str | Path | None = None,
     ):
-        torch = require_torch("the YOTO localizer")
         self.net = net.eval()
         self.config: NetworkConfig = net.config
-        self.checkpoint_meta = {k: v for k, v in (checkpoint or {}).items() if k != "state_dict"}
-        calibration = self.checkpoint_meta.get("calibration") or {}
-        self.hypotheses = int(hypotheses or calibration.get("hypotheses", 4))
-        self.rotations = max(1, int(rotations or calibration.get("test_rotations", 1)))
-        self.temperature = float(temperature or calibration.get("temperature", 1.0))
-        self.merge_radius_m = float(merge_radius_m or calibration.get("merge_radius_m", 0.005))
-        self.trained_objects = {o["fingerprint"]: o["name"] for o in self.checkpoint_meta.get("objects", [])}
+        calibration = checkpoint.calibration if checkpoint is not None else Calibration()
+        self.hypotheses = int(hypotheses or calibration.hypotheses)
+        self.rotations = max(1, int(rotations or calibration.test_rotations))
+        self.temperature = float(temperature or calibration.temperature)
+        self.merge_radius_m = float(merge_radius_m or calibration.merge_radius_m)
+        self.trained_objects = {o.fingerprint: o.name for o in checkpoint.objects} if checkpoint is not None else {}
         self.source = source
         self._cache: dict[str, _ObjectCache] = {}
-        self._torch = torch
 
     # ------------------------------------------------------------------------------------------ loading
     @classmethod
     def from_checkpoint(cls, path: str | Path | None = None, **kwargs: Any) -> NetworkLocalizer:
         """Load a checkpoint written by `yoto train`; None loads the weights shipped with YOTO."""
-        from yoto.network.model import ContactLocalizationNet
-        from yoto.training.checkpoint import load_localizer_checkpoint
-
         if path is None:
             path = default_checkpoint_path()
             if not path.is_file():
@@ -94,13 +91,13 @@ class NetworkLocalizer:
                     f"`{TRAIN_COMMAND}` and pass the run's model.pt as --checkpoint (see docs/network.md)",
                     path,
                 )
-        payload = load_localizer_checkpoint(path)
-        net = ContactLocalizationNet(NetworkConfig.from_dict(payload["network_config"]))
+        checkpoint = LocalizerCheckpoint.load(path)
+        net = ContactLocalizationNet(checkpoint.network_config)
         try:
-            net.load_state_dict(payload["state_dict"])
+            net.load_state_dict(checkpoint.state_dict)
         except RuntimeError as exc:
             raise InputError(f"checkpoint weights do not fit its network config ({exc})", path) from exc
-        return cls(net, payload, source=path, **kwargs)
+        return cls(net, checkpoint, source=path, **kwargs)
 
     # ------------------------------------------------------------------------------------------- blocks
     def prepare_object(self, model: ObjectModel) -> _ObjectCache:
@@ -121,7 +118,6 @@ class NetworkLocalizer:
                 UnknownObjectWarning,
                 stacklevel=3,
             )
-        torch = self._torch
         blocks = make_block_set(model, self.config)
         tensors = blocks.tensors()
         with torch.inference_mode():
@@ -149,7 +145,6 @@ class NetworkLocalizer:
 
     def localize_many(self, clouds: list[np.ndarray], model: ObjectModel) -> list[list[ContactEstimate]]:
         """`localize` for several tactile clouds of one object, in one network pass."""
-        torch = self._torch
         cache = self.prepare_object(model)
         patches = [self.canonical_patch(cloud, model) for cloud in clouds]
         inputs = [

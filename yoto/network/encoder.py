@@ -80,6 +80,14 @@ def cylindrical_inputs(coords: torch.Tensor, normals: torch.Tensor) -> torch.Ten
     return torch.cat([radius, coords[..., 2:3], normal_radial, normal_tangential, normals[..., 2:3]], dim=-1)
 
 
+def scale_gradient(tensor: torch.Tensor, scale: float) -> torch.Tensor:
+    """The tensor unchanged in the forward pass, its gradient multiplied by `scale` in the backward pass."""
+    if scale == 1.0:
+        return tensor
+    detached = tensor.detach()
+    return detached if scale == 0.0 else detached + scale * (tensor - detached)
+
+
 def neighbour_max(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """values (B, N, E), index (B, C, k) into N -> (B, C, E): each channel's max over each centre's neighbours."""
     return _NeighbourMax.apply(values, index)
@@ -205,8 +213,6 @@ class PointEncoder(nn.Module):
         fused = self.fusion(torch.cat([point_features[:, :centres], edge_features], dim=-1))
         pooled = torch.cat([fused.amax(dim=1), fused.mean(dim=1)], dim=-1)
         if self.config.fine_feature_dim > 0:
-            from yoto.network.model import scale_gradient
-
             fine = self.project_fine(scale_gradient(pooled, self.config.fine_encoder_gradient))
             return torch.cat([self.project(pooled), fine], dim=-1)
         return self.project(pooled)

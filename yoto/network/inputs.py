@@ -69,14 +69,18 @@ def make_block_set(model: ObjectModel, config: NetworkConfig) -> BlockSet:
         rotation = model.block_rotations[block]
         points.append((block_points[chosen] - model.block_centres_object[block]) @ rotation.T)
         normals.append(block_normals[chosen] @ rotation.T)
-    centres = model.block_centres_object
-    distances = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
-    np.fill_diagonal(distances, -1.0)  # itself first
-    neighbours = np.argsort(distances, axis=1, kind="stable")[:, : config.candidates]
     return BlockSet(
         points=np.asarray(points, dtype=np.float32),
         normals=np.asarray(normals, dtype=np.float32),
-        centres=centres.astype(np.float32),
+        centres=model.block_centres_object.astype(np.float32),
         rotations=model.block_rotations.astype(np.float32),
-        neighbours=neighbours.astype(np.int64),
+        neighbours=block_neighbours(model.block_centres_object, config.candidates),
     )
+
+
+def block_neighbours(centres: np.ndarray, count: int) -> np.ndarray:
+    """(NB, min(count, NB)) int64 indices of each block's nearest block centres (NB, 3), itself first, ties by
+    index: the candidate pools of the fine stage."""
+    distances = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
+    np.fill_diagonal(distances, -1.0)  # itself first
+    return np.argsort(distances, axis=1, kind="stable")[:, :count].astype(np.int64)

@@ -18,7 +18,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from yoto.network.encoder import PointEncoder
+from yoto.network.encoder import PointEncoder, scale_gradient
 from yoto.network.presets import NetworkConfig
 
 
@@ -168,20 +168,5 @@ class ContactLocalizationNet(nn.Module):
         }
 
 
-def scale_gradient(tensor: torch.Tensor, scale: float) -> torch.Tensor:
-    """The tensor unchanged in the forward pass, its gradient multiplied by `scale` in the backward pass."""
-    if scale == 1.0:
-        return tensor
-    detached = tensor.detach()
-    return detached if scale == 0.0 else detached + scale * (tensor - detached)
-
-
 def count_parameters(module: nn.Module) -> int:
     return sum(p.numel() for p in module.parameters())
-
-
-def block_neighbours(block_centres: torch.Tensor, count: int) -> torch.Tensor:
-    """(NB, min(count, NB)) indices of each block's nearest block centres, itself first (ties by index)."""
-    distances = torch.cdist(block_centres.double(), block_centres.double())
-    distances = distances + torch.eye(len(block_centres), dtype=distances.dtype) * -1.0  # itself strictly first
-    return distances.topk(min(count, len(block_centres)), dim=1, largest=False, sorted=True).indices

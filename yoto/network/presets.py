@@ -48,7 +48,8 @@ class NetworkConfig:
         if unknown:
             raise ValueError(f"unknown network config keys {unknown}")
         tuples = {"knn_scales", "fine_dims"}
-        return cls(**{k: tuple(v) if k in tuples else v for k, v in values.items()})
+        typed: dict[str, Any] = {k: tuple(v) if k in tuples else v for k, v in values.items()}
+        return cls(**typed)
 
 
 PRESETS: dict[str, NetworkConfig] = {

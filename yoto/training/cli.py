@@ -78,7 +78,8 @@ def run(args: argparse.Namespace) -> int:
     from yoto.errors import require_torch
 
     torch = require_torch("training the localization network")
-    from yoto.training.train import preset, train, with_overrides
+    from yoto.training.config import preset, with_overrides
+    from yoto.training.train import train
     from yoto.workspace import runs_dir
 
     if args.threads:
@@ -111,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
         import shlex
         import sys
 
-        from yoto.training.train import export_weights
+        from yoto.training.export import export_weights
 
         command = "yoto " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         weights, card = export_weights(path.parent, args.export, command)

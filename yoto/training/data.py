@@ -1,4 +1,4 @@
-"""Training data: surface blocks in network form, labelled tactile patches (virtual and "real"), batches.
+"""Training data: each object's blocks and patches, labelled tactile patches (virtual and "real"), draws.
 
 A training sample is a patch in canonical form (yoto.patches.canonical) with its object-frame contact
 location `p_object` and ground-truth block. Virtual samples come from the virtual patch dataset of each
@@ -19,10 +19,11 @@ from yoto.contacts import SIDES, find_pair_files, is_pair_file_name, read_contac
 from yoto.errors import DegenerateGeometryError, InputError
 from yoto.geometry import invert_transform, transform_points
 from yoto.io import read_json
-from yoto.network.inputs import BlockSet, subsample_indices
+from yoto.network.inputs import BlockSet, make_block_set, subsample_indices
 from yoto.objects.model import ObjectModel
 from yoto.patches.canonical import canonicalize_patch, prepare_tactile_cloud
-from yoto.patches.virtual import VirtualPatchDataset
+from yoto.patches.generate import generate_patches
+from yoto.patches.virtual import VirtualPatchConfig, VirtualPatchDataset
 from yoto.training.augment import (
     AugmentConfig,
     depth_crop_mask,
@@ -32,6 +33,8 @@ from yoto.training.augment import (
     random_in_plane_rotation,
     voxel_keep_first,
 )
+from yoto.training.config import TrainConfig
+from yoto.training.press import press_patches
 
 log = logging.getLogger("yoto")
 
@@ -193,13 +196,51 @@ class ObjectData:
 
 def split_virtual(
     count: int, val_fraction: float, val_max: int, limit: int | None, seed: int
-) -> tuple[np.ndarray, ...]:
-    """Shuffle the virtual patches once (by seed) and split off a validation set."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """Shuffle the virtual patches once (by seed), keep `limit` of them, and split off a validation set."""
     order = np.random.default_rng([seed, 7919]).permutation(count)
     if limit is not None:
         order = order[:limit]
     val_count = min(val_max, int(round(val_fraction * len(order))))
     return np.sort(order[val_count:]), np.sort(order[:val_count])
+
+
+def load_objects(
+    names: list[str],
+    models: list[ObjectModel],
+    workspace: str | Path | None,
+    config: TrainConfig,
+    patch_config: VirtualPatchConfig,
+    progress: bool,
+) -> list[ObjectData]:
+    """The training data of each object: its blocks, and its virtual patches (generated with `patch_config`
+    and the press-shaped ones with `config.press` where missing) split into training and validation."""
+    objects = []
+    for name, model in zip(names, models, strict=True):
+        dataset_path = generate_patches(name, patch_config, workspace, progress=progress)
+        dataset = VirtualPatchDataset.load(dataset_path, model)
+        train_idx, val_idx = split_virtual(
+            len(dataset), config.val_fraction, config.val_max_per_object, config.max_virtual_per_object, config.seed
+        )
+        if not config.ball_patches:
+            train_idx = train_idx[:0]
+        obj = ObjectData(
+            model=model,
+            blocks=make_block_set(model, config.network),
+            virtual=dataset,
+            virtual_train=train_idx,
+            virtual_val=val_idx,
+        )
+        if config.press.count > 0:
+            obj.press = press_patches(model, config.press, workspace)
+            obj.press_train, obj.press_val = split_virtual(
+                len(obj.press), config.val_fraction, config.val_max_per_object, None, config.seed
+            )
+        objects.append(obj)
+    seen = [o.name for o in objects]
+    if len(set(seen)) != len(seen):
+        raise InputError(f"an object is named twice among {seen}")
+    return objects
 
 
 # ------------------------------------------------------------------------------------------------ samples
@@ -260,7 +301,8 @@ def draw_patch(
     augment: AugmentConfig | None,
 ) -> Patch:
     """Sample `num_points` points of a patch (repeat-padded), augmented when `augment` is given."""
-    points = normals = None
+    points: np.ndarray | None = None
+    normals: np.ndarray | None = None
     if kind in ("virtual", "press"):
         dataset = data.dataset(kind)
         cropped = None if augment is None or kind == "press" else _cropped_virtual_patch(data, index, rng, augment)
@@ -282,7 +324,7 @@ def draw_patch(
     chosen = pool[subsample_indices(len(pool), num_points, rng)]
     if augment is not None:
         chosen = point_dropout(chosen, rng, augment.dropout_prob, augment.dropout_ratio)
-    if points is None:
+    if points is None or normals is None:  # both or neither
         points, normals = _virtual_points(dataset, index, chosen)
     else:
         points, normals = points[chosen], normals[chosen]

@@ -10,17 +10,22 @@ when the wall clock is inflated by other processes).
 from __future__ import annotations
 
 import os
-import platform
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
-from yoto.errors import require_torch
+from yoto.network.model import ContactLocalizationNet, count_parameters
 from yoto.objects.build import load_object_model
 from yoto.patches.virtual import VirtualPatchConfig
+from yoto.provenance import run_info
+from yoto.training.batches import plan_epoch
+from yoto.training.config import TrainConfig
+from yoto.training.data import load_objects
+from yoto.training.step import StepRunner, make_optimizer
 
 
 @dataclass
@@ -60,21 +65,17 @@ class SpeedResult:
 
 
 def measure_training_speed(
-    config: Any, objects: list[str], workspace: str | Path | None = None, steps: int = 30, warmup: int = 5
+    config: TrainConfig, objects: list[str], workspace: str | Path | None = None, steps: int = 30, warmup: int = 5
 ) -> SpeedResult:
     """Time `steps` training steps (after `warmup` untimed ones) of `config` on `objects`."""
-    torch = require_torch("timing training")
-    from yoto.network.model import ContactLocalizationNet, count_parameters
-    from yoto.training.train import StepRunner, _load_objects, _optimizer, plan_epoch
-
     models = [load_object_model(name, workspace) for name in objects]
-    data = _load_objects(objects, models, workspace, config, VirtualPatchConfig(), progress=False)
+    data = load_objects(objects, models, workspace, config, VirtualPatchConfig(), progress=False)
     torch.manual_seed(config.seed)
     net = ContactLocalizationNet(config.network)
     runner = StepRunner(net, data, config, torch.device("cpu"), None)
     rng = np.random.default_rng(config.seed)
     plan = plan_epoch(data, config.stage1, config.batch_size, rng, use_real=False)
-    optimizer, scheduler = _optimizer(net, config.stage1, config, len(plan))
+    optimizer, scheduler = make_optimizer(net, config.stage1, config, len(plan))
     wall, cpu, sizes = [], [], []
     for i, (obj_index, entries) in enumerate(plan[: warmup + steps]):
         tick, cpu_tick = time.perf_counter(), time.process_time()
@@ -84,6 +85,7 @@ def measure_training_speed(
             cpu.append(time.process_time() - cpu_tick)
             sizes.append(len(entries))
     info = {
+        **run_info(),
         "objects": list(objects),
         "blocks": [o.blocks.num_blocks for o in data],
         "parameters": count_parameters(net),
@@ -92,7 +94,5 @@ def measure_training_speed(
         "threads": torch.get_num_threads(),
         "load_average": list(os.getloadavg()),
         "cpu_count": os.cpu_count(),
-        "cpu": platform.processor() or platform.machine(),
-        "torch": str(torch.__version__),
     }
     return SpeedResult(np.array(wall), np.array(cpu), np.array(sizes), info)

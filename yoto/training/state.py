@@ -1,0 +1,57 @@
+"""The resumable training state (RUN/state.pt): where an interrupted run goes on.
+
+A torch archive of plain containers like the localizer checkpoint (yoto.network.checkpoint), written
+atomically after every finished epoch and loaded with `weights_only=True`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from yoto.errors import InputError
+from yoto.network.checkpoint import load_torch, save_torch_atomic
+
+FORMAT_NAME = "yoto-training-state"
+
+
+@dataclass
+class TrainingState:
+    """A run after its last finished epoch."""
+
+    identity: dict[str, Any]  # the settings, objects and contacts of the run; another run's state is not resumed
+    stage_index: int  # the stage to go on with (the number of stages: every stage is done)
+    epoch: int  # epochs of that stage done
+    net: dict[str, torch.Tensor]  # network weights
+    optimizer: dict[str, Any]  # optimizer state of the stage
+    scheduler: dict[str, Any]  # learning-rate schedule of the stage
+    history: list[dict[str, Any]]  # one record per finished epoch (log.jsonl)
+
+    def save(self, path: str | Path) -> Path:
+        return save_torch_atomic(
+            path,
+            {
+                "format": FORMAT_NAME,
+                "identity": self.identity,
+                "stage_index": self.stage_index,
+                "epoch": self.epoch,
+                "net": self.net,
+                "optimizer": self.optimizer,
+                "scheduler": self.scheduler,
+                "history": self.history,
+            },
+        )
+
+    @classmethod
+    def load(cls, path: str | Path) -> TrainingState | None:
+        """The state in `path`; None when the file is another kind of torch archive."""
+        payload = load_torch(path, "training state")
+        if payload.get("format") != FORMAT_NAME:
+            return None
+        try:
+            return cls(**{f.name: payload[f.name] for f in fields(cls)})
+        except KeyError as exc:
+            raise InputError(f"an incomplete training state (no {exc})", path) from exc
