@@ -11,9 +11,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
-import platform
-import subprocess
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -22,7 +19,6 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from yoto import __version__
 from yoto.contacts import SIDES
 from yoto.errors import InputError, YotoError
 from yoto.geometry import transform_points
@@ -32,6 +28,7 @@ from yoto.objects.build import build_object, load_object_model
 from yoto.objects.mesh import MESH_SUFFIXES
 from yoto.objects.model import ObjectModel
 from yoto.pose.pipeline import PAPER, PoseConfig, localize_contacts, pose_from_candidates
+from yoto.provenance import run_info
 
 POSE_STAGES = {"full": PoseConfig(), "paper": PAPER}
 
@@ -92,49 +89,6 @@ def resolve_object(spec: str, workspace: str | Path | None) -> ObjectModel:
             raise InputError("mesh file not found", path)
         return load_object_model(build_object(path, path.stem, workspace=workspace))
     return load_object_model(spec, workspace)
-
-
-def _run_info() -> dict[str, Any]:
-    """Commit, versions and device, for the report header."""
-    info: dict[str, Any] = {"yoto": __version__, "python": platform.python_version(), "numpy": np.__version__}
-    try:
-        info["commit"] = (
-            subprocess.run(
-                ["git", "rev-parse", "--short", "HEAD"],
-                capture_output=True,
-                text=True,
-                cwd=Path(__file__).parent,
-                timeout=5,
-            ).stdout.strip()
-            or "unknown"
-        )
-    except (OSError, subprocess.SubprocessError):
-        info["commit"] = "unknown"
-    cpu = platform.processor() or "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    info["device"] = f"CPU: {cpu}, {os.cpu_count()} cores"
-    try:
-        import torch
-
-        info["torch"] = torch.__version__
-        info["torch_threads"] = torch.get_num_threads()
-        if torch.cuda.is_available():
-            info["device"] += f"; GPU: {torch.cuda.get_device_name(0)}"
-    except ImportError:
-        pass
-    try:
-        import open3d
-
-        info["open3d"] = open3d.__version__
-    except ImportError:
-        pass
-    return info
 
 
 def _make_localizer(spec: MethodSpec):
@@ -244,7 +198,7 @@ def run_benchmark(
                 results[model.name][result.label] = result
     report = build_report(results, rows_of(methods, config))
     report["run"] = {
-        **_run_info(),
+        **run_info(),
         "seed": config.seed,
         "config": asdict(config),
         "wall_time_s": time.perf_counter() - started,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from yoto.errors import require_torch
 from yoto.localize.base import ContactLocalizer, OracleLocalizer
 
 METHODS = ("oracle", "icp", "match", "yoto")
@@ -20,6 +21,7 @@ def make_localizer(method: str, checkpoint: str | None = None) -> ContactLocaliz
 
         return MatchLocalizer()
     if method == "yoto":
+        require_torch("the YOTO network localizer")
         from yoto.localize.network import NetworkLocalizer
 
         return NetworkLocalizer.from_checkpoint(checkpoint)
