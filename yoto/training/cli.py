@@ -88,8 +88,15 @@ def run(args: argparse.Namespace) -> int:
     if args.seed is not None:
         config = replace(config, seed=args.seed)
     if args.speed_test:
+        from yoto.errors import InputError
+        from yoto.training.config import TrainConfig
         from yoto.training.speed import measure_training_speed
 
+        if not isinstance(config, TrainConfig):
+            raise InputError(
+                "--speed-test times the point network's steps (presets paper, cpu-points); a cpu-preset run logs "
+                "its samples/s and epoch times in RUN/log.jsonl"
+            )
         result = measure_training_speed(config, args.objects, args.workspace)
         print(result.summary())
         return 0
