@@ -124,9 +124,10 @@ def test_the_shipped_weights_read_unchanged():
             assert all(torch.equal(value[name], on_disk[key][name]) for name in value)
         else:
             assert value == on_disk[key], key
-    localizer = NetworkLocalizer.from_checkpoint(None)
+    localizer = make_localizer("yoto")
     assert sorted(localizer.trained_objects.values()) == sorted(o.name for o in checkpoint.objects)
-    assert localizer.temperature == checkpoint.calibration.temperature
+    card = json.loads(path.with_suffix(".json").read_text())
+    assert card["network_config"] == checkpoint.network_config.to_dict() and card["command"].startswith("yoto train")
 
 
 def test_candidates_merge_close_hypotheses_and_sum_beliefs():

@@ -304,12 +304,14 @@ def test_press_patches_look_like_pad_contacts(builtin_models):
 
 def test_pairs_of_one_object_can_train_the_model_of_its_scan(builtin_models, tmp_path, rng):
     """Contacts recorded on the real object train the model built from its scan (same mesh frame)."""
-    from yoto.training.data import load_contact_samples
+    from yoto.training.data import contact_samples, load_labelled_contacts
 
     model = builtin_models["fruit"]
     scan_model = replace(model, name="fruit_scan")
     write_cut_pairs(model, tmp_path, 2, rng)
-    samples, files = load_contact_samples([tmp_path], {"fruit_scan": scan_model})
-    assert len(files) == 2 and samples["fruit_scan"] == []  # without the mapping the pairs are not this model's
-    samples, _ = load_contact_samples([tmp_path], {"fruit_scan": scan_model}, {"fruit": "fruit_scan"})
-    assert len(samples["fruit_scan"]) == 4
+    contacts, files = load_labelled_contacts([tmp_path], {"fruit_scan": scan_model})
+    assert len(files) == 2 and contacts["fruit_scan"] == []  # without the mapping the pairs are not this model's
+    contacts, _ = load_labelled_contacts([tmp_path], {"fruit_scan": scan_model}, {"fruit": "fruit_scan"})
+    assert len(contacts["fruit_scan"]) == 4
+    samples = contact_samples(contacts["fruit_scan"], scan_model)  # the point network's canonical samples
+    assert len(samples) == 4 and all(0 <= sample.block < scan_model.num_blocks for sample in samples)

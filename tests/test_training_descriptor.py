@@ -134,3 +134,22 @@ def test_the_cpu_preset_is_the_descriptor_network_and_round_trips():
     assert isinstance(config, DescriptorTrainConfig)
     assert DescriptorTrainConfig.from_dict(config.to_dict()) == config
     assert DescriptorTrainConfig.from_dict(replace(config, seed=3).to_dict()).seed == 3
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (CI has none)")
+def test_a_gpu_run_in_bf16_learns_and_writes_cpu_weights(fruit_workspace):
+    config = replace(TINY, precision="bf16")
+    path = tiny_descriptor_run(fruit_workspace, "gpu", config, device="cuda")
+    checkpoint = LocalizerCheckpoint.load(path)
+    assert all(value.device.type == "cpu" and value.dtype == torch.float32 for value in checkpoint.state_dict.values())
+    history = [json.loads(line) for line in (path.parent / "log.jsonl").read_text().splitlines()]
+    assert history[-1]["val_virtual_recall_at_128"] >= 0.6
+
+
+def test_the_speed_test_times_descriptor_steps(fruit_workspace):
+    from yoto.training.speed import measure_training_speed
+
+    tiny_descriptor_run(fruit_workspace)  # its virtual contacts are stored
+    result = measure_training_speed(TINY, ["fruit"], fruit_workspace, steps=3, warmup=1)
+    assert len(result.step_s) == 3 and (result.step_s > 0).all() and result.samples_per_s > 0
+    assert result.info["anchors"][0] > 100 and "samples/s" in result.summary()

@@ -67,7 +67,8 @@ class DescriptorLocalizerConfig:
         )
     )  # the per-candidate point-to-plane ICP, its start as a weak prior
     residual_tau_m: float = 0.0005  # truncation of the ranking residual
-    belief: BeliefConfig = BeliefConfig()  # distinct candidates and their beliefs from the ranking residuals
+    belief: BeliefConfig = BeliefConfig()  # distinct candidates and their beliefs from the ranking residuals ...
+    score_weight: float = 0.0  # ... times exp(weight x the network's logit) (0: the residuals alone)
     normal_neighbours: int = 20  # k of the aggregated model normal reported with a candidate
 
     def __post_init__(self):
@@ -221,7 +222,13 @@ class DescriptorLocalizer:
             ).rms_m
         centres = np.einsum("kij,j->ki", poses[:, :3, :3], contact.centre_sensor) + poses[:, :3, 3]
         p_all = model.nearest_surface_point(centres)
-        ranking = rank_registrations(p_all, residual, config.belief)
+        ranked = residual
+        if config.score_weight > 0:
+            # exp(-r'^2 / 2T^2) = exp(-r^2 / 2T^2) exp(w (logit - best logit)): the network's score as a prior
+            logits = float(self.net.temperature.detach()) * details["score"]
+            temperature = config.belief.temperature_m
+            ranked = np.sqrt(residual**2 + 2.0 * temperature**2 * config.score_weight * (logits.max() - logits))
+        ranking = rank_registrations(p_all, ranked, config.belief)
         return self._estimates(
             model,
             p_all,

@@ -1,5 +1,8 @@
 """Two-stage training of the localization network (paper Sec. 3.3, App. C.2): `train(config, objects, ...)`.
 
+`train` owns the run folder for both networks; the anchor-descriptor network's (`cpu` preset) stages run in
+yoto.training.descriptor_train, the point network's (`paper`, `cpu-points`) below.
+
 Stage 1 learns from the virtual patches of every object; stage 2 (when contact pairs with ground truth are
 given) fine-tunes on virtual patches plus those "real" contacts, over-sampled and weighted up, at lower
 learning rates. One network serves all the objects: each step draws one object's patches and scores them
