@@ -112,7 +112,7 @@ class SimulatedPair:
 
 # ------------------------------------------------------------------------------------------------ simulator
 class PairSimulator:
-    """Draws dual-contact scenarios on one object. Build once per object (it builds the ray-casting scene)."""
+    """Draws dual-contact scenarios on one object. Build once per object (it uses the model's ray-casting scene)."""
 
     def __init__(
         self,
@@ -123,7 +123,7 @@ class PairSimulator:
         self.model = model
         self.config = config
         self.reconstruct = reconstruct
-        self.presses = PressSimulator(model.mesh_object, config.press)
+        self.presses = PressSimulator(model.mesh_object, config.press, model.raycaster)
         self._body_boxes = config.press.body.boxes(config.press.spec, with_gel=True)
 
     def streams(self, seed: int, index: int) -> dict[str, np.random.Generator]:
