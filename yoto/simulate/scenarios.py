@@ -42,7 +42,7 @@ from yoto.geometry import (
 )
 from yoto.io import read_json, write_json_atomic
 from yoto.objects.model import ObjectModel
-from yoto.simulate.gelsight import (
+from yoto.simulate.press import (
     REJECTION_REASONS,
     SIMULATOR_VERSION,
     PressConfig,
