@@ -10,17 +10,13 @@ import pytest
 from scipy import ndimage
 
 from yoto.errors import InputError
-from yoto.sensor.calibration import (
-    SensorCalibration,
-    calibrate,
-    load_calibration,
-    model_colour_change,
-    press_height_map,
-    with_background,
-)
+from yoto.sensor.ball_calibration import calibrate
+from yoto.sensor.calibration import SensorCalibration, load_calibration, with_background
+from yoto.sensor.models import model_colour_change
 from yoto.sensor.optical import height_gradients, render_image
 from yoto.sensor.reconstruction import reconstruct
 from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
+from yoto.sensor.sphere import press_height_map
 from yoto.sensor.validation import evaluate_press, find_press_circle
 
 SPEC = GELSIGHT_MINI

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from yoto.sensor.calibration import SensorCalibration, press_height_map
+from yoto.sensor.calibration import SensorCalibration
 from yoto.sensor.optical import render_image
 from yoto.sensor.reconstruction import (
     _pixel_xy,
@@ -28,6 +28,7 @@ from yoto.sensor.reconstruction import (
     reconstruct,
     touched_box,
 )
+from yoto.sensor.sphere import press_height_map
 
 
 @dataclass

@@ -84,7 +84,7 @@ def _load_presses(args: argparse.Namespace):
 
 def _run_calibrate(args: argparse.Namespace) -> int:
     from yoto.errors import InputError
-    from yoto.sensor.calibration import calibrate
+    from yoto.sensor.ball_calibration import calibrate
     from yoto.workspace import workspace_dir
 
     out = Path(args.out) if args.out else workspace_dir(args.workspace) / "sensors" / "gelsight_mini.npz"
@@ -248,8 +248,9 @@ def _run_render(args: argparse.Namespace) -> int:
     from PIL import Image
 
     from yoto.io import write_bytes_atomic
-    from yoto.sensor.calibration import load_calibration, press_height_map
+    from yoto.sensor.calibration import load_calibration
     from yoto.sensor.optical import render_image
+    from yoto.sensor.sphere import press_height_map
 
     calibration = load_calibration(args.calibration)
     spec = calibration.spec

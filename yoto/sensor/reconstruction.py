@@ -33,7 +33,8 @@ import numpy as np
 import scipy.fft
 
 from yoto.errors import InputError
-from yoto.sensor.calibration import MaskConfig, SensorCalibration, model_colour_change
+from yoto.sensor.calibration import MaskConfig, SensorCalibration
+from yoto.sensor.models import model_colour_change
 from yoto.sensor.presses import check_image
 from yoto.sensor.spec import GelSightSpec
 

@@ -18,17 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-from yoto.sensor.calibration import (
-    CalibrationConfig,
-    SensorCalibration,
-    calibrate,
-    model_colour_change,
-    press_height_map,
-    refine_centre,
-)
+from yoto.sensor.ball_calibration import CalibrationConfig, calibrate
+from yoto.sensor.calibration import SensorCalibration
+from yoto.sensor.models import model_colour_change
 from yoto.sensor.presses import CircleConfig, NoCircleError, find_contact_circle, ring_circle
 from yoto.sensor.reconstruction import Reconstruction, reconstruct
 from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
+from yoto.sensor.sphere import press_height_map, refine_centre
 
 log = logging.getLogger("yoto")
 
