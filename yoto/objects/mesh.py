@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import trimesh
@@ -173,7 +174,7 @@ def repair_mesh(mesh: trimesh.Trimesh, path: str | Path | None = None, min_compo
         kept = [c for c in components if c.area >= min_component_area_fraction * total_area]
         report.removed_small_components = len(components) - len(kept)
         if report.removed_small_components:
-            mesh = trimesh.util.concatenate(kept)
+            mesh = cast(trimesh.Trimesh, trimesh.util.concatenate(kept))  # meshes concatenate to a mesh
 
     faces_before = mesh.faces.copy()
     trimesh.repair.fix_winding(mesh)

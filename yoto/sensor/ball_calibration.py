@@ -142,7 +142,7 @@ def calibrate(
     background_i16 = background.astype(np.int16)
 
     results: list[PressResult] = []
-    usable: list[int] = []
+    discs: dict[int, ContactCircle] = {}  # press index -> its colour disc, for the usable presses
     images: list[np.ndarray] = []
     mismatched = []
     for i, (name, image) in enumerate(zip(names, presses, strict=True)):
@@ -181,7 +181,7 @@ def calibrate(
             )
             continue
         results.append(PressResult(name, True, "", disc))
-        usable.append(i)
+        discs[i] = disc
     if len(mismatched) > len(presses) / 2:
         raise InputError(
             f"the background does not match the press images: {len(mismatched)}/{len(presses)} presses "
@@ -190,12 +190,13 @@ def calibrate(
             f"{config.max_background_change:.0f}); use a background taken with the same sensor and lighting",
             background_path,
         )
+    usable = list(discs)
     if len(usable) < config.min_presses:
         reasons = "; ".join(f"{r.name}: {r.reason}" for r in results if not r.used)[:2000]
         raise InputError(f"only {len(usable)} usable presses (need {config.min_presses}). {reasons}")
 
     changes = {i: model_colour_change(images[i], background_i16, config.smooth) for i in usable}
-    circles = {i: (results[i].disc.centre_x_px, results[i].disc.centre_y_px, results[i].disc.radius_px) for i in usable}
+    circles = {i: (disc.centre_x_px, disc.centre_y_px, disc.radius_px) for i, disc in discs.items()}
     model = _fit_round(changes, circles, ball_radius_px, config.first_fit_fraction, config, spec)
     fraction = config.first_fit_fraction
     for _ in range(config.refine_iterations):

@@ -143,8 +143,7 @@ def _read_frames(path: Path):
         try:
             import imageio.v3 as iio
 
-            frames = iio.imiter(path)
-            for k, frame in enumerate(frames):
+            for k, frame in enumerate(iio.imiter(path)):
                 yield f"frame_{k:05d}", np.ascontiguousarray(frame[..., :3])
         except Exception as exc:  # imageio raises many types when no video plugin is installed
             raise InputError(

@@ -132,16 +132,24 @@ class SimulatedContact:
     target_object: np.ndarray  # (3,) the surface point the sensor was aimed at
     approach: dict[str, float]  # tilt_deg, roll_deg, offset_mm, depth_mm
     press: Press
-    points_sensor: np.ndarray | None = None  # (N, 3) reconstructed tactile cloud, sensor frame; None if rejected
+    # (N, 3) reconstructed tactile cloud, sensor frame; empty until an accepted press is reconstructed
+    points_sensor: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
     noise: dict[str, float] = field(default_factory=dict)  # the reconstruction errors drawn for this press
 
     @property
     def accepted(self) -> bool:
-        return self.press.accepted and self.points_sensor is not None
+        return self.press.accepted and len(self.points_sensor) > 0
 
     @property
     def rejection(self) -> str | None:
         return self.press.rejection
+
+    @property
+    def p_object(self) -> np.ndarray:
+        """The ground-truth contact location (object frame) of an accepted press."""
+        if self.press.p_object is None:
+            raise ValueError(f"a rejected press ({self.rejection}) has no ground-truth contact location")
+        return self.press.p_object
 
 
 # ------------------------------------------------------------------------------------------------ simulator
@@ -401,7 +409,7 @@ def finish_contact(
     if len(points) < MIN_TACTILE_POINTS or not np.all(np.isfinite(points)):
         press.rejection = "reconstruction_failed"
         press.details["reconstructed_points"] = len(points)
-        contact.points_sensor = None
+        contact.points_sensor = np.empty((0, 3))
         return contact
     contact.points_sensor = points
     if reconstruct is not None:
@@ -409,7 +417,7 @@ def finish_contact(
         # is what the sensor reports. A reconstruction's mask can differ from the gel's true contact (a tilted
         # flat press keeps only its deeper half), so the truth follows the observed cloud.
         centroid_object = transform_points(press.T_object_sensor, points.mean(axis=0))
-        press.details["p_object_of_true_contact"] = press.p_object.tolist()
+        press.details["p_object_of_true_contact"] = contact.p_object.tolist()
         press.p_object = simulator.closest_surface_points(centroid_object[None])[0]
     return contact
 

@@ -107,7 +107,7 @@ class SimulatedPair:
     @property
     def p_object_true(self) -> dict[str, np.ndarray]:
         """Ground-truth contact locations in YOTO's canonical object frame."""
-        return {side: contact.press.p_object for side, contact in self.contacts.items()}
+        return {side: contact.p_object for side, contact in self.contacts.items()}
 
 
 # ------------------------------------------------------------------------------------------------ simulator
@@ -139,7 +139,7 @@ class PairSimulator:
         return press_contact(self.presses, p_object, self.model.aggregated_normal(p_object), rng)
 
     def _pair_rejection(self, first: SimulatedContact, second: SimulatedContact) -> tuple[str | None, float]:
-        p_first, p_second = first.press.p_object, second.press.p_object
+        p_first, p_second = first.p_object, second.p_object
         offset = p_second - p_first
         if np.linalg.norm(offset) < self.config.min_separation_m:
             return "contacts_too_close", 0.0
@@ -238,7 +238,7 @@ class PairSimulator:
                 "calibration_error_deg": float(np.degrees(rotation_angle_rad(T_reported, T_world_sensor))),
                 **{key: float(value) for key, value in contact.noise.items()},
             }
-        p_object = {side: contact.press.p_object for side, contact in contacts.items()}
+        p_object = {side: contact.p_object for side, contact in contacts.items()}
         extra = {
             "simulation": {
                 "simulator": f"yoto.simulate v{SIMULATOR_VERSION}",
