@@ -128,9 +128,11 @@ def _unit_hint(extent: float, units: str) -> str:
     )
     if not plausible:
         return ""
-    best, others = plausible[0], plausible[1:]
-    also = "".join(f", --units {unit}: {sizes[unit] * 1000:.4g} mm" for unit in others)
-    return f"; with --units {best} it is {sizes[best] * 1000:.4g} mm across{f' ({also[2:]})' if also else ''}"
+    best, *others = plausible
+    hint = f"; with --units {best} it is {sizes[best] * 1000:.4g} mm across"
+    if others:
+        hint += " (" + ", ".join(f"--units {unit}: {sizes[unit] * 1000:.4g} mm" for unit in others) + ")"
+    return hint
 
 
 def require_thickness(vertices_m: np.ndarray, path: str | Path | None = None, what: str = "the mesh") -> None:
