@@ -45,6 +45,7 @@ from yoto.geometry import (
     normalize,
     rotation_about_axis,
     rotation_between,
+    tangent_basis,
     transform_points,
 )
 from yoto.raycast import MeshRaycaster
@@ -211,8 +212,8 @@ class PressSimulator:
         # keeps simulated pairs bit-identical across versions.
         helper = normalize(rng.normal(size=3))
         tilt_axis = np.cross(inward, helper)
-        if np.linalg.norm(tilt_axis) < 1e-9:
-            tilt_axis = np.cross(inward, np.eye(3)[np.argmin(np.abs(inward))])
+        if np.linalg.norm(tilt_axis) < 1e-9:  # the draw is parallel to the approach: any perpendicular will do
+            tilt_axis = tangent_basis(inward)[0]
         z_axis = rotation_about_axis(tilt_axis, tilt) @ inward
         roll = float(rng.uniform(0.0, 2.0 * np.pi))
         rotation = rotation_between(np.array([0.0, 0.0, 1.0]), z_axis) @ rotation_about_axis(
