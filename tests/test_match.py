@@ -134,11 +134,15 @@ def test_anchor_maps_are_built_once(builtin_models):
     )
 
 
-def test_too_small_a_contact_is_an_error(builtin_models):
-    """A contact of about one height-map cell (here 1 mm across) cannot be matched: a clear error, not a guess."""
-    disc = np.random.default_rng(0).uniform(-0.5e-3, 0.5e-3, (400, 3)) * np.array([1.0, 1.0, 0.1])
+def test_a_contact_too_small_for_the_default_cells_is_matched_with_finer_ones(builtin_models):
+    """A contact of about one default height-map cell (a cap 1 mm across) is too small for the default maps (a
+    clear error from them, not a guess), and `make_localizer("match")` matches it with finer cells instead."""
+    xy = np.random.default_rng(0).uniform(-0.5e-3, 0.5e-3, (400, 2))
+    cap = np.column_stack([xy, -0.1e-3 + 200.0 * (xy**2).sum(axis=1)])  # a 5 mm radius cap pressed 0.1 mm
     with pytest.raises(DegenerateGeometryError, match="too small to match"):
-        MatchLocalizer().localize(disc, builtin_models["fruit"])
+        MatchLocalizer().localize(cap, builtin_models["fruit"])
+    candidates = make_localizer("match").localize(cap, builtin_models["fruit"])
+    assert candidates and all(c.details["match_cell_mm"] < 1.5 for c in candidates)
 
 
 def test_pose_command_defaults_to_the_matched_filter(builtin_models, tmp_path, rng, capsys):
