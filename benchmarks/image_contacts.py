@@ -39,7 +39,7 @@ def plane_residual_mm(error_m: np.ndarray, mask: np.ndarray, spec) -> float:
     return float(np.sqrt(np.mean((error_m[mask] - design @ c) ** 2)) * 1e3)
 
 
-def draw(path: Path, title: str, image, recon, model, estimate_p, truth_p, T_object_sensor) -> None:
+def draw(path: Path, title: str, image, recon, model, estimate, truth_p, T_object_sensor) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -62,15 +62,26 @@ def draw(path: Path, title: str, image, recon, model, estimate_p, truth_p, T_obj
     for axis in axes[:3]:
         axis.set_xticks([])
         axis.set_yticks([])
-    cloud = model.points_object[:: max(1, len(model.points_object) // 6000)]
-    axes[3].scatter(*cloud.T, s=0.3, c="0.75", alpha=0.5)
-    patch = (T_object_sensor[:3, :3] @ recon.points_sensor[::40].T).T + T_object_sensor[:3, 3]
-    axes[3].scatter(*patch.T, s=1.0, c="tab:blue", label="contact (true sensor pose)")
-    axes[3].scatter(*truth_p, s=60, c="tab:green", marker="o", label="true contact")
-    axes[3].scatter(*estimate_p, s=80, c="tab:red", marker="x", label="localized")
+    # The object around the true contact, seen along its normal; the contact placed by the true sensor pose and
+    # by the pose the localizer found.
+    near = np.linalg.norm(model.points_object - truth_p, axis=1) < 0.03
+    cloud = model.points_object[near][:: max(1, int(near.sum()) // 5000)]
+    axes[3].scatter(*cloud.T, s=0.4, c="0.7", alpha=0.5)
+    samples = recon.points_sensor[:: max(1, len(recon.points_sensor) // 800)]
+    placements = [(T_object_sensor, "tab:green", "contact, true pose")]
+    if "match_T_object_sensor" in estimate.details:
+        placements.append((np.asarray(estimate.details["match_T_object_sensor"]), "tab:red", "contact, localized"))
+    for T, colour, label in placements:
+        axes[3].scatter(*((T[:3, :3] @ samples.T).T + T[:3, 3]).T, s=1.5, c=colour, label=label)
+    axes[3].scatter(*estimate.p_object, s=80, c="tab:red", marker="x")
+    normal = model.aggregated_normal(truth_p)
+    axes[3].view_init(
+        elev=float(np.degrees(np.arcsin(np.clip(normal[2], -1, 1)))),
+        azim=float(np.degrees(np.arctan2(normal[1], normal[0]))),
+    )
     axes[3].set_axis_off()
-    axes[3].legend(fontsize=7, loc="lower left")
-    axes[3].set_title("localized contact on the object", fontsize=9)
+    axes[3].legend(fontsize=7, loc="lower left", markerscale=4)
+    axes[3].set_title("on the object (30 mm around the true contact)", fontsize=9)
     figure.suptitle(title, fontsize=10)
     figure.tight_layout()
     buffer = io.BytesIO()
@@ -175,7 +186,7 @@ def main() -> None:
                         f"(clean cloud: {row['localization_clean_mm']:.1f} mm)"
                     )
                     path = Path(args.figures) / f"{model.name}_{row['pair']:03d}_{side}.png"
-                    draw(path, title, image, recon, model, found.p_object, p_true, press.T_object_sensor)
+                    draw(path, title, image, recon, model, found, p_true, press.T_object_sensor)
     ok = [r for r in rows if r["reconstructed"]]
     print(f"\n{len(ok)}/{len(rows)} contacts reconstructed")
     for name in [*args.objects, None]:

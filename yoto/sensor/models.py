@@ -7,15 +7,17 @@ and a small MLP did no better than the cubic while taking minutes to train on th
 
 Forward model (reconstruction, must be fast):
     g(c, x, y) = T(c) + b(x, y) + sum_j c_j M_j(x, y)
-with c the RGB colour change against the background, T a cubic in c, b and M_j quadratics in pixel position.
+with c the RGB colour change against the background, T a cubic in c, b and M_j polynomials in pixel position
+(degree 2 to 4, chosen per calibration by held-out error on its presses: ball_calibration).
 After fitting it is baked into a 3D lookup table for T (indexed by the quantised colour change; cells no
 training colour came near take the value of the nearest cell that one did, so the cubic never extrapolates)
 and per-pixel maps for b and M_j: inference is one table gather and three multiply-adds per output.
 
 Inverse model (the optical simulator):
-    c(g, x, y) = S(g) + sum_k g_k N_k(x, y)
-with S a quartic in the gradient (gx, gy) without constant term, N_k quadratics in position: a flat gel
-(zero gradient) renders exactly the background. Evaluated directly (no table), gradients clamped to the
+    c(g, x, y) = S(g) + sum_k m_k(g) N_k(x, y)
+with S a quartic in the gradient (gx, gy) without constant term, m_k the gradient's monomials up to a gain
+degree (1: gx, gy; 2: also their squares and product) and N_k polynomials in position (both chosen per
+calibration by held-out error): a flat gel (zero gradient) renders exactly the background. Evaluated directly (no table), gradients clamped to the
 magnitude range seen in calibration.
 """
 

@@ -9,14 +9,16 @@ Steps, for one 320x240 RGB frame:
    small bias there, which integrates into a spurious tilt).
 2. gradients inside the box: colour change (int16, 3x3 binomial smoothing), then the calibration's lookup
    table and per-pixel gain maps (models.GradientModel).
-3. height map by Poisson integration over the whole frame: the Laplacian of z equals the divergence of the
-   gradients, solved with a discrete cosine transform (free border: a press cut by the frame's edge is not
-   forced to zero there) using precomputed eigenvalues, float32. The undetermined constant is fixed so that
-   the untouched blocks sit at z = 0; heights are then clamped to z <= 0.
-4. contact mask: if at least `min_area_px` pixels changed colour by `colour_threshold`, the pixels pressed
-   at least half as deep as the deepest point (and at least `min_depth_m`). Depth, not colour: the middle
-   of a contact is flat, so its colour barely changes.
-5. points: the masked pixels' sensor-frame (x, y, z) in metres (SPEC: z <= 0 where the gel is pressed).
+3. height map by Poisson integration in the touched box: the Laplacian of z equals the divergence of the
+   gradients, solved with discrete cosine/sine transforms using precomputed eigenvalues, float32; box edges
+   inside the frame lie on flat gel (zero height), edges on the frame's border are free (a press cut by the
+   frame's edge is not forced to zero there). Heights are then clamped to z <= 0.
+4. contact masks: if at least `min_area_px` pixels changed colour by `colour_threshold`, the core (pixels
+   pressed at least half as deep as the deepest point: a ball's contact, for sphere fits) and the contact the
+   gel felt (pixels deeper than the noise floor, connected to the core: what localization needs, the whole
+   shape of a broad or tilted contact). Depth, not colour: the middle of a contact is flat, so its colour
+   barely changes.
+5. points: the contact's pixels' sensor-frame (x, y, z) in metres (SPEC: z <= 0 where the gel is pressed).
 
 Bad input never yields a silent garbage cloud: a wrong size or dtype, a saturated frame or a frame that
 does not look like the calibration's background raise InputError; a frame without contact gives an
@@ -367,14 +369,11 @@ def contact_masks(
     Heights outside `box` are zero, so the regions are found inside it.
     """
     if changed_px < config.min_area_px:
-        return (
-            None,
-            None,
-            (
-                f"no contact: {changed_px} pixels changed colour by {config.colour_threshold:g} levels or more, "
-                f"fewer than {config.min_area_px}"
-            ),
+        reason = (
+            f"no contact: {changed_px} pixels changed colour by {config.colour_threshold:g} levels or more, "
+            f"fewer than {config.min_area_px}"
         )
+        return None, None, reason
     row0, row1, col0, col1 = box
     window = height_m[row0:row1, col0:col1]
     deepest = float(-window.min())
@@ -382,14 +381,11 @@ def contact_masks(
     felt = window <= -np.float32(floor)
     count = int(np.count_nonzero(felt))
     if count < config.min_area_px:
-        return (
-            None,
-            None,
-            (
-                f"no contact: {count} pixels are pressed {floor * 1e3:.3f} mm deep or more (deepest "
-                f"{deepest * 1e3:.3f} mm), fewer than {config.min_area_px}"
-            ),
+        reason = (
+            f"no contact: {count} pixels are pressed {floor * 1e3:.3f} mm deep or more (deepest "
+            f"{deepest * 1e3:.3f} mm), fewer than {config.min_area_px}"
         )
+        return None, None, reason
     core = window <= -np.float32(max(floor, config.relative_depth * deepest))
     labels, _ = ndimage.label(felt)
     kept = np.zeros(int(labels.max()) + 1, dtype=bool)

@@ -30,7 +30,6 @@ from yoto.errors import InputError
 from yoto.sensor.calibration import SensorCalibration
 from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
 
-
 EXPOSURE_LEVEL = 200.0  # a varied sensor's exposure puts its background's brightest pixels at this level
 
 
