@@ -17,8 +17,8 @@ Inverse model (the optical simulator):
     c(g, x, y) = S(g) + sum_k m_k(g) N_k(x, y)
 with S a quartic in the gradient (gx, gy) without constant term, m_k the gradient's monomials up to a gain
 degree (1: gx, gy; 2: also their squares and product) and N_k polynomials in position (both chosen per
-calibration by held-out error): a flat gel (zero gradient) renders exactly the background. Evaluated directly (no table), gradients clamped to the
-magnitude range seen in calibration.
+calibration by held-out error): a flat gel (zero gradient) renders exactly the background. Evaluated
+directly (no table), gradients clamped to the magnitude range seen in calibration.
 """
 
 from __future__ import annotations
