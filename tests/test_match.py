@@ -13,6 +13,7 @@ from yoto.errors import DegenerateGeometryError  # noqa: E402
 from yoto.geometry import rotation_angle_rad  # noqa: E402
 from yoto.localize import make_localizer  # noqa: E402
 from yoto.localize.match import MapGrid, MatchConfig, MatchLocalizer, plane_costs  # noqa: E402
+from yoto.localize.scaled_match import ScaledMatchLocalizer  # noqa: E402
 from yoto.simulate.scenarios import PairSimulator  # noqa: E402
 
 
@@ -40,7 +41,9 @@ def test_finds_contacts_on_a_distinctive_surface(fruit_contacts):
     sensor pose (a by-product of the match) is the true one."""
     model, contacts = fruit_contacts
     localizer = make_localizer("match")
-    assert isinstance(localizer, MatchLocalizer) and not localizer.needs_ground_truth
+    # The matched filter, with finer cells only for contacts too small for its default maps.
+    assert isinstance(localizer, ScaledMatchLocalizer) and not localizer.needs_ground_truth
+    assert isinstance(localizer.default, MatchLocalizer)
     hits = 0
     for points_sensor, p_true, T_object_sensor_true in contacts:
         candidates = localizer.localize(points_sensor, model)
