@@ -13,21 +13,25 @@ import platform
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
-from yoto.sensor.calibration import SensorCalibration, press_height_map
+from yoto.errors import InputError
+from yoto.sensor.calibration import SensorCalibration
 from yoto.sensor.optical import render_image
 from yoto.sensor.reconstruction import (
     _pixel_xy,
     box_gradients,
     check_frame,
-    contact_mask,
+    contact_masks,
     integrate_box,
     reconstruct,
     touched_box,
 )
+from yoto.sensor.sphere import press_height_map
+
+Item = TypeVar("Item")
 
 
 @dataclass
@@ -93,7 +97,12 @@ def run_benchmark(calibration: SensorCalibration, frames: list[np.ndarray], repe
 
     # Per step, on precomputed inputs of the previous step.
     blocks = [check_frame(f, calibration) for f in frames]
-    boxes = [touched_box(b, (spec.height_px, spec.width_px)) for b in blocks]
+    boxes = []
+    for k, frame_blocks in enumerate(blocks):
+        box = touched_box(frame_blocks, (spec.height_px, spec.width_px))
+        if box is None:
+            raise InputError(f"frame {k} shows no contact: the per-step timings need frames with a contact")
+        boxes.append(box)
     gradients = [box_gradients(f, calibration, box) for f, box in zip(frames, boxes, strict=True)]
     heights = [
         integrate_box(gx, gy, box, b, spec.pixel_size_m)
@@ -102,7 +111,7 @@ def run_benchmark(calibration: SensorCalibration, frames: list[np.ndarray], repe
     masks = [h <= 0.5 * h.min() for h in heights]
     index = {id(f): i for i, f in enumerate(frames)}
 
-    def at(collection):
+    def at(collection: list[Item]) -> Callable[[np.ndarray], Item]:
         return lambda f: collection[index[id(f)]]
 
     x, y = _pixel_xy(spec)
@@ -114,7 +123,7 @@ def run_benchmark(calibration: SensorCalibration, frames: list[np.ndarray], repe
         "Poisson integration in the box (DCT/DST, float32)": lambda f: integrate_box(
             *at(gradients)(f)[:2], at(boxes)(f), at(blocks)(f), spec.pixel_size_m
         ),
-        "contact mask": lambda f: contact_mask(at(gradients)(f)[2], at(heights)(f), calibration.mask),
+        "contact masks": lambda f: contact_masks(at(gradients)(f)[2], at(heights)(f), calibration.mask, at(boxes)(f)),
         "points (sensor frame)": lambda f: np.stack(
             [x[at(masks)(f)], y[at(masks)(f)], at(heights)(f)[at(masks)(f)]], 1
         ),

@@ -18,17 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-from yoto.sensor.calibration import (
-    CalibrationConfig,
-    SensorCalibration,
-    calibrate,
-    model_colour_change,
-    press_height_map,
-    refine_centre,
-)
+from yoto.sensor.ball_calibration import CalibrationConfig, calibrate
+from yoto.sensor.calibration import SensorCalibration
+from yoto.sensor.models import model_colour_change
 from yoto.sensor.presses import CircleConfig, NoCircleError, find_contact_circle, ring_circle
 from yoto.sensor.reconstruction import Reconstruction, reconstruct
 from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
+from yoto.sensor.sphere import press_height_map, refine_centre
 
 log = logging.getLogger("yoto")
 
@@ -195,8 +191,8 @@ def evaluate_press(
     error = (recon.height_map_m - ideal)[inside]
     offset = float(error.mean())
     disc = r < a
-    union = np.count_nonzero(disc | recon.mask)
-    iou = np.count_nonzero(disc & recon.mask) / union if union else 0.0
+    union = np.count_nonzero(disc | recon.core_mask)
+    iou = np.count_nonzero(disc & recon.core_mask) / union if union else 0.0
     result = PressValidation(
         name,
         fold,
@@ -206,7 +202,7 @@ def evaluate_press(
         cy,
         a,
         radius * 1e3,
-        tuple(float(v) * 1e3 for v in centre),
+        (float(centre[0]) * 1e3, float(centre[1]) * 1e3, float(centre[2]) * 1e3),
         float(np.sqrt(np.mean((error - offset) ** 2))) * 1e3,
         offset * 1e3,
         recon.max_depth_m * 1e3,
@@ -234,7 +230,7 @@ def validate(
     if not 2 <= folds <= len(presses):
         raise ValueError(f"folds must be in [2, {len(presses)}], got {folds}")
     fold_of = np.arange(len(presses)) % folds
-    results: list[PressValidation | None] = [None] * len(presses)
+    results: dict[int, PressValidation] = {}  # press index -> its validation
     kept: dict[int, tuple[np.ndarray, Reconstruction, SensorCalibration]] = {}
     calibrations = []
     for fold in range(folds):
@@ -244,12 +240,13 @@ def validate(
         )
         log.info("fold %d: calibrated on %s", fold, report.summary())
         calibrations.append(calibration)
-        for i in np.nonzero(fold_of == fold)[0]:
+        held_out = [i for i in range(len(presses)) if fold_of[i] == fold]
+        for i in held_out:
             result, recon = evaluate_press(presses[i], calibration, ball_diameter_m / 2, names[i], fold)
             results[i] = result
             if recon is not None:
                 kept[i] = (presses[i], recon, calibration)
-    validation = ValidationResult([r for r in results if r is not None], ball_diameter_m / 2 * 1e3, folds, calibrations)
+    validation = ValidationResult([results[i] for i in sorted(results)], ball_diameter_m / 2 * 1e3, folds, calibrations)
     if figure is not None and kept:
         errors = {i: abs(results[i].radius_error(validation.ball_radius_mm)) for i in kept}
         median = float(np.median(list(errors.values())))
@@ -303,9 +300,9 @@ def write_validation_figure(
     axes[1].imshow(image)
     axes[1].plot(circle_x, circle_y, "w--", lw=1)
     axes[1].set_title("found contact circle", fontsize=9)
-    axes[2].imshow(recon.mask, cmap="gray")
+    axes[2].imshow(recon.core_mask, cmap="gray")
     axes[2].plot(circle_x, circle_y, "r--", lw=1)
-    axes[2].set_title("contact mask vs circle", fontsize=9)
+    axes[2].set_title("contact core vs circle", fontsize=9)
     shown = axes[3].imshow(recon.height_map_m * 1e3, cmap="viridis")
     fig.colorbar(shown, ax=axes[3], fraction=0.046, label="z (mm)")
     axes[3].set_title("height map", fontsize=9)
