@@ -39,6 +39,7 @@ def build_object(
     unless `overwrite`. Returns the model's path.
     """
     out_path = Path(out) if out else object_model_path(name, workspace)
+    source: dict[str, str | float]  # what the model is built from, kept in its metadata
     if mesh_path is None:
         if name not in BUILTIN_OBJECTS:
             raise InputError(f"no mesh given and {name!r} is not a built-in object ({', '.join(BUILTIN_OBJECTS)})")
