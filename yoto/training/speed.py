@@ -71,13 +71,14 @@ def measure_training_speed(
     steps: int = 30,
     warmup: int = 5,
     device: str | None = "cpu",
+    patch_config: VirtualPatchConfig = VirtualPatchConfig(),
 ) -> SpeedResult:
     """Time `steps` training steps (after `warmup` untimed ones) of `config` on `objects`, on `device` (None: cuda
-    when available) with the config's precision."""
+    when available) with the config's precision; the point network trains on virtual patches of `patch_config`."""
     if isinstance(config, DescriptorTrainConfig):
         return _descriptor_speed(config, objects, workspace, steps, warmup)
     models = [load_object_model(name, workspace) for name in objects]
-    data = load_objects(objects, models, workspace, config, VirtualPatchConfig(), progress=False)
+    data = load_objects(objects, models, workspace, config, patch_config, progress=False)
     torch.manual_seed(config.seed)
     device_, autocast_dtype = device_and_autocast(config.precision, device)
     net = ContactLocalizationNet(config.network).to(device_)
