@@ -39,6 +39,7 @@ def build_object(
     unless `overwrite`. Returns the model's path.
     """
     out_path = Path(out) if out else object_model_path(name, workspace)
+    source: dict[str, str | float]  # what the model is built from, kept in its metadata
     if mesh_path is None:
         if name not in BUILTIN_OBJECTS:
             raise InputError(f"no mesh given and {name!r} is not a built-in object ({', '.join(BUILTIN_OBJECTS)})")
@@ -75,12 +76,13 @@ def build_object(
     model = build_object_model(mesh, name, config, source=source, repair_report=report)
     model.save(out_path)
     log.info(
-        "%s: %d parent points, %d/%d valid blocks, bbox %s mm -> %s",
+        "%s: %d parent points, %d/%d valid blocks, bbox %s mm, symmetry: %s -> %s",
         name,
         len(model.points_object),
         model.num_blocks,
         int(np.prod(config.grid_shape)),
         " x ".join(f"{v * 1000:.1f}" for v in model.meta["bbox_object_m"]),
+        model.symmetry.describe(),
         out_path,
     )
     return out_path
