@@ -7,8 +7,8 @@
    locations whose local shape and key fit, which covers flat faces, cylinders and edges where a localizer's few
    candidates cannot.
 3. Verification: each seed is scored by how well both tactile clouds lie on the surface, allowing each cloud
-   an offset along the surface normal (what a sensor's calibration error does to it); the best distinct seeds
-   are refined jointly with a correction per sensor (`refine.py`) and scored by their residuals and the size of
+   an offset and a tilt (what a sensor's calibration error does to it); the best distinct seeds are refined
+   jointly with a correction per sensor (`refine.py`) and scored by their residuals, free space and the size of
    the corrections under the calibration prior.
 4. Hypotheses (`hypotheses.py`): the refined poses grouped into distinct ones modulo the object's symmetries,
    with probabilities; `ambiguous` when several keep a meaningful share.
@@ -78,7 +78,7 @@ class PoseConfig:
     # holds this probability, ...
     decisive_log_likelihood: float = -10.0  # ... explains the contacts this well (hypotheses.log_likelihoods) ...
     decisive_featured: int = 1  # ... and at least this many of the two contacts have features of their own
-    screened: int = 500  # seeds (the best of each pose cell by a cheap score) that get a short refinement
+    screened: int = 400  # seeds (the best by a cheap score) that get a short refinement
     seeds_refined: int = 40  # distinct hypotheses (the most likely after the short refinement) refined in full
     candidates_screened: int = 24  # the same two numbers when only the localizers' candidate pairs are verified
     candidates_refined: int = 6
@@ -191,14 +191,6 @@ def localize_contacts(
     return candidates, world, latency
 
 
-@dataclass
-class _Seeds:
-    """Closed-form poses to verify, and whether each came from two localizer candidates."""
-
-    T_world_object: np.ndarray  # (K, 4, 4)
-    belief: np.ndarray  # (K,) product of the two candidates' beliefs (0 for search samples)
-
-
 def _seeds(
     model: ObjectModel,
     world: dict[str, WorldContact],
@@ -206,10 +198,14 @@ def _seeds(
     candidates: dict[str, list[ContactEstimate]],
     config: PoseConfig,
     search: bool,
-) -> _Seeds:
-    """The closed-form poses of the candidate pairs whose key fits (and, with `search`, of the search's matches);
-    the localizers' top pair is always among them, fitting or not, so there is a pose to verify."""
+) -> np.ndarray:
+    """(K, 4, 4) closed-form poses of the candidate pairs whose key fits (and, with `search`, of the search's
+    matches); the localizers' top pair is always among them, fitting or not, so there is a pose to verify. Of the
+    matches in one pose cell only the one whose key fits best is kept."""
     matches = search_poses(model, world, shapes, candidates, config.search_config, samples=search)
+    matches_T = matches.solution.T_world_object[
+        _best_per_cell(matches.solution.T_world_object, -matches.mismatch, config)
+    ]
     left, right = candidates["left"][0], candidates["right"][0]
     top = solve_poses(
         left.p_object[None],
@@ -219,11 +215,7 @@ def _seeds(
         world["left"],
         world["right"],
     )
-    belief = left.probability * right.probability
-    return _Seeds(
-        np.concatenate([top.T_world_object, matches.solution.T_world_object]),
-        np.concatenate([[belief], matches.belief]),
-    )
+    return np.concatenate([top.T_world_object, matches_T])
 
 
 def _best_per_cell(T_world_object: np.ndarray, score: np.ndarray, config: PoseConfig) -> np.ndarray:
@@ -239,7 +231,7 @@ def _best_per_cell(T_world_object: np.ndarray, score: np.ndarray, config: PoseCo
 def _verify_and_refine(
     field: SurfaceField,
     contacts: list[ContactPoints],
-    seeds: _Seeds,
+    seeds: np.ndarray,
     symmetry: Symmetry,
     config: PoseConfig,
     screened: int,
@@ -247,18 +239,15 @@ def _verify_and_refine(
 ) -> Refined:
     """Screen the seeds and refine the best distinct ones.
 
-    A cheap score (each cloud may sit off the surface along its normal) ranks the seeds; the best of each pose
-    cell, at most `screened`, get a short refinement on a few points; the best pose of each of the `refined`
+    A cheap score (each cloud may sit off the surface by an offset and a tilt) ranks the seeds; the best
+    `screened` get a short refinement on a few points; the best pose of each of the `refined`
     most likely distinct hypotheses among those is refined in full.
     """
     refine = config.refine_config
-    score = evaluate_offsets(field, contacts, seeds.T_world_object, config.calibration, refine)
-    cells = _best_per_cell(seeds.T_world_object, score, config)
-    chosen = cells[np.argsort(-score[cells], kind="stable")[:screened]]
+    score = evaluate_offsets(field, contacts, seeds, config.calibration, refine)
+    chosen = np.argsort(-score, kind="stable")[:screened]
     short = replace(refine, iterations=refine.screen_iterations)
-    first = refine_hypotheses(
-        field, thinned(contacts, refine.screen_points), seeds.T_world_object[chosen], config.calibration, short
-    )
+    first = refine_hypotheses(field, thinned(contacts, refine.screen_points), seeds[chosen], config.calibration, short)
     grouped = group_hypotheses(first, symmetry, config.hypotheses)
     best = grouped.member[:refined]
     return refine_hypotheses(field, contacts, first.T_world_object[best], config.calibration, refine)
@@ -324,7 +313,7 @@ def pose_from_candidates(
     searched = config.search == "always"
     seeds = _seeds(model, world, shapes, candidates, config, search=searched)
     refined = None
-    if len(seeds.T_world_object):
+    if len(seeds):
         refined = _verify_and_refine(
             field, contacts, seeds, model.symmetry, config, config.candidates_screened, config.candidates_refined
         )
@@ -332,7 +321,7 @@ def pose_from_candidates(
     if config.search == "auto" and not _decisive(hypotheses, shapes, config):
         searched = True
         seeds = _seeds(model, world, shapes, candidates, config, search=True)
-        if len(seeds.T_world_object):
+        if len(seeds):
             refined = _verify_and_refine(
                 field, contacts, seeds, model.symmetry, config, config.screened, config.seeds_refined
             )

@@ -68,7 +68,7 @@ class SearchConfig:
     curvature_share: float = 0.35
     curvature_residual_scale_m: float = 0.00015
     pair_budget: int = 1_000_000  # location pairs evaluated at most per query (large sets are thinned)
-    max_matches: int = 20000  # matches kept (the best keys first)
+    max_matches: int = 8000  # matches kept (the best keys first)
 
 
 @dataclass
@@ -187,7 +187,6 @@ class Locations:
     # distance to the next sample: spacing / sqrt(2))
     curvature: np.ndarray  # (L,) 1/m, the larger principal curvature's magnitude (0 for a candidate)
     candidate: np.ndarray  # (L,) bool: a localizer's candidate (else a surface sample)
-    belief: np.ndarray  # (L,) the localizer's probability of a candidate (0 for a sample)
 
     def normal_blur_rad(self, config: SearchConfig) -> np.ndarray:
         """How far the contact's normal may turn from the location's: the curvature times the blur for a sample."""
@@ -221,7 +220,6 @@ def contact_locations(
         np.concatenate([np.zeros(count), np.full(len(fits), samples.spacing_m / np.sqrt(2.0))]),
         np.concatenate([np.zeros(count), np.abs(samples.shapes.curvatures[fits]).max(axis=1)]),
         np.concatenate([np.ones(count, dtype=bool), np.zeros(len(fits), dtype=bool)]),
-        np.concatenate([[c.probability for c in candidates], np.zeros(len(fits))]),
     )
 
 
@@ -241,10 +239,6 @@ def thin(locations: Locations, spacing_m: float) -> Locations:
 class PairMatches:
     """Pairs of locations that fit a measured pair, and the closed-form pose of each (arrays over K)."""
 
-    p_left_object: np.ndarray  # (K, 3)
-    p_right_object: np.ndarray  # (K, 3)
-    from_candidates: np.ndarray  # (K,) bool: both locations are localizer candidates
-    belief: np.ndarray  # (K,) product of the two locations' beliefs (0 unless both are candidates)
     mismatch: np.ndarray  # (K,) key mismatch in tolerances (0: exact; at most 1)
     solution: BatchSolution  # (K,) poses
 
@@ -323,11 +317,4 @@ def search_poses(
     solution = solve_poses(
         left.p_object[a], left.n_object[a], right.p_object[b], right.n_object[b], world["left"], world["right"]
     )
-    return PairMatches(
-        left.p_object[a],
-        right.p_object[b],
-        left.candidate[a] & right.candidate[b],
-        left.belief[a] * right.belief[b],
-        mismatch,
-        solution,
-    )
+    return PairMatches(mismatch, solution)
