@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import trimesh
@@ -18,6 +20,11 @@ SMALL = ObjectModelConfig(num_points=20_000)
 
 def _box_mesh(extents=(0.12, 0.06, 0.03)) -> trimesh.Trimesh:
     return trimesh.creation.box(extents=extents)
+
+
+def _export(mesh: trimesh.Trimesh, path):
+    mesh.export(path)
+    return path
 
 
 def test_canonical_frame_axes_follow_the_variances(rng):
@@ -90,7 +97,7 @@ def test_load_mesh_units_and_errors(tmp_path):
     mesh_mm.apply_scale(1000.0)
     path = tmp_path / "box_mm.stl"
     mesh_mm.export(path)
-    with pytest.raises(InputError, match="looks like mm"):
+    with pytest.raises(InputError, match="box_mm.stl: read in m, .* with --units mm it is 120 mm across"):
         load_mesh(path, units="m")
     mesh, _, scale = load_mesh(path, units="mm")
     assert scale == 1e-3 and np.allclose(mesh.extents, [0.12, 0.06, 0.03])
@@ -110,6 +117,53 @@ def test_load_mesh_units_and_errors(tmp_path):
     garbage.write_text("this is not a mesh\n")
     with pytest.raises(InputError, match="garbage.obj"):
         load_mesh(garbage)
+
+
+@pytest.mark.parametrize(
+    ("stored_in", "scale_to_file", "read_as", "suggested", "also"),
+    [
+        ("mm", 1000.0, "m", "mm", "cm"),  # a 75 mm apple saved in millimetres (75 units): cm would be 750 mm
+        ("cm", 100.0, "m", "cm", "in"),  # 7.5 units
+        ("in", 1 / 0.0254, "m", "in", "cm"),  # 2.95 units: inches, or a 30 mm object in centimetres
+        ("m", 1.0, "mm", "m", None),  # 0.075 units read as millimetres
+    ],
+)
+def test_a_mesh_in_the_wrong_unit_names_the_unit_that_fits(
+    tmp_path, stored_in, scale_to_file, read_as, suggested, also
+):
+    """The error suggests the unit giving the size nearest a typical object's (10 cm), then the other plausible ones."""
+    apple = trimesh.creation.icosphere(subdivisions=2, radius=0.0375)  # 75 mm across
+    apple.apply_scale(scale_to_file)
+    path = tmp_path / f"apple_{stored_in}.stl"
+    apple.export(path)
+    with pytest.raises(InputError, match=f"apple_{stored_in}.stl: read in {read_as}, ") as info:
+        load_mesh(path, units=read_as)
+    assert f"with --units {suggested} it is 75 mm across" in str(info.value)
+    assert (f"--units {also}:" in str(info.value)) == (also is not None)
+    mesh, _, _ = load_mesh(path, units=suggested)
+    assert np.allclose(mesh.extents, 0.075, rtol=1e-6)
+
+
+def test_a_flat_mesh_is_refused_naming_the_file(tmp_path):
+    """All vertices in one plane (a box of zero thickness, a single quad): a clear error, no numpy warnings;
+    a thin plate that is not flat is accepted."""
+    for name, mesh in (
+        ("flat_box.ply", _box_mesh((0.12, 0.06, 0.0))),
+        (
+            "quad.obj",
+            trimesh.Trimesh([[0, 0, 0], [0.1, 0, 0], [0.1, 0.05, 0.05], [0, 0.05, 0.05]], [[0, 1, 2], [0, 2, 3]]),
+        ),
+    ):
+        path = tmp_path / name
+        mesh.export(path)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            with pytest.raises(InputError, match=f"{name}: the mesh is flat: all its vertices lie in one plane"):
+                load_mesh(path)
+            with pytest.raises(InputError, match="the mesh of object 'flat' is flat"):
+                build_object_model(mesh, "flat", SMALL)
+    plate, report, _ = load_mesh(_export(_box_mesh((0.12, 0.06, 0.0005)), tmp_path / "plate.stl"))
+    assert report.watertight and np.allclose(plate.extents, [0.12, 0.06, 0.0005])
 
 
 def test_repair_reports_what_it_fixed(tmp_path):

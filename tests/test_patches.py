@@ -169,7 +169,8 @@ def test_a_simulated_gelsight_contact_and_a_virtual_patch_of_the_same_region_agr
     under the same footprint land in the same canonical form up to in-plane rotation."""
     from scipy.spatial import cKDTree
 
-    from yoto.simulate.gelsight import PressConfig, PressSimulator, ReconstructionNoise, simulate_contact
+    from yoto.simulate.gel import ReconstructionNoise
+    from yoto.simulate.press import PressConfig, PressSimulator, simulate_contact
 
     model = builtin_models["figurine"]
     simulator = PressSimulator(model.mesh_object, PressConfig(noise=ReconstructionNoise.none()))

@@ -7,11 +7,11 @@ import itertools
 import numpy as np
 import pytest
 
-from yoto.sensor.calibration import press_height_map, refine_centre, sphere_gradients
 from yoto.sensor.optical import height_gradients
 from yoto.sensor.presses import CircleConfig, NoCircleError, find_contact_circle, ring_circle
 from yoto.sensor.reconstruction import divergence, poisson_integrate
 from yoto.sensor.spec import GELSIGHT_MINI
+from yoto.sensor.sphere import press_height_map, refine_centre, sphere_gradients
 from yoto.sensor.validation import fit_sphere
 
 SPEC = GELSIGHT_MINI

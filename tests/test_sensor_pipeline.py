@@ -10,17 +10,13 @@ import pytest
 from scipy import ndimage
 
 from yoto.errors import InputError
-from yoto.sensor.calibration import (
-    SensorCalibration,
-    calibrate,
-    load_calibration,
-    model_colour_change,
-    press_height_map,
-    with_background,
-)
+from yoto.sensor.ball_calibration import calibrate
+from yoto.sensor.calibration import SensorCalibration, load_calibration, with_background
+from yoto.sensor.models import model_colour_change
 from yoto.sensor.optical import height_gradients, render_image
 from yoto.sensor.reconstruction import reconstruct
 from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
+from yoto.sensor.sphere import press_height_map
 from yoto.sensor.validation import evaluate_press, find_press_circle
 
 SPEC = GELSIGHT_MINI
@@ -363,6 +359,24 @@ def test_cli_reconstruct_render_bench(synthetic, tmp_path, capsys):
         == 2
     )
     assert "640x480" in capsys.readouterr().err
+
+
+def test_a_video_is_read_frame_by_frame(tmp_path):
+    """The `video` extra decodes a GelSight clip into frames (mp4 is lossy: names, shapes and levels survive)."""
+    iio = pytest.importorskip("imageio.v3", reason="the video extra (pip install 'yoto[video]') is not installed")
+    pytest.importorskip("av", reason="the video extra (pip install 'yoto[video]') is not installed")
+    from yoto.sensor.cli import _read_frames
+
+    frames = np.zeros((3, 240, 320, 3), np.uint8)
+    frames[1] = 128
+    frames[2, :, :160] = 255
+    path = tmp_path / "clip.mp4"
+    iio.imwrite(path, frames, plugin="pyav", codec="mpeg4", fps=10)
+    read = list(_read_frames(path))
+    assert [name for name, _ in read] == ["frame_00000", "frame_00001", "frame_00002"]
+    for (_, frame), original in zip(read, frames, strict=True):
+        assert frame.shape == (240, 320, 3) and frame.dtype == np.uint8
+        assert abs(float(frame.mean()) - float(original.mean())) < 5
 
 
 def test_image_path_reconstructor_feeds_the_contact_simulator(synthetic, builtin_models):

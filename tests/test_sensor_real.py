@@ -7,10 +7,11 @@ import pytest
 from conftest import shared_data
 
 from yoto.errors import InputError
-from yoto.sensor.calibration import calibrate, press_height_map
+from yoto.sensor.ball_calibration import calibrate
 from yoto.sensor.optical import render_image
 from yoto.sensor.presses import find_contact_circle, list_press_images, load_image
 from yoto.sensor.reconstruction import reconstruct
+from yoto.sensor.sphere import press_height_map
 from yoto.sensor.validation import validate
 
 BALL_DIAMETER_M = 6.31e-3

@@ -11,14 +11,8 @@ import trimesh
 from yoto.contacts import contact_in_sensor
 from yoto.geometry import make_transform, normalize, random_rotations, rotation_about_axis, transform_points
 from yoto.sensor.spec import GELSIGHT_MINI
-from yoto.simulate.gelsight import (
-    GelModel,
-    PressConfig,
-    PressSimulator,
-    ReconstructionNoise,
-    reconstruct_points,
-    simulate_contact,
-)
+from yoto.simulate.gel import GelModel, ReconstructionNoise, reconstruct_points
+from yoto.simulate.press import PressConfig, PressSimulator, simulate_contact
 
 pytest.importorskip("open3d")
 

@@ -12,7 +12,8 @@ from yoto.cli import main
 from yoto.contacts import SIDES, contact_in_sensor, read_contact_pair
 from yoto.geometry import invert_transform, make_transform, rotation_about_axis, rotation_angle_rad, transform_points
 from yoto.pose.solver import oracle_pose_errors
-from yoto.simulate.gelsight import PressConfig, ReconstructionNoise
+from yoto.simulate.gel import ReconstructionNoise
+from yoto.simulate.press import PressConfig
 from yoto.simulate.scenarios import (
     PairSimulator,
     ScenarioConfig,

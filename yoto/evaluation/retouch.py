@@ -16,7 +16,7 @@ import numpy as np
 from yoto.contacts import TactileContact
 from yoto.geometry import invert_transform
 from yoto.pose.next_touch import NextTouch
-from yoto.simulate.gelsight import SimulatedContact, finish_contact
+from yoto.simulate.press import SimulatedContact, finish_contact
 from yoto.simulate.scenarios import PairSimulator, SimulatedPair
 
 RETOUCH_STREAM = 7  # the re-touch's random stream, beside the pair's own (pose, contacts, noise, calibration)

@@ -15,7 +15,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     build.add_argument("mesh", nargs="?", help="mesh file (PLY, OBJ, STL, GLB, OFF); omit with --builtin")
     build.add_argument("--name", help="object name (default: the mesh file's stem)")
     build.add_argument("--builtin", choices=[*BUILTIN_OBJECTS, "all"], help="build a built-in default object")
-    build.add_argument("--units", default="m", choices=["m", "cm", "mm", "auto"], help="unit of the mesh file")
+    build.add_argument(
+        "--units", default="m", choices=["m", "cm", "mm", "in", "auto"], help="unit of the mesh file (in: inches)"
+    )
     build.add_argument("--points", type=int, help="parent cloud size (default: 500 points per cm^2 of surface)")
     build.add_argument("--seed", type=int, default=0, help="surface sampling seed")
     build.add_argument(

@@ -5,20 +5,24 @@ from __future__ import annotations
 import logging
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import trimesh
 
 from yoto.errors import InputError
+from yoto.pointcloud import covariance_eigh
 
 log = logging.getLogger("yoto")
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".glb", ".gltf", ".off")
-UNIT_SCALES_TO_M = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
+UNIT_SCALES_TO_M = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "in": 0.0254}
 
 # A GelSight-graspable object is larger than a few millimetres and smaller than a couple of metres.
 PLAUSIBLE_EXTENT_M = (0.01, 1.0)
 IMPOSSIBLE_EXTENT_M = (0.002, 2.0)
+# Thinner than this fraction of its size along its thinnest principal axis, a mesh is flat (to float precision).
+FLAT_THICKNESS_FRACTION = 1e-6
 
 
 @dataclass
@@ -64,9 +68,10 @@ class RepairReport:
 def load_mesh(path: str | Path, units: str = "m") -> tuple[trimesh.Trimesh, RepairReport, float]:
     """Read a mesh file, convert it to metres and repair it.
 
-    `units` is "m", "cm", "mm" or "auto" (millimetres if the mesh is larger than a metre, else metres).
+    `units` is "m", "cm", "mm", "in" (inches) or "auto" (millimetres if the mesh is larger than a metre, else
+    metres).
     Returns the repaired mesh in metres (in the file's own frame), the repair report and the scale
-    that was applied. Raises InputError naming the file for unreadable, empty or implausibly sized meshes.
+    that was applied. Raises InputError naming the file for unreadable, empty, flat or implausibly sized meshes.
     """
     path = Path(path)
     if not path.is_file():
@@ -83,6 +88,7 @@ def load_mesh(path: str | Path, units: str = "m") -> tuple[trimesh.Trimesh, Repa
     if not np.all(np.isfinite(vertices)):
         raise InputError(f"mesh has {int((~np.isfinite(vertices)).any(axis=1).sum())} vertices with NaN or inf", path)
     scale = _unit_scale(path, float(np.ptp(vertices, axis=0).max()), units)
+    require_thickness(vertices * scale, path)
     mesh = trimesh.Trimesh(vertices=vertices * scale, faces=np.asarray(loaded.faces), process=False)
     mesh, report = repair_mesh(mesh, path)
     return mesh, report, scale
@@ -92,16 +98,12 @@ def _unit_scale(path: Path, extent: float, units: str) -> float:
     if units == "auto":
         units = "mm" if extent > 1.0 else "m"
     if units not in UNIT_SCALES_TO_M:
-        raise InputError(f"unknown unit '{units}' (use m, cm, mm or auto)")
+        raise InputError(f"unknown unit '{units}' (use {', '.join(UNIT_SCALES_TO_M)} or auto)")
     scale = UNIT_SCALES_TO_M[units]
     extent_m = extent * scale
     if extent_m <= 0.0:
         raise InputError("mesh has zero extent (all vertices coincide)", path)
-    hint = ""
-    for other, other_scale in UNIT_SCALES_TO_M.items():
-        if other != units and PLAUSIBLE_EXTENT_M[0] <= extent * other_scale <= PLAUSIBLE_EXTENT_M[1]:
-            hint = f"; it looks like {other} (pass --units {other})"
-            break
+    hint = _unit_hint(extent, units)
     if not IMPOSSIBLE_EXTENT_M[0] <= extent_m <= IMPOSSIBLE_EXTENT_M[1]:
         raise InputError(
             f"read in {units}, the mesh is {extent_m * 1000:.4g} mm across, which no GelSight-graspable object "
@@ -111,6 +113,44 @@ def _unit_scale(path: Path, extent: float, units: str) -> float:
     if not PLAUSIBLE_EXTENT_M[0] <= extent_m <= PLAUSIBLE_EXTENT_M[1]:
         log.warning("%s: read in %s, the mesh is %.4g mm across%s", path, units, extent_m * 1000, hint)
     return scale
+
+
+def _unit_hint(extent: float, units: str) -> str:
+    """The other units in which the mesh has a plausible size, most plausible first, as a message tail.
+
+    Most plausible: the size nearest (by ratio) the middle of PLAUSIBLE_EXTENT_M, 10 cm, a typical object.
+    """
+    typical_m = float(np.sqrt(PLAUSIBLE_EXTENT_M[0] * PLAUSIBLE_EXTENT_M[1]))
+    sizes = {other: extent * scale for other, scale in UNIT_SCALES_TO_M.items() if other != units}
+    plausible = sorted(
+        (unit for unit, size in sizes.items() if PLAUSIBLE_EXTENT_M[0] <= size <= PLAUSIBLE_EXTENT_M[1]),
+        key=lambda unit: abs(np.log(sizes[unit] / typical_m)),
+    )
+    if not plausible:
+        return ""
+    best, *others = plausible
+    hint = f"; with --units {best} it is {sizes[best] * 1000:.4g} mm across"
+    if others:
+        hint += " (" + ", ".join(f"--units {unit}: {sizes[unit] * 1000:.4g} mm" for unit in others) + ")"
+    return hint
+
+
+def require_thickness(vertices_m: np.ndarray, path: str | Path | None = None, what: str = "the mesh") -> None:
+    """Raise InputError naming `path` (or `what`) when the vertices (metres) lie in one plane.
+
+    A flat mesh has no extent along its thinnest principal axis, which the object model divides into blocks,
+    and its two sides coincide, so no contact has an outward normal.
+    """
+    vertices_m = np.asarray(vertices_m, dtype=np.float64)
+    _, _, axes = covariance_eigh(vertices_m)
+    extents = np.ptp(vertices_m @ axes, axis=0)  # along the principal axes, thinnest first
+    if extents[0] <= FLAT_THICKNESS_FRACTION * extents[2]:
+        raise InputError(
+            f"{what} is flat: all its vertices lie in one plane ({extents[2] * 1000:.4g} x {extents[1] * 1000:.4g} "
+            "mm, no thickness). An object model needs a solid (its thinnest axis is divided into blocks, and a "
+            "contact needs an outside): export the object's closed surface, not a single face",
+            path,
+        )
 
 
 def repair_mesh(mesh: trimesh.Trimesh, path: str | Path | None = None, min_component_area_fraction: float = 0.01):
@@ -136,7 +176,7 @@ def repair_mesh(mesh: trimesh.Trimesh, path: str | Path | None = None, min_compo
         kept = [c for c in components if c.area >= min_component_area_fraction * total_area]
         report.removed_small_components = len(components) - len(kept)
         if report.removed_small_components:
-            mesh = trimesh.util.concatenate(kept)
+            mesh = cast(trimesh.Trimesh, trimesh.util.concatenate(kept))  # meshes concatenate to a mesh
 
     faces_before = mesh.faces.copy()
     trimesh.repair.fix_winding(mesh)

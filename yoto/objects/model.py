@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 from yoto.errors import InputError
 from yoto.geometry import invert_transform, make_transform, normalize, rotation_between, transform_points
 from yoto.io import load_npz, save_npz_atomic
-from yoto.objects.mesh import RepairReport
+from yoto.objects.mesh import RepairReport, require_thickness
 from yoto.objects.symmetry import Symmetry, SymmetryConfig, detect_symmetry
 from yoto.pointcloud import covariance_eigh, estimate_normals
 from yoto.raycast import MeshRaycaster
@@ -276,6 +276,7 @@ def build_object_model(
     """Build the object model of a (repaired, metre-scale) mesh given in its own file frame."""
     if not name or not name.replace("_", "").replace("-", "").isalnum():
         raise InputError(f"object name {name!r} must be letters, digits, '-' or '_'")
+    require_thickness(mesh_mesh.vertices, what=f"the mesh of object {name!r}")
     count = parent_cloud_size(mesh_mesh.area, config)
     points_mesh, normals_mesh = sample_parent_cloud(mesh_mesh, count, config)
     T_mesh_object = canonical_frame(points_mesh)

@@ -30,7 +30,7 @@ from yoto.pose.hypotheses import Hypotheses
 from yoto.pose.refine import invert_transform_batch
 from yoto.pose.search import surface_samples
 from yoto.sensor.spec import GELSIGHT_MINI
-from yoto.simulate.gelsight import SensorBody
+from yoto.simulate.body import SensorBody
 from yoto.simulate.scenarios import boxes_overlap
 
 Z_AXIS = np.array([0.0, 0.0, 1.0])

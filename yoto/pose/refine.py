@@ -27,7 +27,7 @@ from yoto.geometry import se3_exp, se3_log
 from yoto.pointcloud import voxel_downsample
 from yoto.pose.field import SurfaceField
 from yoto.sensor.spec import GELSIGHT_MINI
-from yoto.simulate.gelsight import SensorBody
+from yoto.simulate.body import SensorBody
 
 _MEAN_NORM_3D = float(np.sqrt(8.0 / np.pi))  # E|x| of a 3-D standard normal vector
 _ANGLE_TO_AXIS_STD = float(np.sqrt(np.pi / 2.0) / np.sqrt(3.0))  # per-axis std of a rotation vector whose angle

@@ -13,11 +13,12 @@ import platform
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
-from yoto.sensor.calibration import SensorCalibration, press_height_map
+from yoto.errors import InputError
+from yoto.sensor.calibration import SensorCalibration
 from yoto.sensor.optical import render_image
 from yoto.sensor.reconstruction import (
     _pixel_xy,
@@ -28,6 +29,9 @@ from yoto.sensor.reconstruction import (
     reconstruct,
     touched_box,
 )
+from yoto.sensor.sphere import press_height_map
+
+Item = TypeVar("Item")
 
 
 @dataclass
@@ -93,7 +97,12 @@ def run_benchmark(calibration: SensorCalibration, frames: list[np.ndarray], repe
 
     # Per step, on precomputed inputs of the previous step.
     blocks = [check_frame(f, calibration) for f in frames]
-    boxes = [touched_box(b, (spec.height_px, spec.width_px)) for b in blocks]
+    boxes = []
+    for k, frame_blocks in enumerate(blocks):
+        box = touched_box(frame_blocks, (spec.height_px, spec.width_px))
+        if box is None:
+            raise InputError(f"frame {k} shows no contact: the per-step timings need frames with a contact")
+        boxes.append(box)
     gradients = [box_gradients(f, calibration, box) for f, box in zip(frames, boxes, strict=True)]
     heights = [
         integrate_box(gx, gy, box, b, spec.pixel_size_m)
@@ -102,7 +111,7 @@ def run_benchmark(calibration: SensorCalibration, frames: list[np.ndarray], repe
     masks = [h <= 0.5 * h.min() for h in heights]
     index = {id(f): i for i, f in enumerate(frames)}
 
-    def at(collection):
+    def at(collection: list[Item]) -> Callable[[np.ndarray], Item]:
         return lambda f: collection[index[id(f)]]
 
     x, y = _pixel_xy(spec)

@@ -84,7 +84,7 @@ def _load_presses(args: argparse.Namespace):
 
 def _run_calibrate(args: argparse.Namespace) -> int:
     from yoto.errors import InputError
-    from yoto.sensor.calibration import calibrate
+    from yoto.sensor.ball_calibration import calibrate
     from yoto.workspace import workspace_dir
 
     out = Path(args.out) if args.out else workspace_dir(args.workspace) / "sensors" / "gelsight_mini.npz"
@@ -111,7 +111,7 @@ def _read_frames(path: Path):
     """(name, frame) pairs of an image, a folder of images, or a multi-frame file."""
     import numpy as np
 
-    from yoto.errors import InputError
+    from yoto.errors import InputError, MissingDependencyError
     from yoto.sensor.presses import IMAGE_SUFFIXES, list_press_images, load_image
 
     if path.is_dir():
@@ -142,14 +142,15 @@ def _read_frames(path: Path):
     if suffix in VIDEO_SUFFIXES:
         try:
             import imageio.v3 as iio
-
-            frames = iio.imiter(path)
-            for k, frame in enumerate(frames):
+        except ImportError as exc:
+            raise MissingDependencyError("imageio", "video", f"reading the video {path}") from exc
+        try:
+            for k, frame in enumerate(iio.imiter(path)):
                 yield f"frame_{k:05d}", np.ascontiguousarray(frame[..., :3])
-        except Exception as exc:  # imageio raises many types when no video plugin is installed
+        except Exception as exc:  # imageio raises many types for an undecodable file or a missing video plugin
             raise InputError(
-                f"cannot decode this video ({type(exc).__name__}: {exc}); install a video plugin "
-                "(`pip install imageio[pyav]`) or extract the frames to PNG files",
+                f"cannot decode this video ({type(exc).__name__}: {exc}); install the video plugin "
+                "(`pip install 'yoto[video]'`) or extract the frames to PNG files",
                 path,
             ) from exc
         return
@@ -248,8 +249,9 @@ def _run_render(args: argparse.Namespace) -> int:
     from PIL import Image
 
     from yoto.io import write_bytes_atomic
-    from yoto.sensor.calibration import load_calibration, press_height_map
+    from yoto.sensor.calibration import load_calibration
     from yoto.sensor.optical import render_image
+    from yoto.sensor.sphere import press_height_map
 
     calibration = load_calibration(args.calibration)
     spec = calibration.spec

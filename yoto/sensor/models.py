@@ -92,6 +92,34 @@ def _solve_ridge(design: np.ndarray, targets: np.ndarray, weights: np.ndarray, r
 
 
 # ---------------------------------------------------------------------------------------------------------
+# Colour change as the models see it
+
+
+def model_colour_change(image: np.ndarray, background_i16: np.ndarray, smooth: bool) -> np.ndarray:
+    """int16 (rows, cols, 3) colour change, optionally smoothed by a 3x3 binomial filter (edges replicated).
+
+    Integer arithmetic throughout so calibration and reconstruction see bit-identical inputs.
+    """
+    diff = image.astype(np.int16)
+    diff -= background_i16
+    if not smooth:
+        return diff
+    across = diff * 2
+    across[:, 1:] += diff[:, :-1]
+    across[:, :-1] += diff[:, 1:]
+    across[:, 0] += diff[:, 0]
+    across[:, -1] += diff[:, -1]
+    out = across * 2
+    out[1:] += across[:-1]
+    out[:-1] += across[1:]
+    out[0] += across[0]
+    out[-1] += across[-1]
+    out += 8
+    out >>= 4
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------------
 # Colour change -> gradient
 
 

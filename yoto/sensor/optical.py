@@ -21,7 +21,7 @@ from yoto.sensor.calibration import SensorCalibration
 def height_gradients(height_map_m: np.ndarray, pixel_size_m: float) -> tuple[np.ndarray, np.ndarray]:
     """(dz/dx, dz/dy) of a height map by central differences (one-sided at the border), dimensionless."""
     gy, gx = np.gradient(np.asarray(height_map_m, dtype=np.float64), pixel_size_m)
-    return gx, gy
+    return np.asarray(gx), np.asarray(gy)
 
 
 def render_image(

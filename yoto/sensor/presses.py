@@ -186,6 +186,8 @@ def ring_circle(
             raise NoCircleError("the contact edge points do not lie on a circle")
         circle = _refine_circle(points[inliers], circle)
         centre = circle[:2]
+    if circle is None:
+        raise ValueError(f"CircleConfig.iterations must be at least 1, got {config.iterations}")
     cx, cy, radius = circle
     distances = np.hypot(points[:, 0] - cx, points[:, 1] - cy) - radius
     inliers = np.abs(distances) < config.inlier_px

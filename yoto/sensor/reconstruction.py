@@ -33,7 +33,8 @@ import numpy as np
 import scipy.fft
 
 from yoto.errors import InputError
-from yoto.sensor.calibration import MaskConfig, SensorCalibration, model_colour_change
+from yoto.sensor.calibration import MaskConfig, SensorCalibration
+from yoto.sensor.models import model_colour_change
 from yoto.sensor.presses import check_image
 from yoto.sensor.spec import GelSightSpec
 
@@ -142,7 +143,7 @@ def poisson_integrate(
     O(n log n).
     """
     f = divergence(np.asarray(gx, dtype=np.float32), np.asarray(gy, dtype=np.float32))
-    free = tuple(bool(v) for v in free)
+    free = (bool(free[0]), bool(free[1]), bool(free[2]), bool(free[3]))  # hashable plain bools: cache keys
     row_kind, row_type, _ = _AXIS_TRANSFORMS[free[0], free[1]]
     col_kind, col_type, _ = _AXIS_TRANSFORMS[free[2], free[3]]
     forward = {"dct": scipy.fft.dct, "dst": scipy.fft.dst}
@@ -271,7 +272,7 @@ def reconstruct(
         points[:, 0] = x[mask]
         points[:, 1] = y[mask]
         points[:, 2] = height[mask]
-    return Reconstruction(height, mask, points, mask.any(), reason, box, (gx, gy) if keep_gradients else None)
+    return Reconstruction(height, mask, points, bool(mask.any()), reason, box, (gx, gy) if keep_gradients else None)
 
 
 def box_gradients(

@@ -18,17 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-from yoto.sensor.calibration import (
-    CalibrationConfig,
-    SensorCalibration,
-    calibrate,
-    model_colour_change,
-    press_height_map,
-    refine_centre,
-)
+from yoto.sensor.ball_calibration import CalibrationConfig, calibrate
+from yoto.sensor.calibration import SensorCalibration
+from yoto.sensor.models import model_colour_change
 from yoto.sensor.presses import CircleConfig, NoCircleError, find_contact_circle, ring_circle
 from yoto.sensor.reconstruction import Reconstruction, reconstruct
 from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
+from yoto.sensor.sphere import press_height_map, refine_centre
 
 log = logging.getLogger("yoto")
 
@@ -206,7 +202,7 @@ def evaluate_press(
         cy,
         a,
         radius * 1e3,
-        tuple(float(v) * 1e3 for v in centre),
+        (float(centre[0]) * 1e3, float(centre[1]) * 1e3, float(centre[2]) * 1e3),
         float(np.sqrt(np.mean((error - offset) ** 2))) * 1e3,
         offset * 1e3,
         recon.max_depth_m * 1e3,
@@ -234,7 +230,7 @@ def validate(
     if not 2 <= folds <= len(presses):
         raise ValueError(f"folds must be in [2, {len(presses)}], got {folds}")
     fold_of = np.arange(len(presses)) % folds
-    results: list[PressValidation | None] = [None] * len(presses)
+    results: dict[int, PressValidation] = {}  # press index -> its validation
     kept: dict[int, tuple[np.ndarray, Reconstruction, SensorCalibration]] = {}
     calibrations = []
     for fold in range(folds):
@@ -244,12 +240,13 @@ def validate(
         )
         log.info("fold %d: calibrated on %s", fold, report.summary())
         calibrations.append(calibration)
-        for i in np.nonzero(fold_of == fold)[0]:
+        held_out = [i for i in range(len(presses)) if fold_of[i] == fold]
+        for i in held_out:
             result, recon = evaluate_press(presses[i], calibration, ball_diameter_m / 2, names[i], fold)
             results[i] = result
             if recon is not None:
                 kept[i] = (presses[i], recon, calibration)
-    validation = ValidationResult([r for r in results if r is not None], ball_diameter_m / 2 * 1e3, folds, calibrations)
+    validation = ValidationResult([results[i] for i in sorted(results)], ball_diameter_m / 2 * 1e3, folds, calibrations)
     if figure is not None and kept:
         errors = {i: abs(results[i].radius_error(validation.ball_radius_mm)) for i in kept}
         median = float(np.median(list(errors.values())))

@@ -101,7 +101,7 @@ def _run_pairs(args: argparse.Namespace) -> int:
     import numpy as np
 
     from yoto.errors import InputError
-    from yoto.simulate.gelsight import ReconstructionNoise
+    from yoto.simulate.gel import ReconstructionNoise
     from yoto.simulate.scenarios import ScenarioConfig, write_pairs
     from yoto.workspace import pairs_dir
 
@@ -148,7 +148,7 @@ def _run_pairs(args: argparse.Namespace) -> int:
 def _run_press(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from yoto.simulate.gelsight import PressSimulator, simulate_contact
+    from yoto.simulate.press import PressSimulator, simulate_contact
 
     model = _load_model(args)
     simulator = PressSimulator(model.mesh_object)

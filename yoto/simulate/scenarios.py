@@ -42,7 +42,7 @@ from yoto.geometry import (
 )
 from yoto.io import read_json, write_json_atomic
 from yoto.objects.model import ObjectModel
-from yoto.simulate.gelsight import (
+from yoto.simulate.press import (
     REJECTION_REASONS,
     SIMULATOR_VERSION,
     PressConfig,
@@ -107,12 +107,12 @@ class SimulatedPair:
     @property
     def p_object_true(self) -> dict[str, np.ndarray]:
         """Ground-truth contact locations in YOTO's canonical object frame."""
-        return {side: contact.press.p_object for side, contact in self.contacts.items()}
+        return {side: contact.p_object for side, contact in self.contacts.items()}
 
 
 # ------------------------------------------------------------------------------------------------ simulator
 class PairSimulator:
-    """Draws dual-contact scenarios on one object. Build once per object (it builds the ray-casting scene)."""
+    """Draws dual-contact scenarios on one object. Build once per object (it uses the model's ray-casting scene)."""
 
     def __init__(
         self,
@@ -123,7 +123,7 @@ class PairSimulator:
         self.model = model
         self.config = config
         self.reconstruct = reconstruct
-        self.presses = PressSimulator(model.mesh_object, config.press)
+        self.presses = PressSimulator(model.mesh_object, config.press, model.raycaster)
         self._body_boxes = config.press.body.boxes(config.press.spec, with_gel=True)
 
     def streams(self, seed: int, index: int) -> dict[str, np.random.Generator]:
@@ -139,7 +139,7 @@ class PairSimulator:
         return press_contact(self.presses, p_object, self.model.aggregated_normal(p_object), rng)
 
     def _pair_rejection(self, first: SimulatedContact, second: SimulatedContact) -> tuple[str | None, float]:
-        p_first, p_second = first.press.p_object, second.press.p_object
+        p_first, p_second = first.p_object, second.p_object
         offset = p_second - p_first
         if np.linalg.norm(offset) < self.config.min_separation_m:
             return "contacts_too_close", 0.0
@@ -238,7 +238,7 @@ class PairSimulator:
                 "calibration_error_deg": float(np.degrees(rotation_angle_rad(T_reported, T_world_sensor))),
                 **{key: float(value) for key, value in contact.noise.items()},
             }
-        p_object = {side: contact.press.p_object for side, contact in contacts.items()}
+        p_object = {side: contact.p_object for side, contact in contacts.items()}
         extra = {
             "simulation": {
                 "simulator": f"yoto.simulate v{SIMULATOR_VERSION}",

@@ -16,48 +16,44 @@ The press, step by step (`PressSimulator.press`):
    wall thinner than the ray spacing: the press is rejected.
 2. Depth. The sensor is moved along its z so that the deepest point of the object over the pad lies exactly
    `depth_m` behind the undeformed gel: a press stops at a depth measured at its deepest point.
-3. Gel. The penetration `I = max(0, -z_obj)` is what the object pushes into the undeformed gel volume. The
-   elastomer also sinks in around the contact; we model that by Gaussian spreading of the penetration,
-   `S = gain * G_sigma * I`, and take the gel depth as `D = max(I, S)`: the gel is at least as deep as
-   the object pushes it (it cannot penetrate the object) and sinks in smoothly beside it. The height map
-   is `-D`. The contact mask is where the gel touches the object (`I >= S`) and the penetration exceeds a
-   small threshold.
-4. Reachability. The sensor body (gel block, housing, probe) must not collide with the object; the chosen
-   target point must lie inside the contact (deep concavities: the surrounding surface reaches the pad
+3. Gel. The gel sinks in where the object pushes it and smoothly around it (`gel.gel_surface`); the contact
+   mask is where it touches the object.
+4. Reachability. The sensor body (housing, probe: `body.SensorBody`) must not collide with the object; the
+   chosen target point must lie inside the contact (deep concavities: the surrounding surface reaches the pad
    first); the contact must be large enough; a narrow contact crossing the whole pad (an edge thinner than
    the pad) is rejected.
 5. Ground truth. The object-frame surface point nearest the centroid of the noise-free contact patch
    (nearest point on the mesh surface, not on a point cloud).
 
-Reconstruction noise (`reconstruct_points`) turns the noise-free height map into what a GelSight
-reconstruction pipeline would output: a depth scale error, a smooth low-frequency bias field, per-pixel
-noise, and a contact mask re-thresholded on the noisy heights.
+An accepted press becomes a tactile cloud through the reconstruction noise model (`gel.reconstruct_points`)
+or a caller's reconstruction (`simulate_contact(reconstruct=...)`).
 """
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import trimesh
-from scipy import ndimage
 
-from yoto.errors import InputError, YotoError, require_open3d
+from yoto.errors import InputError, YotoError
 from yoto.geometry import (
     invert_transform,
     make_transform,
     normalize,
     rotation_about_axis,
     rotation_between,
+    tangent_basis,
     transform_points,
 )
+from yoto.raycast import MeshRaycaster
 from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
+from yoto.simulate.body import BodySweep, SensorBody
+from yoto.simulate.gel import GelModel, ReconstructionNoise, gel_surface, reconstruct_points
 
 SIMULATOR_VERSION = 1
-TOUCH_TOLERANCE_M = 1e-7  # the gel counts as touching the object where it is within this of the surface
 
 # Why a press was rejected. Keys are stable identifiers (they appear in statistics and files).
 REJECTION_REASONS = {
@@ -75,74 +71,7 @@ REJECTION_REASONS = {
 }
 
 
-# ------------------------------------------------------------------------------------------------ configs
-@dataclass(frozen=True)
-class SensorBody:
-    """Rigid parts of a GelSight Mini and its mount, as axis-aligned boxes in the sensor frame.
-
-    The Mini's front face is about 32 x 28 mm and its body about 25 mm deep behind the gel; the gel
-    (sensed area 20.3 x 15.2 mm) stands proud of the housing face. We take 2.0 mm: with a 1.5 mm recess,
-    every 1.5 mm press into a flat face would graze the housing, which a real Mini does not.
-    """
-
-    housing_size_m: tuple[float, float] = (0.032, 0.028)  # housing face, along sensor x and y
-    housing_depth_m: float = 0.025  # housing extent behind its face, along -z
-    gel_protrusion_m: float = 0.002  # the housing face lies this far behind the undeformed gel (z = -this)
-    probe_size_m: tuple[float, float] = (0.020, 0.020)  # cross-section of the rigid probe behind the housing
-    probe_length_m: float = 0.060  # probe length behind the housing (0: no probe)
-
-    def boxes(self, spec: GelSightSpec = GELSIGHT_MINI, with_gel: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
-        """(centre, half extents) of each body box in the sensor frame; the gel block only if `with_gel`."""
-        pad_x, pad_y = spec.pad_size_m
-        front = -self.gel_protrusion_m
-        boxes = []
-        if with_gel:
-            boxes.append((np.array([0.0, 0.0, front / 2]), np.array([pad_x / 2, pad_y / 2, self.gel_protrusion_m / 2])))
-        housing_half = np.array([self.housing_size_m[0] / 2, self.housing_size_m[1] / 2, self.housing_depth_m / 2])
-        boxes.append((np.array([0.0, 0.0, front - self.housing_depth_m / 2]), housing_half))
-        if self.probe_length_m > 0:
-            probe_half = np.array([self.probe_size_m[0] / 2, self.probe_size_m[1] / 2, self.probe_length_m / 2])
-            back = front - self.housing_depth_m
-            boxes.append((np.array([0.0, 0.0, back - self.probe_length_m / 2]), probe_half))
-        return boxes
-
-
-@dataclass(frozen=True)
-class GelModel:
-    """How the elastomer deforms around an indenter (see the module docstring, step 3)."""
-
-    spread_sigma_m: float = 0.0004  # Gaussian sink-in length of the gel around a contact (0: no spreading)
-    spread_gain: float = 1.0  # weight of the spread indentation (1: a flat, wide press keeps its depth)
-    contact_threshold_m: float = 5e-5  # penetration below this is not counted as contact (noise floor)
-
-
-@dataclass(frozen=True)
-class ReconstructionNoise:
-    """Errors of a GelSight height-map reconstruction (photometric stereo + Poisson integration).
-
-    The defaults are a judgement, not a fit to data: depth errors of a few hundredths of a millimetre
-    (per pixel and low-frequency, RMS about 0.03 mm together) and a few percent of depth scale error from the
-    gradient calibration, the size GelSight-class reconstructions of ball presses show. For realism beyond
-    this, plug an image renderer and the real reconstruction into `simulate_contact(reconstruct=...)`.
-    """
-
-    pixel_std_m: float = 1.5e-5  # white per-pixel height noise
-    bias_std_m: float = 2e-5  # smooth low-frequency bias field (integration drift), standard deviation
-    bias_length_m: float = 0.003  # correlation length of the bias field
-    scale_std: float = 0.03  # relative depth scale error, drawn once per press
-    mask_threshold_m: float = 6e-5  # the noisy reconstruction's contact threshold on gel depth
-    mask_margin_px: int = 8  # noisy contact pixels count only within this distance of the true contact
-
-    @classmethod
-    def none(cls) -> ReconstructionNoise:
-        """No reconstruction error: the tactile cloud is the noise-free contact patch."""
-        return cls(pixel_std_m=0.0, bias_std_m=0.0, scale_std=0.0, mask_threshold_m=0.0, mask_margin_px=0)
-
-    @property
-    def is_noise_free(self) -> bool:
-        return self.pixel_std_m == 0 and self.bias_std_m == 0 and self.scale_std == 0
-
-
+# ------------------------------------------------------------------------------------------------ config
 @dataclass(frozen=True)
 class PressConfig:
     """Everything that defines one simulated press and whether it is accepted."""
@@ -204,33 +133,43 @@ class SimulatedContact:
     target_object: np.ndarray  # (3,) the surface point the sensor was aimed at
     approach: dict[str, float]  # tilt_deg, roll_deg, offset_mm, depth_mm
     press: Press
-    points_sensor: np.ndarray | None = None  # (N, 3) reconstructed tactile cloud, sensor frame; None if rejected
+    # (N, 3) reconstructed tactile cloud, sensor frame; empty until an accepted press is reconstructed
+    points_sensor: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
     noise: dict[str, float] = field(default_factory=dict)  # the reconstruction errors drawn for this press
 
     @property
     def accepted(self) -> bool:
-        return self.press.accepted and self.points_sensor is not None
+        return self.press.accepted and len(self.points_sensor) > 0
 
     @property
     def rejection(self) -> str | None:
         return self.press.rejection
 
+    @property
+    def p_object(self) -> np.ndarray:
+        """The ground-truth contact location (object frame) of an accepted press."""
+        if self.press.p_object is None:
+            raise ValueError(f"a rejected press ({self.rejection}) has no ground-truth contact location")
+        return self.press.p_object
+
 
 # ------------------------------------------------------------------------------------------------ simulator
 class PressSimulator:
-    """Presses a GelSight into one mesh. Builds the ray-casting scene once; a press then takes tens of ms."""
+    """Presses a GelSight into one mesh. Ray casting is set up once; a press then takes tens of ms."""
 
-    def __init__(self, mesh_object: trimesh.Trimesh, config: PressConfig = PressConfig()):
-        o3d = require_open3d("the GelSight contact simulator")
+    def __init__(
+        self,
+        mesh_object: trimesh.Trimesh,
+        config: PressConfig = PressConfig(),
+        raycaster: MeshRaycaster | None = None,
+    ):
+        """`raycaster`: ray casting on `mesh_object` when one exists already (`ObjectModel.raycaster`)."""
         vertices = np.asarray(mesh_object.vertices, dtype=np.float64)
-        faces = np.asarray(mesh_object.faces)
-        if len(faces) == 0:
+        if len(mesh_object.faces) == 0:
             raise InputError("cannot press a sensor into a mesh without faces")
         self.config = config
         self.mesh = mesh_object
-        self._o3d = o3d
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
+        self.raycaster = raycaster or MeshRaycaster(vertices, mesh_object.faces, "the GelSight contact simulator")
         self.bounds_centre = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
         self.bounds_radius = float(np.linalg.norm(vertices - self.bounds_centre, axis=1).max())
         spec = config.spec
@@ -238,7 +177,7 @@ class PressSimulator:
         self._pixel_x, self._pixel_y = x.ravel(), y.ravel()  # every pixel, row-major
         self._coarse_x, self._coarse_y = x[::8, ::8].ravel(), y[::8, ::8].ravel()  # every 8th row and column
         self._border = _border_ring_indices(spec.height_px, spec.width_px)
-        self._collision_rays_sensor = _box_sweep_rays(config.body.boxes(spec), config.collision_ray_spacing_m)
+        self._body_sweep = BodySweep.of(config.body.boxes(spec), config.collision_ray_spacing_m)
         self._face_area_cdf = np.cumsum(mesh_object.area_faces) / mesh_object.area
 
     # ------------------------------------------------------------------------------------------ sampling
@@ -268,10 +207,13 @@ class PressSimulator:
         inward = -normalize(np.asarray(n_object, dtype=np.float64))
         cos_tilt = rng.uniform(np.cos(np.radians(config.max_tilt_deg)), 1.0)
         tilt = float(np.arccos(np.clip(cos_tilt, -1.0, 1.0)))
+        # A random axis perpendicular to the approach. `geometry.tangent_basis(inward, reference=helper)[1]` is the
+        # same axis up to rounding, but the last bits of every simulated pose would change: the bare cross product
+        # keeps simulated pairs bit-identical across versions.
         helper = normalize(rng.normal(size=3))
         tilt_axis = np.cross(inward, helper)
-        if np.linalg.norm(tilt_axis) < 1e-9:
-            tilt_axis = np.cross(inward, np.eye(3)[np.argmin(np.abs(inward))])
+        if np.linalg.norm(tilt_axis) < 1e-9:  # the draw is parallel to the approach: any perpendicular will do
+            tilt_axis = tangent_basis(inward)[0]
         z_axis = rotation_about_axis(tilt_axis, tilt) @ inward
         roll = float(rng.uniform(0.0, 2.0 * np.pi))
         rotation = rotation_between(np.array([0.0, 0.0, 1.0]), z_axis) @ rotation_about_axis(
@@ -302,12 +244,8 @@ class PressSimulator:
         for axis in range(3):  # column by column from 1-D arrays: ten times faster than (N, 3) broadcasting
             rays[:, axis] = x_sensor * rotation[axis, 0] + y_sensor * rotation[axis, 1] + start[axis]
             rays[:, 3 + axis] = direction[axis]
-        hits = self.scene.cast_rays(self._o3d.core.Tensor(rays))
-        t_hit = hits["t_hit"].numpy()
-        normals = hits["primitive_normals"].numpy()
-        facing = normals[:, 0] * direction[0] + normals[:, 1] * direction[1] + normals[:, 2] * direction[2]
-        back = (facing > 0.0) & np.isfinite(t_hit)
-        return start_z + t_hit.astype(np.float64), back
+        hits = self.raycaster.cast_rays(rays)
+        return start_z + hits.t_hit, hits.back_face
 
     def press(
         self, T_object_sensor_start: np.ndarray, depth_m: float, target_object: np.ndarray | None = None
@@ -399,104 +337,14 @@ class PressSimulator:
     # ------------------------------------------------------------------------------------------ queries
     def closest_surface_points(self, points_object: np.ndarray) -> np.ndarray:
         """Nearest points on the mesh surface (object frame) to (M, 3) query points."""
-        query = self._o3d.core.Tensor(np.asarray(points_object, dtype=np.float32).reshape(-1, 3))
-        closest = self.scene.compute_closest_points(query)["points"].numpy().astype(np.float64)
-        return closest.reshape(np.shape(points_object))
+        return self.raycaster.closest_points(points_object)
 
     def body_collision(self, T_object_sensor: np.ndarray) -> str | None:
         """Which part of the sensor body collides with the object at this pose ("housing", "probe"), or None.
 
-        Rays sweep each body box along x, y and z every `collision_ray_spacing_m`; a surface crossing any
-        of them is a collision (only features smaller than the spacing in every direction could slip through).
+        Rays sweep each body box along x, y and z every `collision_ray_spacing_m` (`body.BodySweep`).
         """
-        origins, directions, lengths, box_index = self._collision_rays_sensor
-        rays = np.empty((len(origins), 6), dtype=np.float32)
-        rays[:, :3] = _transform_points_elementwise(T_object_sensor, origins)
-        rays[:, 3:] = _transform_points_elementwise(make_transform(T_object_sensor[:3, :3], np.zeros(3)), directions)
-        t_hit = self.scene.cast_rays(self._o3d.core.Tensor(rays))["t_hit"].numpy()
-        crossing = t_hit < lengths
-        if crossing.any():
-            return ("housing", "probe")[int(box_index[np.argmax(crossing)])]
-        return None
-
-
-# ------------------------------------------------------------------------------------------------ gel model
-def gel_surface(
-    object_z_m: np.ndarray, gel: GelModel, spec: GelSightSpec = GELSIGHT_MINI
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Noise-free gel height map, contact mask and penetration from the object's height over the pad.
-
-    `object_z_m` is the object surface z in the sensor frame (+inf where there is no surface). Returns
-    (height_map_m, contact_mask, penetration_m), each (H, W).
-    """
-    penetration = np.where(np.isfinite(object_z_m), np.maximum(-object_z_m, 0.0), 0.0)
-    spread = np.zeros_like(penetration)
-    rows, columns = np.flatnonzero(penetration.any(axis=1)), np.flatnonzero(penetration.any(axis=0))
-    if gel.spread_sigma_m > 0 and len(rows):
-        # Filter only the window around the indentation (the kernel is truncated at 4 sigma anyway);
-        # 'nearest' at the image border: the gel and the object continue a little beyond the sensed area.
-        sigma_px = gel.spread_sigma_m / spec.pixel_size_m
-        margin = int(np.ceil(4 * sigma_px)) + 1
-        window = (
-            slice(max(rows.min() - margin, 0), rows.max() + margin + 1),
-            slice(max(columns.min() - margin, 0), columns.max() + margin + 1),
-        )
-        spread[window] = gel.spread_gain * ndimage.gaussian_filter(penetration[window], sigma_px, mode="nearest")
-    depth = np.maximum(penetration, spread)
-    # Touching: the gel lies on the object. The tolerance covers the float32 ray casting (~0.03 um at 0.3 m),
-    # which would otherwise make a flat press, where penetration and spread are equal, flicker.
-    touching = (penetration >= spread - TOUCH_TOLERANCE_M) & (penetration > gel.contact_threshold_m)
-    return -depth, touching, penetration
-
-
-# ------------------------------------------------------------------------------------------------ noise
-def reconstruct_points(
-    height_map_m: np.ndarray,
-    contact_mask: np.ndarray,
-    noise: ReconstructionNoise,
-    rng: np.random.Generator,
-    spec: GelSightSpec = GELSIGHT_MINI,
-) -> tuple[np.ndarray, dict[str, float]]:
-    """The tactile cloud a reconstruction would output for a noise-free height map.
-
-    Applies a depth scale error (once per press), a smooth bias field (random Fourier features of a
-    Gaussian-covariance field with correlation length `bias_length_m`) and white per-pixel noise, then
-    thresholds the noisy gel depth at `mask_threshold_m` within `mask_margin_px` of the true contact.
-    Without noise it returns the contact patch unchanged. Returns (points_sensor, drawn errors).
-    """
-    if noise.is_noise_free:
-        return spec.height_map_to_points(height_map_m, contact_mask), {"scale_error": 0.0}
-    scale_error = float(rng.normal() * noise.scale_std)
-    noisy = height_map_m * (1.0 + scale_error)
-    if noise.bias_std_m > 0:
-        noisy = noisy + bias_field(noise.bias_std_m, noise.bias_length_m, rng, spec)
-    if noise.pixel_std_m > 0:
-        noisy = noisy + rng.normal(scale=noise.pixel_std_m, size=noisy.shape)
-    region = contact_mask
-    if noise.mask_margin_px > 0:
-        region = ndimage.maximum_filter(contact_mask, size=2 * noise.mask_margin_px + 1)
-    mask = region & (-noisy > noise.mask_threshold_m)
-    return spec.height_map_to_points(noisy, mask), {"scale_error": scale_error}
-
-
-def bias_field(
-    std_m: float, length_m: float, rng: np.random.Generator, spec: GelSightSpec = GELSIGHT_MINI, features: int = 16
-) -> np.ndarray:
-    """A smooth zero-mean random field over the image, (H, W) metres, with standard deviation about `std_m`.
-
-    Sum of `features` cosines with wave vectors drawn from N(0, 1/length^2): in expectation a stationary
-    Gaussian process with covariance exp(-r^2 / (2 length^2)).
-    """
-    columns, rows = _pixel_axes(spec)
-    wave = rng.normal(scale=1.0 / length_m, size=(features, 2))
-    phase = rng.uniform(0.0, 2.0 * np.pi, size=features)
-    # cos(kx x + ky y + p) = cos(ky y) cos(kx x + p) - sin(ky y) sin(kx x + p): one matrix product.
-    along_rows = np.hstack([np.cos(np.outer(rows, wave[:, 1])), -np.sin(np.outer(rows, wave[:, 1]))])
-    along_columns = np.vstack(
-        [np.cos(np.outer(wave[:, 0], columns) + phase[:, None]), np.sin(np.outer(wave[:, 0], columns) + phase[:, None])]
-    )
-    field_ = np.einsum("rk,kc->rc", along_rows, along_columns)  # no BLAS: see _transform_points_elementwise
-    return std_m * np.sqrt(2.0 / features) * field_
+        return self._body_sweep.collision(self.raycaster, T_object_sensor)
 
 
 # ------------------------------------------------------------------------------------------------ one contact
@@ -562,7 +410,7 @@ def finish_contact(
     if len(points) < MIN_TACTILE_POINTS or not np.all(np.isfinite(points)):
         press.rejection = "reconstruction_failed"
         press.details["reconstructed_points"] = len(points)
-        contact.points_sensor = None
+        contact.points_sensor = np.empty((0, 3))
         return contact
     contact.points_sensor = points
     if reconstruct is not None:
@@ -570,30 +418,12 @@ def finish_contact(
         # is what the sensor reports. A reconstruction's mask can differ from the gel's true contact (a tilted
         # flat press keeps only its deeper half), so the truth follows the observed cloud.
         centroid_object = transform_points(press.T_object_sensor, points.mean(axis=0))
-        press.details["p_object_of_true_contact"] = press.p_object.tolist()
+        press.details["p_object_of_true_contact"] = contact.p_object.tolist()
         press.p_object = simulator.closest_surface_points(centroid_object[None])[0]
     return contact
 
 
 # ------------------------------------------------------------------------------------------------ helpers
-def _transform_points_elementwise(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """`geometry.transform_points` for large (N, 3) arrays without a BLAS call: numpy's threaded matmul can
-    stall for tens of milliseconds on a busy machine, elementwise products do not."""
-    rotation, translation = transform[:3, :3], transform[:3, 3]
-    result = np.empty_like(points, dtype=np.float64)
-    for axis in range(3):
-        row = rotation[axis]
-        result[:, axis] = points[:, 0] * row[0] + points[:, 1] * row[1] + points[:, 2] * row[2] + translation[axis]
-    return result
-
-
-@functools.lru_cache(maxsize=8)
-def _pixel_axes(spec: GelSightSpec) -> tuple[np.ndarray, np.ndarray]:
-    """Sensor-frame x of each image column and y of each image row (metres), as in `spec.pixel_xy_sensor`."""
-    x, y = spec.pixel_xy_sensor()
-    return x[0].copy(), y[:, 0].copy()
-
-
 def _border_ring_indices(rows: int, cols: int) -> np.ndarray:
     """Flat indices of the image's outermost pixels, in order around the ring (clockwise from top-left)."""
     top = [(0, c) for c in range(cols)]
@@ -617,31 +447,9 @@ def _contact_width_m(mask: np.ndarray, spec: GelSightSpec) -> float:
     if len(rows) < 3:
         return 0.0
     u, v = cols - cols.mean(), rows - rows.mean()
-    uv = float((u * v).sum())  # elementwise sums, not BLAS dot (see _transform_points_elementwise)
+    uv = float((u * v).sum())  # elementwise sums, not a BLAS dot (body.transform_points_elementwise)
     covariance = np.array([[float((u * u).sum()), uv], [uv, float((v * v).sum())]])
     _, vectors = np.linalg.eigh(covariance)
     along = u * vectors[0, -1] + v * vectors[1, -1]
     length_px = np.ptp(along) + 1.0
     return float(len(rows) / length_px * spec.pixel_size_m)
-
-
-def _box_sweep_rays(
-    boxes: list[tuple[np.ndarray, np.ndarray]], spacing_m: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Rays crossing each box along x, y and z on a grid (sensor frame): origins, directions, lengths, box index."""
-    origins, directions, lengths, index = [], [], [], []
-    for box, (centre, half) in enumerate(boxes):
-        for axis in range(3):
-            u, v = [a for a in range(3) if a != axis]
-            nu = max(2, int(np.ceil(2 * half[u] / spacing_m)) + 1)
-            nv = max(2, int(np.ceil(2 * half[v] / spacing_m)) + 1)
-            gu, gv = np.meshgrid(np.linspace(-half[u], half[u], nu), np.linspace(-half[v], half[v], nv))
-            start = np.zeros((gu.size, 3))
-            start[:, u], start[:, v], start[:, axis] = gu.ravel(), gv.ravel(), -half[axis]
-            origins.append(start + centre)
-            direction = np.zeros(3)
-            direction[axis] = 1.0
-            directions.append(np.tile(direction, (gu.size, 1)))
-            lengths.append(np.full(gu.size, 2 * half[axis]))
-            index.append(np.full(gu.size, box))
-    return np.vstack(origins), np.vstack(directions), np.concatenate(lengths), np.concatenate(index)
