@@ -17,6 +17,7 @@ GelSight Mini), and it clears the sensor that stays. The result is {p_object, n_
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,7 +26,7 @@ import numpy as np
 from yoto.contacts import SIDES, ContactPair
 from yoto.geometry import make_transform, rotate_vectors, rotation_between, tangent_basis, transform_points
 from yoto.objects.model import ObjectModel
-from yoto.pose.field import surface_field
+from yoto.pose.field import SurfaceField, surface_field
 from yoto.pose.hypotheses import Hypotheses
 from yoto.pose.refine import invert_transform_batch
 from yoto.pose.search import surface_samples
@@ -40,7 +41,8 @@ Z_AXIS = np.array([0.0, 0.0, 1.0])
 class NextTouchConfig:
     """How the next touch is chosen."""
 
-    candidates: int = 1500  # surface locations considered (a deterministic stride through the search samples)
+    candidates: int = 1500  # surface locations considered (a deterministic stride through the search samples),
+    # those a sensor can press kept (once per model)
     pad_radius_m: float = 0.006  # the expected patch is compared within this radius of the touch
     pad_rings: int = 2  # rings of comparison points on the pad disc (plus its centre)
     clip_m: float = 0.003  # heights further off than this count as this (no contact at all reads the same)
@@ -49,7 +51,7 @@ class NextTouchConfig:
     press_depth_m: float = 0.0015  # the deepest press (the contact simulator's, and SPEC's, range ends here)
     clearance_m: float = 0.0002  # ... after which the sensor body must stay this far outside the object
     body_spacing_m: float = 0.003  # spacing of the points checked on the sensor body's boxes
-    checked: int = 40  # most valuable candidates checked for reachability (best first)
+    checked: int = 300  # most valuable candidates checked for reachability under every hypothesis (best first)
 
 
 @dataclass
@@ -99,6 +101,37 @@ def _body_points(config: NextTouchConfig, body: SensorBody) -> np.ndarray:
     return np.vstack(points)
 
 
+@dataclass
+class TouchSites:
+    """The surface locations a sensor can press on the object (pose-independent: the object alone in the way)."""
+
+    p_object: np.ndarray  # (C, 3)
+    n_object: np.ndarray  # (C, 3) outward normals (press along -n)
+    T_object_sensor: np.ndarray  # (C, 4, 4) the sensor whose gel centre touches there
+
+
+_SITES: dict[tuple[str, NextTouchConfig], TouchSites] = {}
+_SITES_LOCK = threading.Lock()
+
+
+def touch_sites(model: ObjectModel, config: NextTouchConfig = NextTouchConfig()) -> TouchSites:
+    """The cached reachable sites of a model: a deterministic stride through the search samples, kept where a
+    sensor pressing along the inward normal meets the object with its gel before its body does."""
+    key = (model.fingerprint, config)
+    with _SITES_LOCK:
+        cached = _SITES.get(key)
+    if cached is None:
+        samples = surface_samples(model)
+        stride = max(1, len(samples.points_object) // config.candidates)
+        p, n = samples.points_object[::stride], samples.normals_object[::stride]
+        T_object_sensor = np.stack([sensor_pose_at(point, normal) for point, normal in zip(p, n)])
+        clear = presses_clear(surface_field(model), T_object_sensor, config)
+        cached = TouchSites(p[clear], n[clear], T_object_sensor[clear])
+        with _SITES_LOCK:
+            _SITES[key] = cached
+    return cached
+
+
 def suggest_next_touch(
     model: ObjectModel, hypotheses: Hypotheses, pair: ContactPair, config: NextTouchConfig = NextTouchConfig()
 ) -> NextTouch | None:
@@ -107,9 +140,8 @@ def suggest_next_touch(
     if len(hypotheses) < 2:
         return None
     field = surface_field(model)
-    samples = surface_samples(model)
-    stride = max(1, len(samples.points_object) // config.candidates)
-    p, n = samples.points_object[::stride], samples.normals_object[::stride]
+    sites = touch_sites(model, config)
+    p, n = sites.p_object, sites.n_object
     u, v = tangent_basis(n)
     pad = _pad_points(config)
     # World positions of the pad's comparison points for a press at each candidate, under the first hypothesis.
@@ -128,27 +160,21 @@ def suggest_next_touch(
     mean = np.einsum("k,kcp->cp", probability, h)
     variance = np.einsum("k,kcp->cp", probability, h**2) - mean**2
     disagreement = np.sqrt(2.0 * np.maximum(variance, 0.0)).mean(axis=1)
-    order = np.argsort(-disagreement, kind="stable")
-    body = _body_points(config, SensorBody())
-    gel = _gel_points(config)
-    meaningful = inverse[probability >= config.min_probability]
+    order = np.argsort(-disagreement, kind="stable")[: config.checked]
+    order = order[disagreement[order] > 1e-6]
+    # The press planned under the first hypothesis must clear the object under every other one too.
+    T_world_new = T0 @ sites.T_object_sensor[order]
+    clear = np.ones(len(order), dtype=bool)
+    for T_object_world in inverse[1:][probability[1:] >= config.min_probability]:
+        clear[clear] = presses_clear(field, T_object_world @ T_world_new[clear], config)
     T_world_sensor = {side: pair.contact(side).T_world_sensor for side in SIDES}
     boxes = SensorBody().boxes(GELSIGHT_MINI, with_gel=True)
-    for index in order[: config.checked]:
-        if disagreement[index] <= 1e-6:
-            break
-        T_world_new = T0 @ sensor_pose_at(p[index], n[index])
-        if not all(
-            _press_clears(field, T_object_world @ T_world_new, gel, body, config) for T_object_world in meaningful
-        ):
-            continue
+    for index, T_new in zip(order[clear], T_world_new[clear]):
         for side, other in (("left", "right"), ("right", "left")):
             if not any(
-                boxes_overlap(T_world_new, ca, ha, T_world_sensor[other], cb, hb)
-                for ca, ha in boxes
-                for cb, hb in boxes
+                boxes_overlap(T_new, ca, ha, T_world_sensor[other], cb, hb) for ca, ha in boxes for cb, hb in boxes
             ):
-                return NextTouch(p[index], n[index], side, T_world_new, float(disagreement[index]))
+                return NextTouch(p[index], n[index], side, T_new, float(disagreement[index]))
     return None
 
 
@@ -162,18 +188,19 @@ def _gel_points(config: NextTouchConfig) -> np.ndarray:
     return np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
 
 
-def _press_clears(
-    field, T_object_sensor: np.ndarray, gel: np.ndarray, body: np.ndarray, config: NextTouchConfig
-) -> bool:
-    """Whether a sensor approaching along its z toward this pose (object frame) presses the object with its gel
-    before any part of its body meets it: the sensor stops where the gel first touches, presses `press_depth_m`
-    further, and its body must then stay `clearance_m` outside the object. An approach that meets nothing within
-    the field's band cannot collide there either."""
-    gel_distance, _ = field.distance(transform_points(T_object_sensor, gel), with_gradient=False)
-    first_touch = float(gel_distance.min())  # how far the sensor still moves (negative: back) until the gel touches
-    if first_touch >= field.band_m:
-        return True
+def presses_clear(field: SurfaceField, T_object_sensor: np.ndarray, config: NextTouchConfig) -> np.ndarray:
+    """(C,) whether sensors approaching along their z toward these poses (object frame, (C, 4, 4)) press the
+    object with their gel before any part of their body meets it: each sensor stops where its gel first touches,
+    presses `press_depth_m` further, and its body must then stay `clearance_m` outside the object. An approach
+    that meets nothing within the field's band cannot collide there either."""
+    if not len(T_object_sensor):
+        return np.zeros(0, dtype=bool)
+    gel, body = _gel_points(config), _body_points(config, SensorBody())
+    gel_object = np.einsum("cij,gj->cgi", T_object_sensor[:, :3, :3], gel) + T_object_sensor[:, None, :3, 3]
+    gel_distance, _ = field.distance(gel_object, with_gradient=False)
+    first_touch = gel_distance.min(axis=1)  # how far each sensor still moves (negative: back) until the gel touches
     shift = first_touch + config.press_depth_m
-    pressed = T_object_sensor @ make_transform(np.eye(3), np.array([0.0, 0.0, shift]))
-    body_distance, _ = field.distance(transform_points(pressed, body), with_gradient=False)
-    return bool(body_distance.min() >= config.clearance_m)
+    origin = T_object_sensor[:, :3, 3] + shift[:, None] * T_object_sensor[:, :3, 2]
+    body_object = np.einsum("cij,bj->cbi", T_object_sensor[:, :3, :3], body) + origin[:, None, :]
+    body_distance, _ = field.distance(body_object, with_gradient=False)
+    return (first_touch >= field.band_m) | (body_distance.min(axis=1) >= config.clearance_m)
