@@ -25,10 +25,11 @@ from yoto.geometry import (
 from yoto.objects.model import ObjectModelConfig, build_object_model
 from yoto.pose.confidence import FEATURES, fit_logistic, load_confidence_model, read_confidence_model
 from yoto.pose.field import FieldConfig, build_surface_field
-from yoto.pose.hypotheses import HypothesisConfig, group_hypotheses, is_ambiguous
+from yoto.pose.hypotheses import HypothesisConfig, group_hypotheses, is_ambiguous, pose_distances
 from yoto.pose.refine import Refined
 from yoto.pose.search import SearchConfig, contact_shape, search_poses
 from yoto.pose.solver import direction_angles, procrustes_rotations, solve_poses
+from yoto.sensor.spec import GELSIGHT_MINI
 
 SMALL = ObjectModelConfig(num_points=30_000)
 
@@ -76,12 +77,17 @@ def test_key_is_invariant_and_batched_solver_agrees(rng):
         assert np.allclose(batched[k], single, atol=TOL["float"])
 
 
-def _press(model, p_object, n_object, T_world_object, depth=0.001, radius=0.008):
-    """A tactile contact of a flat gel pressed at p along -n (points of the parent cloud under the gel)."""
+def _press(model, p_object, n_object, T_world_object, depth=0.001, radius=0.008, whole_pad=False):
+    """A tactile contact of a flat gel pressed at p along -n (points of the parent cloud under the gel, within
+    `radius` of its centre, or on the whole GelSight Mini pad)."""
     rotation = rotation_between(np.array([0.0, 0.0, 1.0]), -n_object)
     T_object_sensor = make_transform(rotation, p_object - depth * n_object)
     points = transform_points(invert_transform(T_object_sensor), model.points_object.astype(float))
-    keep = (points[:, 2] <= 0) & (np.linalg.norm(points[:, :2], axis=1) < radius)
+    if whole_pad:
+        under = np.all(np.abs(points[:, :2]) < np.array(GELSIGHT_MINI.pad_size_m) / 2, axis=1)
+    else:
+        under = np.linalg.norm(points[:, :2], axis=1) < radius
+    keep = (points[:, 2] <= 0) & under
     return TactileContact(points[keep], T_world_object @ T_object_sensor), T_object_sensor
 
 
@@ -204,41 +210,89 @@ def test_solve_poses_recovers_exact_poses(rng):
     assert batch.separation_error_m[0] < TOL["pose_exact_m"]
 
 
-def test_fusing_the_next_touch_picks_the_true_hypothesis(box, rng):
-    """Two contacts on opposite faces leave the box free to slide; a third touch on an end face, by the left
-    sensor, tells the true pose from a slid one (the estimate's hypotheses are refined with all three clouds)."""
-    from yoto.contacts import ContactPair
+def _box_with_a_third_touch(box, rng, slides_m):
+    """Two contacts on opposite faces of the box (free to slide), an estimate whose hypotheses are the true pose
+    slid along x by each of `slides_m`, and a third touch on an end face by the left sensor."""
+    from yoto.contacts import ContactEstimate, ContactPair
     from yoto.pose.hypotheses import Hypotheses
-    from yoto.pose.pipeline import PoseConfig, PoseEstimate, fuse_next_touch
+    from yoto.pose.pipeline import PoseEstimate
     from yoto.pose.solver import solve_pose
 
     T = make_transform(random_rotations(rng, 1)[0], [0.5, 0.0, 0.2])
-    slid = T @ make_transform(np.eye(3), [0.012, 0.0, 0.0])
-    contacts = {}
+    hypotheses = np.array([T @ make_transform(np.eye(3), [slide, 0.0, 0.0]) for slide in slides_m])
+    contacts, truth = {}, {}
     for side, p, n in (("left", [0.01, 0.0, 0.025], [0, 0, 1.0]), ("right", [-0.01, 0.01, -0.025], [0, 0, -1.0])):
-        contacts[side], _ = _press(box, np.array(p), np.array(n), T)
+        contacts[side], _ = _press(box, np.array(p), np.array(n), T, whole_pad=True)
+        truth[id(contacts[side].points_sensor)] = (np.array(p), np.array(n))
     pair = ContactPair("box", contacts["left"], contacts["right"])
-    touch, _ = _press(box, np.array([0.06, 0.0, 0.0]), np.array([1.0, 0, 0]), T)
+    touch, _ = _press(box, np.array([0.06, 0.0, 0.0]), np.array([1.0, 0, 0]), T, whole_pad=True)
+    truth[id(touch.points_sensor)] = (np.array([0.06, 0.0, 0.0]), np.array([1.0, 0, 0]))
     world = {side: contact_in_world(contacts[side]) for side in contacts}
-    from yoto.contacts import ContactEstimate
-
     located = {side: ContactEstimate(np.zeros(3), np.array([0, 0, 1.0])) for side in contacts}
     located["right"] = ContactEstimate(np.array([0.0, 0.0, -0.025]), np.array([0, 0, -1.0]))
+    count = len(slides_m)
     estimate = PoseEstimate(
         object_name="box",
         method="test",
-        T_world_object=slid,
-        T_world_mesh=slid @ box.T_object_mesh,
+        T_world_object=hypotheses[0],
+        T_world_mesh=hypotheses[0] @ box.T_object_mesh,
         contacts=located,
         candidates={side: [located[side]] for side in contacts},
         world=world,
         solution=solve_pose(located["left"], located["right"], world["left"], world["right"]),
         hypotheses=Hypotheses(
-            np.array([slid, T]), np.array([0.5, 0.5]), np.zeros(2), np.arange(2), np.ones(2, np.int64)
+            hypotheses, np.full(count, 1.0 / count), np.zeros(count), np.arange(count), np.ones(count, np.int64)
         ),
         ambiguous=True,
         confidence=0.5,
     )
+    return pair, touch, estimate, T, truth
+
+
+class _KnownLocations:
+    """A test localizer that knows where each of the test's clouds was pressed."""
+
+    name = "known"
+    needs_ground_truth = False
+
+    def __init__(self, truth):
+        self.truth = truth
+
+    def localize(self, points_sensor, model, truth_p_object=None):
+        from yoto.contacts import ContactEstimate
+
+        p, n = self.truth[id(points_sensor)]
+        return [ContactEstimate(p, n)]
+
+
+def test_fusing_the_next_touch_picks_the_true_hypothesis(box, rng):
+    """Two contacts on opposite faces leave the box free to slide; a third touch on an end face, by the left
+    sensor, tells the true pose from a slid one (the estimate's hypotheses are refined with all three clouds)."""
+    from yoto.pose.pipeline import PoseConfig, fuse_next_touch
+
+    pair, touch, estimate, T, _ = _box_with_a_third_touch(box, rng, [0.012, 0.0])
     fused = fuse_next_touch(pair, box, estimate, touch, "left", PoseConfig())
     assert np.linalg.norm(fused.T_world_object[:3, 3] - T[:3, 3]) < 0.002
     assert not fused.ambiguous and fused.hypotheses.probability[0] > 0.99
+
+
+def test_fusing_the_next_touch_finds_a_truth_the_first_pair_missed(box, rng):
+    """When no hypothesis of the first pair is right (both slid along x, which the top and bottom faces leave
+    free), the new touch on the end face and the contact that stayed are localized as a pair of their own, and the
+    seeds of its search are verified with all three clouds. Three faces of a box still leave the slide along y
+    free, so only x, z and the rotation are checked."""
+    from yoto.pose.pipeline import PoseConfig, fuse_next_touch
+
+    pair, touch, estimate, T, truth = _box_with_a_third_touch(box, rng, [0.03, -0.03])
+
+    def offset(fused):
+        """Translation off the truth along x and z (object frame), rotation off it modulo the box's symmetry."""
+        relative = invert_transform(T) @ fused.T_world_object
+        _, rotation = pose_distances(fused.T_world_object[None], T, box.symmetry)
+        return np.abs(relative[[0, 2], 3]).max(), float(rotation[0])
+
+    alone = fuse_next_touch(pair, box, estimate, touch, "left", PoseConfig())
+    assert offset(alone)[0] > 0.02  # refining the slid poses cannot get there
+    fused = fuse_next_touch(pair, box, estimate, touch, "left", PoseConfig(), localizer=_KnownLocations(truth))
+    translation, rotation = offset(fused)
+    assert translation < 0.002 and rotation < np.radians(1.0)  # as refining a right hypothesis gives

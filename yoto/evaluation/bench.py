@@ -203,7 +203,9 @@ def evaluate_method(
             )
             status, right_after = "-", right
             if estimate.next_touch is not None and simulator is not None:
-                status, right_after = _retouch(simulator, simulated, estimate, localize_model, model, pose_config)
+                status, right_after = _retouch(
+                    simulator, simulated, estimate, localize_model, model, pose_config, localizer
+                )
             result.retouch.append(status)
             result.right_after_retouch.append(bool(right_after))
             if number >= config.warmup_pairs:
@@ -217,7 +219,7 @@ def evaluate_method(
     return results
 
 
-def _retouch(simulator, simulated, estimate, localize_model, model, pose_config) -> tuple[str, bool]:
+def _retouch(simulator, simulated, estimate, localize_model, model, pose_config, localizer) -> tuple[str, bool]:
     """Simulate the suggested re-touch, fuse it, and say whether the fused pose is right."""
     from yoto.evaluation.retouch import simulate_retouch
 
@@ -226,7 +228,13 @@ def _retouch(simulator, simulated, estimate, localize_model, model, pose_config)
         errors = symmetric_errors(model, estimate.T_world_mesh, simulated.pair.T_world_mesh_true)
         return str(outcome.rejection), errors["translation_mm"] < RIGHT_MM and errors["rotation_deg"] < RIGHT_DEG
     fused = fuse_next_touch(
-        simulated.pair, localize_model, estimate, outcome.touch, estimate.next_touch.sensor, pose_config
+        simulated.pair,
+        localize_model,
+        estimate,
+        outcome.touch,
+        estimate.next_touch.sensor,
+        pose_config,
+        localizer=localizer,
     )
     errors = symmetric_errors(model, fused.T_world_mesh, simulated.pair.T_world_mesh_true)
     return "ok", errors["translation_mm"] < RIGHT_MM and errors["rotation_deg"] < RIGHT_DEG

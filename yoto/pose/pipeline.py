@@ -37,7 +37,7 @@ from yoto.contacts import (
     WorldContact,
     contact_in_world,
 )
-from yoto.errors import DegenerateGeometryError
+from yoto.errors import DegenerateGeometryError, YotoError
 from yoto.geometry import invert_transform, rotate_vectors, se3_exp, so3_log, transform_points
 from yoto.localize.base import ContactLocalizer
 from yoto.objects.model import ObjectModel
@@ -390,10 +390,13 @@ def fuse_next_touch(
     sensor: str,
     config: PoseConfig = PoseConfig(),
     confidence_model: ConfidenceModel | None = None,
+    localizer: ContactLocalizer | None = None,
 ) -> PoseEstimate:
     """The pose after one more touch: `sensor` moved and pressed again (`touch`: its tactile cloud and reported
     pose) while the other stayed. Every hypothesis of the first estimate is refined with all three clouds (the
-    moved sensor's two contacts share its calibration error) and regrouped."""
+    moved sensor's two contacts share its calibration error) and regrouped. With a `localizer`, the new touch and
+    the contact that stayed are also a pair of their own: the seeds of its joint search join the first estimate's
+    hypotheses and all are verified with the three clouds, so a truth that the first pair missed can be found."""
     tick = time.perf_counter()
     field = surface_field(model, config.field_config)
     spacing = model.point_spacing_m
@@ -406,9 +409,14 @@ def fuse_next_touch(
     contacts.append(
         contact_points(touch.points_sensor, touch.T_world_sensor, SIDES.index(sensor), spacing, config.refine_config)
     )
-    refined = refine_hypotheses(
-        field, contacts, estimate.hypotheses.T_world_object, config.calibration, config.refine_config
-    )
+    seeds = estimate.hypotheses.T_world_object
+    second_seeds = _second_pair_seeds(pair, model, touch, sensor, config, localizer) if localizer else None
+    if second_seeds is None:
+        refined = refine_hypotheses(field, contacts, seeds, config.calibration, config.refine_config)
+    else:
+        seeds = np.concatenate([seeds, second_seeds])
+        screened = config.screened + len(estimate.hypotheses)
+        refined = _verify_and_refine(field, contacts, seeds, model.symmetry, config, screened, config.seeds_refined)
     hypotheses = group_hypotheses(refined, model.symmetry, config.hypotheses)
     shapes = {
         side: contact_shape(
@@ -425,6 +433,35 @@ def fuse_next_touch(
     fused.confidence = (confidence_model or load_confidence_model(config.confidence_model)).predict(fused.features)
     fused.latency_ms = {"fuse": 1000.0 * (time.perf_counter() - tick)}
     return fused
+
+
+def _second_pair_seeds(
+    pair: ContactPair,
+    model: ObjectModel,
+    touch: TactileContact,
+    sensor: str,
+    config: PoseConfig,
+    localizer: ContactLocalizer,
+) -> np.ndarray | None:
+    """The closed-form seeds (candidates and joint search) of the pair made by the new touch and the contact that
+    stayed, or None when that pair cannot be solved (e.g. its contacts are too close)."""
+    stayed = pair.contact("right" if sensor == "left" else "left")
+    left, right = (touch, stayed) if sensor == "left" else (stayed, touch)
+    second = ContactPair(pair.object_name, left, right)
+    try:
+        candidates, world, _ = localize_contacts(second, model, localizer)
+        shapes = {
+            side: contact_shape(
+                second.contact(side).points_sensor,
+                world[side].p_sensor,
+                world[side].n_sensor,
+                config.search_config.samples,
+            )
+            for side in SIDES
+        }
+        return _seeds(model, world, shapes, candidates, config, search=True)
+    except YotoError:
+        return None
 
 
 def _decisive(hypotheses: Hypotheses | None, shapes: dict[str, LocalShape], config: PoseConfig) -> bool:
