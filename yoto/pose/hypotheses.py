@@ -56,11 +56,6 @@ class Hypotheses:
     def __len__(self) -> int:
         return len(self.probability)
 
-    @property
-    def ambiguous_share(self) -> float:
-        """The probability left to every hypothesis but the first."""
-        return float(1.0 - self.probability[0]) if len(self) else 1.0
-
 
 def log_likelihoods(refined: Refined, config: HypothesisConfig) -> np.ndarray:
     """(K,) log-likelihood of each refined pose (see the module docstring)."""
