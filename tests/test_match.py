@@ -13,6 +13,7 @@ from yoto.errors import DegenerateGeometryError  # noqa: E402
 from yoto.geometry import rotation_angle_rad  # noqa: E402
 from yoto.localize import make_localizer  # noqa: E402
 from yoto.localize.match import MapGrid, MatchConfig, MatchLocalizer, plane_costs  # noqa: E402
+from yoto.localize.scaled_match import ScaledMatchLocalizer  # noqa: E402
 from yoto.simulate.scenarios import PairSimulator  # noqa: E402
 
 
@@ -40,7 +41,9 @@ def test_finds_contacts_on_a_distinctive_surface(fruit_contacts):
     sensor pose (a by-product of the match) is the true one."""
     model, contacts = fruit_contacts
     localizer = make_localizer("match")
-    assert isinstance(localizer, MatchLocalizer) and not localizer.needs_ground_truth
+    # The matched filter, with finer cells only for contacts too small for its default maps.
+    assert isinstance(localizer, ScaledMatchLocalizer) and not localizer.needs_ground_truth
+    assert isinstance(localizer.default, MatchLocalizer)
     hits = 0
     for points_sensor, p_true, T_object_sensor_true in contacts:
         candidates = localizer.localize(points_sensor, model)
@@ -134,11 +137,15 @@ def test_anchor_maps_are_built_once(builtin_models):
     )
 
 
-def test_too_small_a_contact_is_an_error(builtin_models):
-    """A contact of about one height-map cell (here 1 mm across) cannot be matched: a clear error, not a guess."""
-    disc = np.random.default_rng(0).uniform(-0.5e-3, 0.5e-3, (400, 3)) * np.array([1.0, 1.0, 0.1])
+def test_a_contact_too_small_for_the_default_cells_is_matched_with_finer_ones(builtin_models):
+    """A contact of about one default height-map cell (a cap 1 mm across) is too small for the default maps (a
+    clear error from them, not a guess), and `make_localizer("match")` matches it with finer cells instead."""
+    xy = np.random.default_rng(0).uniform(-0.5e-3, 0.5e-3, (400, 2))
+    cap = np.column_stack([xy, -0.1e-3 + 200.0 * (xy**2).sum(axis=1)])  # a 5 mm radius cap pressed 0.1 mm
     with pytest.raises(DegenerateGeometryError, match="too small to match"):
-        MatchLocalizer().localize(disc, builtin_models["fruit"])
+        MatchLocalizer().localize(cap, builtin_models["fruit"])
+    candidates = make_localizer("match").localize(cap, builtin_models["fruit"])
+    assert candidates and all(c.details["match_cell_mm"] < 1.5 for c in candidates)
 
 
 def test_pose_command_defaults_to_the_matched_filter(builtin_models, tmp_path, rng, capsys):

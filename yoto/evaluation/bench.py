@@ -59,6 +59,7 @@ class MethodSpec:
     method: str  # "oracle", "icp", "match" or "yoto"
     checkpoint: str | None = None  # for "yoto"
     model_suffix: str = ""  # localize on object model NAME+suffix (e.g. "_scan": trained on a scan-like mesh)
+    via_images: bool = False  # the same pairs, each cloud reconstructed from its rendered GelSight image
 
 
 @dataclass(frozen=True)
@@ -75,7 +76,8 @@ class BenchConfig:
     search: str = "auto"  # the pose stage's joint search: "auto", "always" or "never"
     retouch: bool = True  # simulate the suggested re-touch of ambiguous pairs and fuse it
     pose_stages: tuple[str, ...] = ("full", "paper")  # pose stages to report for every method (same localizations)
-    image_calibration: str | None = None  # GelSight calibration: contacts go height map -> image -> reconstruction
+    image_calibration: str | None = None  # rows "via images": a calibration file or "shading[:SEED]" (image_route)
+    image_variation: float = 0.0  # how much each rendered image's lighting, noise and gel stray from the sensor's
 
     def pose_config(self, stage: str) -> PoseConfig:
         if stage == "paper":
@@ -248,17 +250,32 @@ def simulate_benchmark_pairs(model: ObjectModel, config: BenchConfig):
         calibration_translation_m=config.sensor_noise_mm / 1000.0,
         calibration_rotation_rad=np.radians(config.sensor_noise_deg),
     )
-    reconstruct = None
-    if config.image_calibration:
-        from yoto.sensor import image_path_reconstructor, load_calibration
-
-        reconstruct = image_path_reconstructor(load_calibration(config.image_calibration))
-    simulator = PairSimulator(model, scenario, reconstruct)
+    simulator = PairSimulator(model, scenario)
     pairs = [
         simulator.pair(config.seed, index)
         for index in tqdm(range(config.num_pairs), desc=f"{model.name}: simulating", unit="pair", leave=False)
     ]
     return pairs, simulator
+
+
+def pairs_via_images(pairs: list, config: BenchConfig) -> list:
+    """The same simulated pairs (same poses, same truth), each tactile cloud replaced by the reconstruction of the
+    GelSight image its noise-free gel height map renders to (`yoto.sensor.optical.image_route`); a frame the
+    reconstruction finds no contact in gives an empty cloud, which the methods count as a failure."""
+    from dataclasses import replace
+
+    from yoto.sensor.optical import image_route
+
+    assert config.image_calibration is not None
+    to_cloud = image_route(config.image_calibration, config.image_variation)
+    out = []
+    for simulated in tqdm(pairs, desc="rendering and reconstructing images", unit="pair", leave=False):
+        sides = {
+            side: replace(simulated.pair.contact(side), points_sensor=to_cloud(simulated.height_maps[side]))
+            for side in SIDES
+        }
+        out.append(replace(simulated, pair=replace(simulated.pair, **sides)))
+    return out
 
 
 def run_benchmark(
@@ -282,6 +299,7 @@ def run_benchmark(
         model = resolve_object(spec_string, workspace)
         results[model.name] = {}
         pairs, simulator = None, None
+        image_pairs: list | None = None
         for spec in methods:
             cache = partial_dir / f"{model.name}__{spec.label.replace(' ', '_')}__{run_key}.json"
             fingerprint = {"model": model.fingerprint, "spec": asdict(spec)}
@@ -293,8 +311,12 @@ def run_benchmark(
                     continue
             if pairs is None:
                 pairs, simulator = simulate_benchmark_pairs(model, config)
-            retouch_simulator = simulator if config.retouch else None
-            by_stage = evaluate_method(spec, model, pairs, retouch_simulator, config, workspace)
+            if spec.via_images and image_pairs is None:
+                image_pairs = pairs_via_images(pairs, config)
+            method_pairs = image_pairs if spec.via_images and image_pairs is not None else pairs
+            # The simulated re-touch presses a clean cloud: rows via images are not re-touched.
+            retouch_simulator = simulator if config.retouch and not spec.via_images else None
+            by_stage = evaluate_method(spec, model, method_pairs, retouch_simulator, config, workspace)
             write_json_atomic(cache, {"fingerprint": fingerprint, "results": [asdict(r) for r in by_stage.values()]})
             for result in by_stage.values():
                 results[model.name][result.label] = result
@@ -411,6 +433,7 @@ def build_report(results: dict[str, dict[str, MethodResult]], rows: list[Row]) -
             "next_touch_ms": summarize(gather("next_touch_ms")),
             "pairs": len(right),
             "failures": sum(item.failures for item in items),
+            "right_share": right_share(gather("translation_mm"), gather("rotation_deg"), items),
         }
 
     for object_name, by_label in results.items():
@@ -431,6 +454,13 @@ def build_report(results: dict[str, dict[str, MethodResult]], rows: list[Row]) -
                 }
     report["methods"] = [asdict(row) for row in rows]
     return report
+
+
+def right_share(translation_mm: list[float], rotation_deg: list[float], items: list[MethodResult]) -> float:
+    """Share of all attempted pairs (failures count as wrong) whose pose is right (SPEC: 5 mm and 5 deg)."""
+    attempted = len(translation_mm) + sum(item.failures for item in items)
+    right = sum(t < RIGHT_MM and r < RIGHT_DEG for t, r in zip(translation_mm, rotation_deg, strict=True))
+    return right / attempted if attempted else float("nan")
 
 
 # ------------------------------------------------------------------------------------------------ report
@@ -493,6 +523,14 @@ def format_markdown(report: dict[str, Any]) -> str:
         )
 
     lines += table(labels, pose)
+    lines += [
+        "",
+        f"## Poses right (within {RIGHT_MM:g} mm and {RIGHT_DEG:g} deg; failures count as wrong)",
+        "",
+        header,
+        rule,
+    ]
+    lines += table(labels, lambda s: _percent(s["right_share"]))
     lines += [
         "",
         "## Trust: right / truth among hypotheses / ambiguous / right after one suggested re-touch / "
