@@ -242,20 +242,24 @@ def _retouch(simulator, simulated, estimate, localize_model, model, pose_config,
     return "ok", errors["translation_mm"] < RIGHT_MM and errors["rotation_deg"] < RIGHT_DEG
 
 
-def simulate_benchmark_pairs(model: ObjectModel, config: BenchConfig):
-    """The object's N simulated pairs under the benchmark's condition, and the simulator (for re-touches)."""
+def benchmark_simulator(model: ObjectModel, config: BenchConfig):
+    """The contact simulator of the benchmark's condition (it also presses the simulated re-touches)."""
     from yoto.simulate.scenarios import PairSimulator, ScenarioConfig
 
     scenario = ScenarioConfig(
         calibration_translation_m=config.sensor_noise_mm / 1000.0,
         calibration_rotation_rad=np.radians(config.sensor_noise_deg),
     )
-    simulator = PairSimulator(model, scenario)
-    pairs = [
+    return PairSimulator(model, scenario)
+
+
+def simulate_benchmark_pairs(model: ObjectModel, config: BenchConfig, simulator=None) -> list:
+    """The object's N simulated pairs under the benchmark's condition (with `simulator`, that one's)."""
+    simulator = simulator or benchmark_simulator(model, config)
+    return [
         simulator.pair(config.seed, index)
         for index in tqdm(range(config.num_pairs), desc=f"{model.name}: simulating", unit="pair", leave=False)
     ]
-    return pairs, simulator
 
 
 def pairs_via_images(pairs: list, config: BenchConfig) -> list:
@@ -310,7 +314,8 @@ def run_benchmark(
                         results[model.name][stage_result["label"]] = MethodResult(**stage_result)
                     continue
             if pairs is None:
-                pairs, simulator = simulate_benchmark_pairs(model, config)
+                simulator = benchmark_simulator(model, config)
+                pairs = simulate_benchmark_pairs(model, config, simulator)
             if spec.via_images and image_pairs is None:
                 image_pairs = pairs_via_images(pairs, config)
             method_pairs = image_pairs if spec.via_images and image_pairs is not None else pairs

@@ -83,7 +83,7 @@ def collect_rows(spec: str, config: CalibrationConfig, cache_dir: Path, workspac
         retouch=False,
     )
     pose_config = bench.pose_config("full")
-    pairs, _ = simulate_benchmark_pairs(model, bench)
+    pairs = simulate_benchmark_pairs(model, bench)
     localizer = make_localizer(config.method)
     rows = Rows(model.name, [], [], [])
     for simulated in tqdm(pairs, desc=f"{model.name}: pose features", unit="pair", leave=False):
