@@ -24,7 +24,14 @@ def make_transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
 
 
 def invert_transform(transform: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4x4 pose (uses R^T, not a general matrix inverse)."""
+    """Inverse of a rigid 4x4 pose, or of each of (..., 4, 4) poses (uses R^T, not a general matrix inverse)."""
+    if np.ndim(transform) > 2:
+        rotations_t = np.swapaxes(np.asarray(transform, dtype=np.float64)[..., :3, :3], -1, -2)
+        inverses = np.zeros(np.shape(transform))
+        inverses[..., :3, :3] = rotations_t
+        inverses[..., :3, 3] = -np.einsum("...ij,...j->...i", rotations_t, np.asarray(transform)[..., :3, 3])
+        inverses[..., 3, 3] = 1.0
+        return inverses
     rotation = transform[:3, :3]
     inverse = np.eye(4)
     inverse[:3, :3] = rotation.T
