@@ -101,9 +101,12 @@ def write_tum(path: str | Path, stream: PoseStream, comment: str | None = None) 
     rows = poses_to_tum_rows(stream.timestamps_s, stream.T_world_frame)
     header = "".join(f"# {line}\n" for line in (comment or "").splitlines() if line.strip())
     header += f"# {TUM_COLUMNS}\n"
-    # 9 decimals: timestamps round-trip exactly up to about 1e7 s and keep microseconds at Unix times;
+    # Timestamps as the shortest decimal that reads back as the same double (exact, and 1700000000.2 stays that);
     # positions to the nanometre, quaternions to 1e-9.
-    body = "".join(" ".join(f"{value:.9f}" for value in row) + "\n" for row in rows)
+    body = "".join(
+        np.format_float_positional(row[0], trim="-") + "".join(f" {value:.9f}" for value in row[1:]) + "\n"
+        for row in rows
+    )
     return write_text_atomic(path, header + body)
 
 

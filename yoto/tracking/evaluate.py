@@ -156,7 +156,7 @@ def summarize_errors(errors: TrackingErrors, motion: tuple[float, float] | None)
         "settled": pair(translation, rotation, after),
         "settled_drift": pair(drift_translation, drift_rotation, after),
         "frames": int(len(times)),
-        "motion_s": None if motion is None else [motion[0] - times[0], motion[1] - times[0]],
+        "motion_s": None if motion is None else [float(motion[0]), float(motion[1])],  # clock times
     }
 
 

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -183,7 +184,7 @@ class TrackResult:
         poses = self.T_world_object_open_loop if open_loop else self.T_world_object
         return poses @ model.T_object_mesh
 
-    def correction_summary(self) -> dict[str, float | int | dict[str, int]]:
+    def correction_summary(self) -> dict[str, Any]:
         """Counts of used and unusable frames, and the speed of the closed loop."""
         reasons: dict[str, int] = {}
         for correction in self.corrections:
