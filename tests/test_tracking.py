@@ -9,10 +9,11 @@ from conftest import TOL
 from yoto.contacts import ContactPair, TactileContact
 from yoto.geometry import invert_transform, make_transform, random_perturbation, random_rotations, so3_exp
 from yoto.tracking.fusion import FusionConfig, stream_jitter
-from yoto.tracking.track import Touch, find_touch_time, touch_from_pair, track
+from yoto.tracking.track import Touch, TrackConfig, find_touch_time, touch_from_pair, track
 from yoto.trajectory import PoseStream
 
 START = 1_700_000_000.0
+RAW = TrackConfig(fusion=FusionConfig(smoothing_s=0.0))  # streams used as sampled: exact where they are exact
 
 
 def object_motion(times: np.ndarray) -> np.ndarray:
@@ -62,7 +63,7 @@ def pose_errors(times: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray, np.nd
 def test_rigid_grasp_is_tracked_exactly_at_shared_timestamps(grasps):
     times = START + np.arange(0, 2.0, 0.01)
     streams = {side: sensor_stream(times, grasp) for side, grasp in grasps.items()}
-    result = track(touch_at(grasps), streams)
+    result = track(touch_at(grasps), streams, config=RAW)
     translation, rotation = errors(result)
     assert len(result.timestamps_s) == len(times)
     assert translation.max() < TOL["pose_exact_m"] and rotation.max() < TOL["arccos_rad"]
@@ -92,12 +93,23 @@ def test_jitter_of_one_sensor_is_averaged_not_followed(grasps, rng):
     assert np.sqrt(np.mean(translation**2)) < 0.05 * np.sqrt(np.mean(followed**2))
     assert result.sensor_weights[:, 0].max() < 0.01
 
-    # Both sensors equally noisy: the fused pose is better than either, about 1/sqrt(2).
+    # Both sensors equally noisy: the fused pose is better than either, about 1/sqrt(2) ...
     right_noisy = sensor_stream(times, grasps["right"], rng, 0.001, np.radians(0.5))
-    both = track(touch_at(grasps), {"left": noisy_left, "right": right_noisy})
+    both = track(touch_at(grasps), {"left": noisy_left, "right": right_noisy}, config=RAW)
     alone, _ = pose_errors(times, right_noisy.T_world_frame @ grasps["right"])
     ratio = np.sqrt(np.mean(errors(both)[0] ** 2) / np.mean(alone**2))
     assert 0.55 < ratio < 0.85
+    # ... and smoothing each stream in time (+- 50 ms of samples) halves it again.
+    smoothed = track(touch_at(grasps), {"left": noisy_left, "right": right_noisy})
+    assert np.sqrt(np.mean(errors(smoothed)[0] ** 2) / np.mean(errors(both)[0] ** 2)) < 0.5
+
+
+def test_smoothing_keeps_smooth_motion(grasps):
+    """A quadratic over +- 50 ms follows the motion: noise-free streams move by micrometres at most."""
+    times = START + np.arange(0, 2.0, 0.01)
+    streams = {side: sensor_stream(times, grasp) for side, grasp in grasps.items()}
+    translation, rotation = errors(track(touch_at(grasps), streams))
+    assert translation.max() < 5e-6 and rotation.max() < np.radians(0.001)
 
 
 def test_jitter_estimate_and_glitches(grasps, rng):
@@ -126,7 +138,7 @@ def test_dropouts_use_the_other_sensor(grasps):
     streams = {side: sensor_stream(times, grasp) for side, grasp in grasps.items()}
     keep = (times < START + 0.8) | (times > START + 1.3)  # half a second occluded
     streams["left"] = PoseStream(times[keep], streams["left"].T_world_frame[keep])
-    result = track(touch_at(grasps), streams)
+    result = track(touch_at(grasps), streams, config=RAW)
     inside = (result.timestamps_s > START + 0.85) & (result.timestamps_s < START + 1.25)
     assert np.all(result.sensor_weights[inside, 0] == 0.0)
     translation, _ = errors(result)

@@ -4,11 +4,13 @@ After the touch each sensor holds the object at a fixed pose `T_sensor_object` (
 gives a candidate `T_world_object = T_world_sensor @ T_sensor_object`. The two candidates differ by the jitter of
 each stream, by dual-arm asynchrony (the arms are never exactly in step) and by slip. They are averaged, not
 followed:
-- both streams are interpolated to each output time (they have their own rates and phases); a time inside a
-  dropout (samples further apart than `max_gap_s`) uses the other sensor alone;
 - each stream's jitter is estimated from the stream itself: the scatter of each sample about a quadratic fit of
   its neighbours in time (smooth motion fits, noise does not). A sample far off its fit is a glitch and its
   sensor is trusted little around it;
+- each stream is smoothed in time (a local quadratic over +- `smoothing_s`, glitches left out): jitter averages
+  over the samples of the window, smooth motion passes;
+- both streams are interpolated to each output time (they have their own rates and phases); a time inside a
+  dropout (samples further apart than `max_gap_s`) uses the other sensor alone;
 - rotations are averaged with weights 1 / sigma_rotation^2 and positions of the object's centroid with weights
   1 / (sigma_translation^2 + (sigma_rotation * lever)^2), where the lever is the sensor's distance from the
   centroid (a sensor's rotation jitter moves a far-away object more).
@@ -30,72 +32,108 @@ GLITCH_WEIGHT = 1e-6  # relative weight of a sensor near a glitch sample (not 0:
 
 @dataclass(frozen=True)
 class FusionConfig:
-    """How the two sensor streams are interpolated and weighted."""
+    """How the two sensor streams are smoothed, interpolated and weighted."""
 
     max_gap_s: float = 0.1  # a stream is not interpolated across samples further apart than this (a dropout)
     jitter_neighbours: int = 4  # samples on each side of the local quadratic fit that measures a stream's jitter
     min_jitter_translation_m: float = 2e-5  # floors on the jitter estimates (a perfectly smooth stream, e.g. a
     min_jitter_rotation_rad: float = float(np.radians(0.01))  # simulated one, is not trusted infinitely)
     glitch_sigmas: float = 6.0  # a sample this many jitters off its neighbours' fit is a glitch
+    smoothing_s: float = 0.05  # each stream is replaced by a local quadratic fit over +- this (0: raw samples).
+    # Centred: a pose uses samples up to this far ahead (offline files; a live loop would wait this long)
 
 
 @dataclass
 class StreamJitter:
     """How noisy one pose stream is, measured on the stream itself."""
 
-    translation_m: float  # robust 1-sigma per axis of a sample about the smooth motion
+    translation_m: float  # robust 1-sigma per axis of a raw sample about the smooth motion
     rotation_rad: float  # robust 1-sigma per rotation-vector component
     glitch: np.ndarray  # (N,) bool, samples far off the fit of their neighbours
+    smoothing_gain: float = 1.0  # variance of a smoothed sample's noise over a raw sample's (1: not smoothed)
+
+    @property
+    def smoothed_translation_m(self) -> float:
+        return self.translation_m * float(np.sqrt(self.smoothing_gain))
+
+    @property
+    def smoothed_rotation_rad(self) -> float:
+        return self.rotation_rad * float(np.sqrt(self.smoothing_gain))
 
     def describe(self) -> str:
         return (
             f"jitter {self.translation_m * 1e3:.3f} mm / {np.degrees(self.rotation_rad):.3f} deg, "
             f"{int(self.glitch.sum())} glitches"
+            + (f", smoothed to {self.smoothed_translation_m * 1e3:.3f} mm" if self.smoothing_gain < 1.0 else "")
         )
 
 
-def _leave_one_out_residuals(times: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Residual of each sample (N, 3) against a quadratic in time fitted to its 2k nearest neighbours (itself
-    left out), and the factor (N,) by which a residual's variance exceeds a sample's noise variance.
+def _windows(stream: PoseStream, neighbours: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each sample's window of 2k + 1 samples (itself included; shifted inside the stream at its ends): the indices
+    (N, W), the times relative to the sample in sample periods (N, W), and the window's translations and
+    rotation vectors relative to the sample, (N, W, 3) each."""
+    count = len(stream)
+    first = np.clip(np.arange(count) - neighbours, 0, count - 2 * neighbours - 1)
+    window = first[:, None] + np.arange(2 * neighbours + 1)[None, :]
+    period = max(float(np.median(np.diff(stream.timestamps_s))), 1e-9)  # times in periods: a sane system
+    offsets = (stream.timestamps_s[window] - stream.timestamps_s[:, None]) / period
+    poses = stream.T_world_frame
+    translations = poses[window, :3, 3] - poses[:, None, :3, 3]
+    rotations = so3_log(np.einsum("nji,nwjk->nwik", poses[:, :3, :3], poses[window, :3, :3]))  # R_n^T R_w
+    return window, offsets, translations, rotations
 
-    `values` is (N, 2k + 1, 3): for each sample the values of its window (itself included, in time order) in a
-    frame local to the sample; `times` (N, 2k + 1) the window's times relative to the sample.
-    """
-    own = times == 0.0
-    weights = (~own).astype(np.float64)
+
+def _local_fit(times: np.ndarray, values: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least-squares quadratics in time through each window: the fit at t = 0 (N, C) and its noise
+    variance over a sample's (N,). `times`, `weights` (N, W); `values` (N, W, C)."""
     design = np.stack([np.ones_like(times), times, times**2], axis=-1)  # (N, W, 3)
     inverse = np.linalg.inv(np.einsum("nw,nwi,nwj->nij", weights, design, design))
-    coefficients = inverse @ np.einsum("nw,nwi,nwc->nic", weights, design, values)  # (N, 3 terms, 3 channels)
-    prediction = coefficients[:, 0, :]  # the fit at the sample's own time (t = 0)
-    own_value = np.einsum("nw,nwc->nc", own.astype(np.float64), values)
-    variance_factor = 1.0 + inverse[:, 0, 0]  # var(sample - fit) / var(sample), the fit's own noise included
-    return own_value - prediction, variance_factor
+    coefficients = inverse @ np.einsum("nw,nwi,nwc->nic", weights, design, values)  # (N, 3 terms, C)
+    return coefficients[:, 0, :], inverse[:, 0, 0]
 
 
 def stream_jitter(stream: PoseStream, config: FusionConfig = FusionConfig()) -> StreamJitter:
-    """Estimate a stream's jitter from its own samples (see the module docstring)."""
+    """Estimate a stream's jitter from its own samples: each sample against the quadratic through its neighbours
+    (itself left out); the robust spread of those residuals, normalised by the fit's own noise."""
     k = config.jitter_neighbours
     count = len(stream)
     if count < 2 * k + 1:  # too short to tell noise from motion: assume the floors
         return StreamJitter(config.min_jitter_translation_m, config.min_jitter_rotation_rad, np.zeros(count, bool))
-    first = np.clip(np.arange(count) - k, 0, count - 2 * k - 1)
-    window = first[:, None] + np.arange(2 * k + 1)[None, :]  # (N, 2k + 1) sample indices, the sample included
-    offsets = stream.timestamps_s[window] - stream.timestamps_s[:, None]
-    scale = max(float(np.median(np.diff(stream.timestamps_s))), 1e-9)  # times in sample periods: a sane system
-    poses = stream.T_world_frame
-    translations = poses[window, :3, 3] - poses[:, None, :3, 3]
-    relative = np.einsum("nji,nwjk->nwik", poses[:, :3, :3], poses[window, :3, :3])  # R_n^T R_w
-    rotations = so3_log(relative)
-    residual_t, factor = _leave_one_out_residuals(offsets / scale, translations)
-    residual_r, _ = _leave_one_out_residuals(offsets / scale, rotations)
-    normalised_t = residual_t / np.sqrt(factor)[:, None]
-    normalised_r = residual_r / np.sqrt(factor)[:, None]
+    window, offsets, translations, rotations = _windows(stream, k)
+    others = (offsets != 0.0).astype(np.float64)
+    fit_t, fit_noise = _local_fit(offsets, translations, others)
+    fit_r, _ = _local_fit(offsets, rotations, others)
+    scale = np.sqrt(1.0 + fit_noise)[:, None]  # var(sample - fit) = var(sample) (1 + the fit's share)
+    normalised_t, normalised_r = -fit_t / scale, -fit_r / scale  # the sample's own value is 0 in its frame
     sigma_t = max(1.4826 * float(np.median(np.abs(normalised_t))), config.min_jitter_translation_m)
     sigma_r = max(1.4826 * float(np.median(np.abs(normalised_r))), config.min_jitter_rotation_rad)
     glitch = (np.linalg.norm(normalised_t, axis=1) > config.glitch_sigmas * sigma_t) | (
         np.linalg.norm(normalised_r, axis=1) > config.glitch_sigmas * sigma_r
     )
     return StreamJitter(sigma_t, sigma_r, glitch)
+
+
+def smooth_stream(stream: PoseStream, jitter: StreamJitter, config: FusionConfig = FusionConfig()) -> PoseStream:
+    """The stream with each sample replaced by a local quadratic fit (glitches left out of every fit) over
+    +- `smoothing_s`; `jitter.smoothing_gain` is set to the median noise reduction (variance ratio)."""
+    if config.smoothing_s <= 0 or len(stream) < 3:
+        return stream
+    period = float(np.median(np.diff(stream.timestamps_s)))
+    k = int(min(round(config.smoothing_s / period), (len(stream) - 1) // 2))
+    if k < 1:
+        return stream
+    window, offsets, translations, rotations = _windows(stream, k)
+    weights = (~jitter.glitch[window]).astype(np.float64)
+    weights[np.abs(offsets) * period > config.smoothing_s * 1.5] = 0.0  # samples across a dropout
+    usable = weights.sum(axis=1) >= 3
+    weights[~usable] = (np.abs(offsets[~usable]) <= 1.0).astype(np.float64)  # too few: keep the raw sample
+    fit_t, gain = _local_fit(offsets, translations, weights)
+    fit_r, _ = _local_fit(offsets, rotations, weights)
+    poses = stream.T_world_frame.copy()
+    poses[:, :3, 3] += np.where(usable[:, None], fit_t, 0.0)
+    poses[:, :3, :3] = poses[:, :3, :3] @ so3_exp(np.where(usable[:, None], fit_r, 0.0))
+    jitter.smoothing_gain = float(np.median(gain[usable])) if usable.any() else 1.0
+    return PoseStream(stream.timestamps_s, poses, stream.name, stream.source)
 
 
 @dataclass
@@ -157,8 +195,9 @@ def fuse_object_poses(
         lever = np.linalg.norm(candidate[:, :3, 3] - T_world_sensor[:, :3, 3], axis=1)
         trust = np.where(sensors.near_glitch[side][rows], GLITCH_WEIGHT, 1.0) * sensors.covered[side][rows]
         candidates.append(candidate)
-        weight_t.append(trust / (jitter.translation_m**2 + (jitter.rotation_rad * lever) ** 2))
-        weight_r.append(trust / jitter.rotation_rad**2)
+        sigma_t, sigma_r = jitter.smoothed_translation_m, jitter.smoothed_rotation_rad
+        weight_t.append(trust / (sigma_t**2 + (sigma_r * lever) ** 2))
+        weight_r.append(trust / sigma_r**2)
     stacked = np.stack(candidates)  # (2, K, 4, 4)
     w_t, w_r = np.stack(weight_t), np.stack(weight_r)  # (2, K)
     none = w_r.sum(axis=0) <= 0

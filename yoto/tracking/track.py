@@ -44,7 +44,15 @@ from yoto.geometry import invert_transform, rotation_angle_rad, skew, so3_exp, s
 from yoto.objects.model import ObjectModel
 from yoto.pointcloud import voxel_downsample
 from yoto.registration import GaussNewtonConfig, plane_distances, point_to_plane_gauss_newton, truncated_plane_fit
-from yoto.tracking.fusion import FusionConfig, SensorPoses, StreamJitter, fuse_object_poses, sensor_poses
+from yoto.tracking.fusion import (
+    FusionConfig,
+    SensorPoses,
+    StreamJitter,
+    fuse_object_poses,
+    sensor_poses,
+    smooth_stream,
+    stream_jitter,
+)
 from yoto.tracking.streams import TactileStream
 from yoto.trajectory import PoseStream
 
@@ -227,7 +235,9 @@ def track(
     times = _output_times(streams, touch.time_s)
     if len(times) == 0:
         raise InputError(f"the sensor streams end before the touch at {touch.time_s:.6f} s")
-    sensors = sensor_poses(streams, times, config.fusion)
+    jitter = {side: stream_jitter(streams[side], config.fusion) for side in SIDES}
+    streams = {side: smooth_stream(streams[side], jitter[side], config.fusion) for side in SIDES}
+    sensors = sensor_poses(streams, times, config.fusion, jitter)
     keep = sensors.any_covered
     sensors = sensors.select(keep)
     open_loop, weights = fuse_object_poses(sensors, touch.T_sensor_object)
@@ -471,7 +481,7 @@ class _Corrector:
         pose jitter moves its contact's points: rotation jitter about the sensor turns them about its origin."""
         jitter = self.jitter[side]
         lever = skew(T_object_sensor[:3, 3])  # the sensor's origin relative to the centroid, object frame
-        var_r, var_t = jitter.rotation_rad**2, jitter.translation_m**2
+        var_r, var_t = jitter.smoothed_rotation_rad**2, jitter.smoothed_translation_m**2
         # points move by w x (p - s) + t = w x p + (s x w + t): the twist (w, [s]_x w + t)
         return np.block(
             [[var_r * np.eye(3), var_r * lever.T], [var_r * lever, var_t * np.eye(3) + var_r * lever @ lever.T]]
