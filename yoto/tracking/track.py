@@ -73,7 +73,8 @@ class CorrectionConfig:
     surface_noise_m: float = 3e-5  # 1-sigma of a tactile point's distance from the surface (robust scale floor)
     registration_prior_rotation_rad: float = float(np.radians(3.0))  # weak prior on the prediction inside the
     registration_prior_translation_m: float = 0.003  # registration (keeps free directions put)
-    pixel_noise_m: float = 2e-5  # 1-sigma error of a tactile point that is new in every frame (camera noise)
+    pixel_noise_m: float = 4e-5  # 1-sigma error of a tactile point that is new in every frame (camera noise, and
+    # what registering a frame adds: its mask edge, its sampling)
     bias_points: float = 3.0  # the error a contact's points share from frame to frame (calibration, lighting,
     bias_noise_m: float = 3e-5  # integration drift) is smooth over the patch: as if this many points had this error
     bias_travel_m: float = 0.1  # that shared error changes as the contact slides: fully over this much travel
