@@ -131,9 +131,9 @@ def test_track_command_on_written_files(builtin_models, fruit_trajectory, tmp_pa
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["mode"] == "closed loop" and report["errors"]["closed_loop"]["settled"]["mm"] < 0.5
     assert (tmp_path / "error.png").stat().st_size > 10_000
-    # The tracked poses are in the mesh file's frame: close to the truth file's.
-    final = rotation_angle_rad(tracked.T_world_frame[-1], truth.T_world_frame[-1])
-    assert final < np.radians(1.0)
+    # The tracked poses are in the mesh file's frame, as the truth file's (a frame mix-up would be centimetres off).
+    assert rotation_angle_rad(tracked.T_world_frame[-1], truth.T_world_frame[-1]) < np.radians(3.0)
+    assert np.linalg.norm(tracked.T_world_frame[-1][:3, 3] - truth.T_world_frame[-1][:3, 3]) < 0.002
 
     # A misnamed tactile frame is an error naming the file; nothing is written.
     write_ply_points(folder / "left_tactile" / "first.ply", np.zeros((40, 3)))
