@@ -169,3 +169,28 @@ def test_the_touch_fixes_the_grasps_and_its_time(grasps):
         assert np.abs(touch.T_sensor_object[side] - grasps[side]).max() < TOL["float"]
     result = track(touch, streams)
     assert result.timestamps_s[0] == times[k]  # poses from the touch on
+
+
+def test_batched_inverse_matches_the_single_one(rng):
+    poses = np.array([make_transform(r, rng.normal(size=3)) for r in random_rotations(rng, 5)])
+    batched = invert_transform(poses.reshape(5, 1, 4, 4))
+    for pose, inverse in zip(poses, batched[:, 0], strict=True):
+        assert np.abs(inverse - invert_transform(pose)).max() < TOL["float"]
+        assert np.abs(inverse @ pose - np.eye(4)).max() < TOL["float"]
+
+
+def test_tactile_frames_of_both_sensors_are_paired_in_time():
+    from yoto.tracking.streams import TactileStream
+    from yoto.tracking.track import group_frames
+
+    left = TactileStream.in_memory(np.array([0.9, 1.00, 1.04, 1.08, 1.20]), [np.zeros((1, 3))] * 5)
+    right = TactileStream.in_memory(np.array([1.01, 1.05, 1.055, 1.30]), [np.zeros((1, 3))] * 4)
+    instants = group_frames({"left": left, "right": right}, start_s=1.0, tolerance_s=0.02)
+    assert instants == [
+        (1.01, [("left", 1), ("right", 0)]),
+        (1.05, [("left", 2), ("right", 1)]),
+        (1.055, [("right", 2)]),
+        (1.08, [("left", 3)]),
+        (1.20, [("left", 4)]),
+        (1.30, [("right", 3)]),
+    ]

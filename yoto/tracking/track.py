@@ -278,25 +278,24 @@ def group_frames(
     """Tactile instants from the touch on: each left frame with the nearest right frame within `tolerance_s` (not
     already taken), the rest alone. Returns (instant time = its latest frame's, [(side, frame index)]) by time."""
     stamps = {side: tactile[side].timestamps_s if side in tactile else np.empty(0) for side in SIDES}
-    taken = np.zeros(len(stamps["right"]), dtype=bool)
+    right = stamps["right"]
+    taken = right < start_s - 1e-6  # frames before the touch are never used
     instants: list[tuple[float, list[tuple[str, int]]]] = []
     for i, t_left in enumerate(stamps["left"]):
         if t_left < start_s - 1e-6:
             continue
         frames = [("left", i)]
         latest = float(t_left)
-        if len(stamps["right"]):
-            gaps = np.where(taken, np.inf, np.abs(stamps["right"] - t_left))
-            gaps[stamps["right"] < start_s - 1e-6] = np.inf
-            j = int(np.argmin(gaps))
-            if gaps[j] <= tolerance_s:
+        after = int(np.searchsorted(right, t_left))
+        nearby = [j for j in (after - 1, after) if 0 <= j < len(right) and not taken[j]]
+        if nearby:
+            j = min(nearby, key=lambda j: abs(right[j] - t_left))
+            if abs(right[j] - t_left) <= tolerance_s:
                 taken[j] = True
                 frames.append(("right", j))
-                latest = max(latest, float(stamps["right"][j]))
+                latest = max(latest, float(right[j]))
         instants.append((latest, frames))
-    for j, t_right in enumerate(stamps["right"]):
-        if not taken[j] and t_right >= start_s - 1e-6:
-            instants.append((float(t_right), [("right", j)]))
+    instants += [(float(right[j]), [("right", j)]) for j in np.flatnonzero(~taken)]
     instants.sort(key=lambda item: item[0])
     return instants
 
@@ -304,7 +303,12 @@ def group_frames(
 def contact_samples(points_sensor: np.ndarray, config: CorrectionConfig) -> np.ndarray:
     """A fixed, spatially even subset of a tactile cloud's firmly pressed points (`min_depth_fraction`): voxel means,
     then at most `points_per_contact`."""
-    pressed = points_sensor[points_sensor[:, 2] <= config.min_depth_fraction * points_sensor[:, 2].min()]
+    deepest = float(points_sensor[:, 2].min())
+    pressed = (
+        points_sensor[points_sensor[:, 2] <= config.min_depth_fraction * deepest] if deepest < 0 else points_sensor
+    )
+    if len(pressed) < MIN_TACTILE_POINTS:  # a shallow, noisy frame: keep what there is
+        pressed = points_sensor
     step = max(1, len(pressed) // (16 * config.points_per_contact))  # thin huge clouds before the voxels
     (points,) = voxel_downsample(pressed[::step], config.voxel_m)
     if len(points) > config.points_per_contact:
