@@ -128,6 +128,24 @@ def se3_log(transforms: np.ndarray) -> np.ndarray:
     return np.concatenate([omega, rho], axis=-1)
 
 
+def pose_from_twist(twists: np.ndarray) -> np.ndarray:
+    """Poses (..., 4, 4) [exp(omega) | t] of (..., 6) (omega, t): a rotation about the origin by the rotation vector,
+    then the translation t. (Not SE(3)'s exponential, whose translation is V(omega) t: here t is where the origin
+    goes, which keeps rotation and translation errors apart for frames centred on an object.)"""
+    xi = np.asarray(twists, dtype=np.float64)
+    out = np.zeros(xi.shape[:-1] + (4, 4))
+    out[..., :3, :3] = so3_exp(xi[..., :3])
+    out[..., :3, 3] = xi[..., 3:]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def twist_of_pose(poses: np.ndarray) -> np.ndarray:
+    """(omega, t) (..., 6) of poses (..., 4, 4); the inverse of `pose_from_twist`."""
+    t = np.asarray(poses, dtype=np.float64)
+    return np.concatenate([so3_log(t[..., :3, :3]), t[..., :3, 3]], axis=-1)
+
+
 def rotation_about_axis(axis: np.ndarray, angle_rad: float) -> np.ndarray:
     """Rotation by `angle_rad` about the (not necessarily unit) `axis` (Rodrigues' formula)."""
     axis = np.asarray(axis, dtype=np.float64)

@@ -46,6 +46,7 @@ from yoto.errors import InputError
 from yoto.geometry import (
     invert_transform,
     normalize,
+    pose_from_twist,
     rotation_angle_rad,
     so3_exp,
     so3_log,
@@ -235,15 +236,6 @@ def tangential_twist(
     return np.concatenate([omega, particular + np.sqrt(max(room, 0.0)) * slide])
 
 
-def twist_transform(twists: np.ndarray) -> np.ndarray:
-    """(N, 4, 4) poses [exp(omega), v] of (N, 6) twists (omega, v): a rotation about the origin, then v."""
-    out = np.zeros((len(twists), 4, 4))
-    out[:, :3, :3] = so3_exp(twists[:, :3])
-    out[:, :3, 3] = twists[:, 3:]
-    out[:, 3, 3] = 1.0
-    return out
-
-
 # ------------------------------------------------------------------------------------------------ simulation
 def _stream_times(start: float, end: float, rate_hz: float, phase_s: float) -> np.ndarray:
     count = int(np.floor((end - start - phase_s) * rate_hz)) + 1
@@ -252,7 +244,7 @@ def _stream_times(start: float, end: float, rate_hz: float, phase_s: float) -> n
 
 def _jitter(rng: np.random.Generator, count: int, translation_m: float, rotation_rad: float) -> np.ndarray:
     """(count, 4, 4) independent small pose errors: Gaussian rotation vectors and translations."""
-    return twist_transform(
+    return pose_from_twist(
         np.hstack([rng.normal(size=(count, 3)) * rotation_rad, rng.normal(size=(count, 3)) * translation_m])
     )
 
@@ -338,7 +330,7 @@ class TrajectorySimulator:
 
         def object_true(times: np.ndarray) -> np.ndarray:
             """T_world_object: the grasp between both arms, and the slip in it."""
-            return path.poses(times - 0.5 * config.arm_lag_s) @ twist_transform(slip_twists(times))
+            return path.poses(times - 0.5 * config.arm_lag_s) @ pose_from_twist(slip_twists(times))
 
         def commanded(side: str, times: np.ndarray) -> np.ndarray:
             """T_world_sensor where the arm puts the sensor (before it settles along its axis)."""
@@ -394,8 +386,8 @@ class TrajectorySimulator:
         union = np.union1d(times["left"], times["right"])
         truth = PoseStream(union, object_true(union), "object (true)")
         touch.pair.extra["timestamp"] = touch_time
-        final_slip = twist_transform(slip_twists(np.array([end])))[0]
-        slips = twist_transform(slip_twists(union))
+        final_slip = pose_from_twist(slip_twists(np.array([end])))[0]
+        slips = pose_from_twist(slip_twists(union))
         sensor_slip = {}
         for side in SIDES:
             T_end = frames[side][-1].T_object_sensor_true

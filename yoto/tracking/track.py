@@ -40,7 +40,15 @@ import numpy as np
 
 from yoto.contacts import MIN_TACTILE_POINTS, SIDES, ContactPair
 from yoto.errors import InputError
-from yoto.geometry import invert_transform, rotation_angle_rad, skew, so3_exp, so3_log, transform_points
+from yoto.geometry import (
+    invert_transform,
+    pose_from_twist,
+    rotation_angle_rad,
+    skew,
+    so3_log,
+    transform_points,
+    twist_of_pose,
+)
 from yoto.objects.model import ObjectModel
 from yoto.pointcloud import voxel_downsample
 from yoto.registration import GaussNewtonConfig, plane_distances, point_to_plane_gauss_newton, truncated_plane_fit
@@ -295,7 +303,7 @@ def group_frames(
                 frames.append(("right", j))
                 latest = max(latest, float(right[j]))
         instants.append((latest, frames))
-    instants += [(float(right[j]), [("right", j)]) for j in np.flatnonzero(~taken)]
+    instants += [(float(right[j]), [("right", int(j))]) for j in np.flatnonzero(~taken)]
     instants.sort(key=lambda item: item[0])
     return instants
 
@@ -361,10 +369,7 @@ class _Corrector:
 
     def _apply(self, twist: np.ndarray) -> None:
         """Move the object by `twist` (object frame) in both grasps: T_world_object <- T_world_object @ exp^-1."""
-        applied = np.eye(4)
-        applied[:3, :3] = so3_exp(twist[:3])
-        applied[:3, 3] = twist[3:]
-        undo = invert_transform(applied)
+        undo = invert_transform(pose_from_twist(twist))
         self.grasps = {side: grasp @ undo for side, grasp in self.grasps.items()}
 
     def _predict(self, sensors: SensorPoses, now_s: float) -> None:
@@ -500,7 +505,7 @@ class _Corrector:
         (H^-1 + S)^-1 = H (I + S H)^-1. Returns why the correction was refused (a jump larger than slip makes),
         or "" when it was applied."""
         c = self.config.correction
-        twist = np.concatenate([so3_log(correction[:3, :3]), correction[:3, 3]])
+        twist = twist_of_pose(correction)
         white, shared = np.zeros((6, 6)), np.zeros((6, 6))
         for side, side_points in points_predicted.items():
             per_frame, bias = self._information(transform_points(correction, side_points))
