@@ -132,3 +132,14 @@ def test_recordings_go_to_the_rig_reader(tmp_path, monkeypatch, rng):
     csv.write_text("Format Version,1.23\n")
     read_sensor_stream(csv, "GelRight")
     assert calls[-1] == (csv, "GelRight")
+
+
+def test_commands_refuse_bad_arguments(capsys):
+    from yoto.cli import main
+
+    assert main(["simulate", "trajectory", "--object", "fruit", "-n", "0"]) == 2
+    assert "-n must be at least 1" in capsys.readouterr().err
+    assert main(["simulate", "trajectory", "--object", "fruit", "-n", "1", "--slip-mm", "-1"]) == 2
+    assert "--slip-mm must not be negative" in capsys.readouterr().err
+    assert main(["track-bench", "--objects", "fruit", "--path-lengths-mm", "0"]) == 2
+    assert "path lengths must be positive" in capsys.readouterr().err
