@@ -76,7 +76,9 @@ class CorrectionConfig:
     min_depth_fraction: float = 0.4  # only points pressed at least this share of the frame's deepest point count:
     # the rim, where the gel barely touches and sinks in beside the object, is where reconstructions are off
     sync_tolerance_s: float = 0.02  # a left and a right frame this close in time are registered together
-    iterations: int = 10  # Gauss-Newton iterations at most
+    iterations: int = 10  # Gauss-Newton iterations at most ...
+    step_tolerance_m: float = 1e-6  # ... stopping when a step moves less than this ...
+    step_tolerance_rad: float = 1e-5  # ... and turns less than this (far below what a frame can tell)
     max_distance_m: float = 0.002  # correspondences further than this are ignored (the capture range per frame)
     surface_noise_m: float = 3e-5  # 1-sigma of a tactile point's distance from the surface (robust scale floor)
     registration_prior_rotation_rad: float = float(np.radians(3.0))  # weak prior on the prediction inside the
@@ -360,8 +362,8 @@ class _Corrector:
             surface_noise_m=c.surface_noise_m,
             prior_rotation_rad=c.registration_prior_rotation_rad,
             prior_translation_m=c.registration_prior_translation_m,
-            step_tolerance_m=1e-7,
-            step_tolerance_rad=1e-6,
+            step_tolerance_m=c.step_tolerance_m,
+            step_tolerance_rad=c.step_tolerance_rad,
         )
         self.last_correction = (0.0, 0.0)  # (metres, radians) of the latest applied correction
         self.last_time = touch.time_s
