@@ -11,7 +11,6 @@ trajectories are cached in OUT/cache, so an interrupted run resumes.
 from __future__ import annotations
 
 import dataclasses
-import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,8 +26,6 @@ from yoto.simulate.trajectory import SimulatedTrajectory, TrajectoryConfig, Traj
 from yoto.tracking.evaluate import ErrorCurve, motion_interval, plot_tracking, summarize_errors, tracking_errors
 from yoto.tracking.streams import TactileStream
 from yoto.tracking.track import TrackConfig, touch_from_pair, track
-
-log = logging.getLogger("yoto")
 
 RIGHT_TOUCH_M = 0.005  # a touch within 5 mm and 5 deg of the truth is right (SPEC)
 RIGHT_TOUCH_RAD = float(np.radians(5.0))
@@ -87,7 +84,9 @@ def evaluate_trajectory(
             "deg": np.round(np.degrees(errors.rotation_rad), 4).tolist(),
         }
     touch_error = record["open_loop"]["touch"]
-    record["right_touch"] = bool(touch_error["mm"] <= 1e3 * RIGHT_TOUCH_M and touch_error["deg"] <= 5.0)
+    record["right_touch"] = bool(
+        touch_error["mm"] <= 1e3 * RIGHT_TOUCH_M and touch_error["deg"] <= np.degrees(RIGHT_TOUCH_RAD)
+    )
     return record
 
 

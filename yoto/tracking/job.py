@@ -8,7 +8,6 @@ every timestamp of the sensor streams from the touch on (SPEC). With ground trut
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,8 +30,6 @@ from yoto.tracking.evaluate import (
 from yoto.tracking.streams import TactileStream, read_sensor_stream, read_tactile_stream
 from yoto.tracking.track import TrackConfig, TrackResult, touch_from_pair, touch_time_of, track
 from yoto.trajectory import PoseStream, write_tum
-
-log = logging.getLogger("yoto")
 
 
 @dataclass(frozen=True)
