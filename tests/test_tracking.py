@@ -194,3 +194,33 @@ def test_tactile_frames_of_both_sensors_are_paired_in_time():
         (1.20, [("left", 4)]),
         (1.30, [("right", 3)]),
     ]
+
+
+def _bench_record(touch_mm: float, drift_mm: float, right: bool) -> dict:
+    figures = {figure: {"mm": drift_mm, "deg": 0.1} for figure in ("motion_mean", "motion_peak", "settled")}
+    loop = {**figures, "settled_drift": {"mm": drift_mm, "deg": 0.1}, "touch": {"mm": touch_mm, "deg": 0.2}}
+    speed = {"latency_median_ms": 10.0, "latency_p90_ms": 20.0, "instants_per_s": 100.0, "frames_per_s": 150.0}
+    return {
+        "open_loop": loop,
+        "closed_loop": loop,
+        "slip": {"slip_final_mm": 2.0, "slip_final_deg": 1.5},
+        "closed_loop_speed": {**speed, "frames_used": 3, "frames": 4},
+        "right_touch": right,
+    }
+
+
+def test_benchmark_report_separates_right_touches():
+    from yoto.tracking.bench import TrackBenchConfig, build_report, format_markdown
+
+    records = {"thing": {"100mm": [_bench_record(0.1, 0.2, True), _bench_record(30.0, 0.9, False)]}}
+    report = build_report(records, TrackBenchConfig(trajectories=2))
+    entry = report["results"]["thing"]["100mm"]
+    assert entry["right_touches"] == 1
+    assert entry["right_touch"]["touch"]["mm"]["mean"] == pytest.approx(0.1)
+    assert entry["all"]["touch"]["mm"]["mean"] == pytest.approx(15.05)
+    assert entry["right_touch"]["closed_loop_drift_met"] == 1
+    assert entry["all"]["closed_loop_drift_met"] == 1
+    assert entry["speed"]["frames_per_s"]["mean"] == pytest.approx(150.0)
+    text = format_markdown(report)
+    assert "| closed loop: drift under the target, right touches | 1 of 1 |" in text
+    assert "| closed loop: drift under the target, all trajectories | 1 of 2 |" in text
