@@ -90,6 +90,8 @@ class CorrectionConfig:
     bias_travel_m: float = 0.1  # that shared error changes as the contact slides: fully over this much travel
     inlier_distance_m: float = 0.0003  # a registered point this close to the surface lies on it
     min_inlier_fraction: float = 0.5  # a frame with fewer of its points on the surface after registration is unusable
+    innovation_bound: float = 12.6  # a registration whose normalized innovation squared exceeds this (chi-square,
+    # 6 degrees of freedom, 95%) has its information scaled down by bound / NIS
     max_correction_m: float = 0.003  # a frame asking for a larger jump than this is unusable (a wrong fit) ...
     max_correction_rad: float = float(np.radians(3.0))  # ... or a larger turn than this
     touch_translation_m: float = 0.001  # 1-sigma uncertainty of the touch's pose: how far the first frames may
@@ -519,6 +521,13 @@ class _Corrector:
             self.bias_covariance = np.linalg.inv(shared + weak)
             covariance[12:, 12:] = self.bias_covariance
         observe = np.hstack([np.eye(6), np.zeros((6, 6)), np.eye(6)])  # z = error + bias
+        # A registration further from the prediction than the filter expects (normalized innovation squared above
+        # its bound) counts less: its information is scaled down by bound / NIS (a Huber-like robust update).
+        innovation = twist - self.bias
+        predicted = observe @ covariance @ observe.T
+        nis = float(innovation @ white @ np.linalg.solve(np.eye(6) + predicted @ white, innovation))
+        if nis > c.innovation_bound:
+            white = white * (c.innovation_bound / nis)
         prior_precision = np.linalg.inv(covariance)
         precision = prior_precision + observe.T @ white @ observe
         prior_mean = np.concatenate([np.zeros(6), self.rate, self.bias])
