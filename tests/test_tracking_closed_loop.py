@@ -15,7 +15,7 @@ from yoto.io import write_ply_points
 from yoto.simulate.trajectory import TrajectoryConfig, TrajectorySimulator, write_trajectories, write_trajectory
 from yoto.tracking.bench import tactile_streams
 from yoto.tracking.evaluate import motion_interval, summarize_errors, tracking_errors
-from yoto.tracking.track import touch_from_pair, track
+from yoto.tracking.track import TrackConfig, touch_from_pair, track
 from yoto.trajectory import read_tum, tactile_frame_name
 
 pytest.importorskip("open3d")
@@ -157,3 +157,26 @@ def test_trajectory_folders_resume_and_refuse_mixed_settings(builtin_models, tmp
     assert again.kept == [folder] and not again.written
     with pytest.raises(InputError, match="other settings"):
         write_trajectories(model, tmp_path, 1, seed=3, config=config)
+
+
+def test_a_registration_the_filter_does_not_expect_counts_less(builtin_models, fruit_trajectory):
+    """One mid-motion instant whose clouds contradict the prediction (each shifted 1 mm along its sensor's axis,
+    under the 3 mm a frame may correct): the robust update follows it less than a plain Kalman update."""
+    trajectory, model = fruit_trajectory, builtin_models["fruit"]
+    shifted = dataclasses.replace(
+        trajectory, tactile={side: list(frames) for side, frames in trajectory.tactile.items()}
+    )
+    index = len(shifted.tactile["left"]) // 2
+    for side, offset in (("left", [0.0, 0.0, 0.001]), ("right", [0.0, 0.0, -0.001])):
+        frame = shifted.tactile[side][index]
+        shifted.tactile[side][index] = dataclasses.replace(frame, points_sensor=frame.points_sensor + offset)
+    touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
+    moved = {}
+    for label, bound in (("robust", TrackConfig().correction.innovation_bound), ("plain", np.inf)):
+        config = TrackConfig(correction=dataclasses.replace(TrackConfig().correction, innovation_bound=bound))
+        result = track(touch, trajectory.streams, model, tactile_streams(shifted), config)
+        stamp = shifted.tactile["left"][index].timestamp_s
+        (instant,) = [c for c in result.corrections if abs(c.timestamp_s - stamp) < 0.03]
+        moved[label] = instant.correction_m
+    assert 2e-4 < moved["plain"] < 3e-3
+    assert moved["robust"] < 0.85 * moved["plain"]
