@@ -458,13 +458,6 @@ class TrajectorySimulator:
         return reconstruct_points(height_map * (1.0 + scale_error) + bias, mask, per_frame, rng, spec)[0]
 
 
-def simulate_trajectory(
-    model: ObjectModel, seed: int = 0, index: int = 0, config: TrajectoryConfig = TrajectoryConfig()
-) -> SimulatedTrajectory:
-    """One simulated trajectory in memory (see `TrajectorySimulator.trajectory`)."""
-    return TrajectorySimulator(model, config).trajectory(seed, index)
-
-
 # ------------------------------------------------------------------------------------------------ files
 def trajectory_settings(model: ObjectModel, seed: int, config: TrajectoryConfig) -> dict[str, Any]:
     """What determines a folder's trajectories; stored beside them so a resumed run can check it is the same."""
