@@ -23,6 +23,7 @@ STAGE_CLI_MODULES = [
     "yoto.training.cli",
     "yoto.localize.cli",
     "yoto.pose.cli",
+    "yoto.tracking.cli",
     "yoto.evaluation.cli",
     "yoto.sensor.cli",
 ]
