@@ -25,6 +25,7 @@ STAGE_CLI_MODULES = [
     "yoto.pose.cli",
     "yoto.evaluation.cli",
     "yoto.sensor.cli",
+    "yoto.rig.cli",
 ]
 
 

@@ -6,11 +6,13 @@ A **trial** is a stretch where the gel centre comes within `approach_m` of the m
 In each trial:
 1. the GelSight frames are reconstructed (`yoto.sensor.reconstruct`); the frame of the steadiest deepest moment
    (slowest relative to the object, then deepest in the image) is the contact's tactile cloud;
-2. the point labelled is the gel-plane point under the centre of that frame's contact patch, `g_sensor` (the gel
-   centre itself, as in the paper, when the contact is centred on the pad); through the trial it is mapped into the
-   mesh frame, `q(t) = T_mesh_sensor(t) @ g_sensor`, and its signed distance to the mesh is found by ray casting;
+2. the point labelled is the centroid of that frame's contact patch, `c_sensor` (SPEC: a contact's location is the
+   surface point nearest its patch's centroid; the paper takes the gel centre, which is right only for contacts
+   centred on the pad, and is reported beside it as `p_object_gel_centre`); the undeformed gel under it,
+   `g_sensor = (c_x, c_y, 0)`, is mapped into the mesh frame at every mocap frame of the trial and its signed
+   distance to the mesh found by ray casting;
 3. frames with distance <= 0 are contact frames (the soft gel sinks into the rigid mesh); the closest mesh point of
-   each is a per-frame estimate; estimates further than 3 sigma from their mean are rejected, and the mean of the
+   `T_mesh_sensor(t) @ c_sensor` in each is a per-frame estimate; estimates further than 3 sigma from their mean are rejected, and the mean of the
    rest, projected onto the mesh, is `p_object` (mesh file's frame);
 4. the trial is refused (nothing written) when the images show no contact, mocap shows no contact frame, too few
    mocap frames remain, or a mocap dropout longer than `max_dropout_s` cuts the hold; it is flagged `slip` when
@@ -30,7 +32,7 @@ import numpy as np
 
 from yoto.contacts import SIDES, TactileContact
 from yoto.errors import InputError
-from yoto.geometry import transform_points
+from yoto.geometry import so3_log, transform_points
 from yoto.io import write_bytes_atomic, write_json_atomic, write_ply_points
 from yoto.objects.model import ObjectModel
 from yoto.rig.beads import ObjectCalibration
@@ -60,6 +62,10 @@ class LabelConfig:
     steady_speed_m_s: float = 0.005  # frames this slow (or within 1.5x of the slowest) count as steady
     pair_overlap_s: float = 0.1  # trials of both rigs in contact together this long form a dual contact
     max_object_motion_m: float = 0.0005  # the object may move this much between the two frames of a pair
+    refine_object: bool = True  # refine the bead calibration with the contacts themselves (`refine_object_calibration`)
+    refine_min_contacts: int = 4  # fewer labelled contacts: no refinement
+    refine_points_per_contact: int = 300  # each contact weighs the same in the refinement
+    refine_reach_m: float = 0.004  # contact points further than this from the mesh are left out of the refinement
 
 
 @dataclass
@@ -294,12 +300,13 @@ def label_trial(
         )
     chosen, speeds = choose_frame(reconstructions, images, mesh_sensor, config)
     recon = reconstructions[chosen]
-    g_sensor = np.array([*recon.points_sensor[:, :2].mean(axis=0), 0.0])
+    c_sensor = recon.points_sensor.mean(axis=0)  # the patch centroid: SPEC's contact is the surface point nearest it
+    g_sensor = np.array([c_sensor[0], c_sensor[1], 0.0])  # the undeformed gel under it, inside the object in contact
     t = mesh_sensor.timestamps_s
     window = (t >= start) & (t <= end)
     T_window = mesh_sensor.T_world_body[window]
-    q_mesh = np.einsum("nij,j->ni", T_window[:, :3, :3], g_sensor) + T_window[:, :3, 3]
-    distance = queries.signed_distance(q_mesh)
+    distance = queries.signed_distance(np.einsum("nij,j->ni", T_window[:, :3, :3], g_sensor) + T_window[:, :3, 3])
+    q_mesh = np.einsum("nij,j->ni", T_window[:, :3, :3], c_sensor) + T_window[:, :3, 3]
     contact = distance <= 0.0
     count = int(contact.sum())
     if count == 0:
@@ -498,3 +505,78 @@ def write_labels(report: LabelReport, out_dir: str | Path, prefix: str) -> dict[
         }
         written["pairs"].append(write_json_atomic(folder / f"{stem}.json", payload))
     return written
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Refining the object calibration with the contacts
+
+
+def refine_object_calibration(
+    report: LabelReport, model: ObjectModel, object_calibration: ObjectCalibration, config: LabelConfig
+) -> tuple[ObjectCalibration, dict[str, Any]]:
+    """Refine `T_objectbody_mesh` so that the labelled contacts' tactile clouds lie on the mesh.
+
+    The bead fit is only as good as the picks on the mesh (the paper's residuals: 1.5-2.2 mm), and that error goes
+    straight into every label. A held contact is a few thousand points of the object's surface, measured by the
+    GelSight and placed by mocap and the rig calibration (sub-millimetre): all contacts of a session, mapped into
+    the object's rigid body, are registered onto the mesh by point-to-plane Gauss-Newton (`yoto.registration`),
+    with the bead calibration as the prior (its residuals set the prior's width), so directions the contacts do not
+    constrain stay where the beads put them. Slipping contacts are left out. Returns the refined calibration and
+    what changed.
+    """
+    from yoto.registration import GaussNewtonConfig, plane_distances, point_to_plane_gauss_newton
+
+    used = [t for t in report.trials if t.labelled is not None and not t.flags]
+    if len(used) < config.refine_min_contacts:
+        return object_calibration, {
+            "refined": False,
+            "reason": f"{len(used)} unflagged contacts (need {config.refine_min_contacts})",
+        }
+    T_body_mesh = object_calibration.T_objectbody_mesh
+    rng = np.random.default_rng(0)
+    clouds = []
+    for trial in used:
+        labelled = trial.labelled
+        T_body_sensor = T_body_mesh @ np.linalg.inv(labelled.T_world_mesh) @ labelled.contact.T_world_sensor
+        points = labelled.contact.points_sensor
+        keep = rng.choice(len(points), min(config.refine_points_per_contact, len(points)), replace=False)
+        clouds.append(transform_points(T_body_sensor, points[keep]))
+    points_body = np.concatenate(clouds)
+    T_object_body = model.T_object_mesh @ np.linalg.inv(T_body_mesh)
+    residual_m = max(object_calibration.residual_mm.get("rms", 1.0), 1.0) * 1e-3
+    spread_m = float(np.sqrt(np.mean(np.sum((points_body - points_body.mean(0)) ** 2, axis=1))))
+    gauss_newton = GaussNewtonConfig(
+        iterations=30,
+        max_distance_m=config.refine_reach_m,
+        surface_noise_m=1e-4,
+        prior_rotation_rad=max(residual_m / max(spread_m, 1e-3), np.radians(0.5)),
+        prior_translation_m=residual_m,
+    )
+
+    def rms(T: np.ndarray) -> float:
+        distance, matched, _, _ = plane_distances(model, transform_points(T, points_body), config.refine_reach_m)
+        return float(np.sqrt(np.mean(distance[matched] ** 2))) if matched.any() else float("nan")
+
+    pivot = points_body.mean(axis=0)
+    refined = point_to_plane_gauss_newton(model, points_body, T_object_body[None], gauss_newton, pivot_source=pivot)[0]
+    T_body_mesh_refined = np.linalg.inv(refined) @ model.T_object_mesh
+    centre = model.T_mesh_object[:3, 3]
+    change = {
+        "refined": True,
+        "contacts": len(used),
+        "surface_rms_before_mm": rms(T_object_body) * 1e3,
+        "surface_rms_after_mm": rms(refined) * 1e3,
+        "moved_at_centre_mm": float(
+            np.linalg.norm(transform_points(T_body_mesh_refined, centre) - transform_points(T_body_mesh, centre)) * 1e3
+        ),
+        "rotated_deg": float(np.degrees(np.linalg.norm(so3_log(T_body_mesh_refined[:3, :3] @ T_body_mesh[:3, :3].T)))),
+    }
+    refined_calibration = ObjectCalibration(
+        object_calibration.object_name,
+        object_calibration.object_body,
+        T_body_mesh_refined,
+        object_calibration.beads,
+        object_calibration.residual_mm,
+        {**object_calibration.sources, "refined_with_contacts": change},
+    )
+    return refined_calibration, change

@@ -69,20 +69,32 @@ RIG_BODIES = {"left": "RigLeft", "right": "RigRight"}
 @dataclass(frozen=True)
 class MocapNoise:
     """What the mocap and the user get wrong. The defaults ("paper") give the paper's sub-millimetre gel-centre
-    dispersion and bead residuals of about 1.5-2 mm."""
+    dispersion and its bead residuals (1.5-2.2 mm, mostly the picking of beads on the mesh); `mocap()` keeps the
+    mocap's jitter and dropouts but picks the beads carefully (0.3 mm)."""
 
     body_position_std_m: float = 0.0002  # per-frame jitter of a rigid body's position, per axis
     body_rotation_std_deg: float = 0.1  # per-frame jitter of its orientation (rotation vector, per axis)
     marker_std_m: float = 0.0002  # per-frame jitter of a single marker, per axis
     dropout_fraction: float = 0.01  # share of frames lost to occlusion (each body and marker on its own)
     dropout_mean_frames: float = 4.0  # mean length of an occlusion
-    bead_pick_std_m: float = 0.0012  # the user's pick of a bead on the mesh, per axis (snapped to a vertex)
+    bead_pick_std_m: float = 0.002  # the user's pick of a bead on the mesh, per axis (snapped to a vertex)
     cad_rotation_error_deg: float = 1.0  # the rig as built vs its CAD rotation
     cad_translation_error_m: float = 0.001  # ... and gel centre
 
     @classmethod
     def none(cls) -> MocapNoise:
         return cls(0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+
+    @classmethod
+    def mocap(cls) -> MocapNoise:
+        return dataclasses.replace(cls(), bead_pick_std_m=0.0003)
+
+    @classmethod
+    def preset(cls, name: str) -> MocapNoise:
+        presets = {"paper": cls, "mocap": cls.mocap, "none": cls.none}
+        if name not in presets:
+            raise InputError(f"unknown noise preset '{name}' (use {', '.join(presets)})")
+        return presets[name]()
 
 
 @dataclass(frozen=True)
@@ -629,7 +641,8 @@ def _trials(
                     {
                         "side": side,
                         "kind": trial.kind,
-                        "hold_s": [start + b, start + c],
+                        "hold_s": [config.start_epoch_s + start + b, config.start_epoch_s + start + c],  # ROS stamps
+                        "hold_take_s": [start + b, start + c],  # Motive take time
                         "p_object": transform_points(scene.model.T_mesh_object, trial.press.p_object),
                         "depth_mm": trial.press.depth_m * 1e3,
                         "T_mesh_sensor": trial.T_mesh_sensor,

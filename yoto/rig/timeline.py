@@ -35,6 +35,9 @@ class Stream:
     def describe(self) -> str:
         return f"{self.source}: '{self.name}'"
 
+    def __len__(self) -> int:
+        return len(self.timestamps_s)
+
     @property
     def span_s(self) -> tuple[float, float]:
         return (float(self.timestamps_s[0]), float(self.timestamps_s[-1])) if len(self.timestamps_s) else (0.0, 0.0)
@@ -72,9 +75,6 @@ class PoseStream(Stream):
     def __iter__(self):
         return iter((self.timestamps_s, self.T_world_body))
 
-    def __len__(self) -> int:
-        return len(self.timestamps_s)
-
     def at(self, times_s: np.ndarray, max_gap_s: float = DEFAULT_MAX_GAP_S) -> tuple[np.ndarray, np.ndarray]:
         """Poses at arbitrary times (linear in translation, spherical-linear in rotation between neighbouring
         samples): (M, 4, 4) and a (M,) bool mask of the times that could be matched (NaN poses elsewhere)."""
@@ -103,9 +103,6 @@ class PointStream(Stream):
 
     def __iter__(self):
         return iter((self.timestamps_s, self.p_world))
-
-    def __len__(self) -> int:
-        return len(self.timestamps_s)
 
     def at(self, times_s: np.ndarray, max_gap_s: float = DEFAULT_MAX_GAP_S) -> tuple[np.ndarray, np.ndarray]:
         """Positions at arbitrary times (linear interpolation), (M, 3), and the mask of matched times."""
