@@ -32,7 +32,7 @@ import numpy as np
 
 from yoto.contacts import SIDES, TactileContact
 from yoto.errors import InputError
-from yoto.geometry import so3_log, transform_points
+from yoto.geometry import make_transform, so3_log, transform_points
 from yoto.io import write_bytes_atomic, write_json_atomic, write_ply_points
 from yoto.objects.model import ObjectModel
 from yoto.rig.beads import ObjectCalibration
@@ -51,14 +51,14 @@ class LabelConfig:
     """How trials are found and labelled."""
 
     approach_m: float = 0.005  # a trial: the gel centre comes this close to the mesh surface
-    merge_gap_s: float = 0.3  # trial stretches closer in time than this are one trial
+    merge_gap_s: float = 1.0  # trial stretches closer in time than this are one trial (a dropout does not split one)
     pad_s: float = 0.1  # GelSight frames this long before and after a trial's stretch are searched too
     max_match_gap_s: float = 0.05  # rig and object poses are interpolated across gaps up to this
     max_dropout_s: float = 0.25  # a longer mocap dropout during a trial's contact refuses the trial
     min_contact_frames: int = 10  # fewer mocap contact frames refuse the trial
     outlier_sigma: float = 3.0  # per-frame estimates further than this many RMS deviations are rejected
     slip_m: float = 0.0015  # drift of the estimates between the first and last quarter of the hold: slip
-    steady_window_s: float = 0.1  # speed relative to the object is measured over this window
+    steady_window_s: float = 0.1  # speed relative to the object is measured, and poses averaged, over this window
     steady_speed_m_s: float = 0.005  # frames this slow (or within 1.5x of the slowest) count as steady
     pair_overlap_s: float = 0.1  # trials of both rigs in contact together this long form a dual contact
     max_object_motion_m: float = 0.0005  # the object may move this much between the two frames of a pair
@@ -344,9 +344,12 @@ def label_trial(
         else np.full(3, np.nan)
     )
     image_time = float(images.timestamps_s[chosen])
-    T_world_sensor, ok_sensor = streams.world_sensor.at(np.array([image_time]), config.max_match_gap_s)
-    T_world_body, ok_object = object_stream.at(np.array([image_time]), config.max_match_gap_s)
-    if not (ok_sensor[0] and ok_object[0]):
+    # Poses at the chosen frame, averaged over the steady window (the sensor) and the contact (the still object),
+    # so the mocap's frame-to-frame jitter does not enter the sample.
+    half = config.steady_window_s / 2
+    T_world_sensor = mean_pose(streams.world_sensor, image_time - half, image_time + half)
+    T_world_body = mean_pose(object_stream, float(contact_times[0]), float(contact_times[-1]))
+    if T_world_sensor is None or T_world_body is None:
         raise TrialRefused(f"no mocap pose at the chosen GelSight frame (t = {image_time:.2f} s)")
     trial.flags = ["slip"] if slip > config.slip_m else []
     trial.stats = {
@@ -367,11 +370,22 @@ def label_trial(
     trial.frame = frames[chosen]
     trial.labelled = LabelledContact(
         object_name=model.name,
-        contact=TactileContact(recon.points_sensor, T_world_sensor[0]),
-        T_world_mesh=T_world_body[0] @ T_objectbody_mesh,
+        contact=TactileContact(recon.points_sensor, T_world_sensor),
+        T_world_mesh=T_world_body @ T_objectbody_mesh,
         p_mesh=p_mesh,
         side=side.name,
     )
+
+
+def mean_pose(stream: PoseStream, start: float, end: float) -> np.ndarray | None:
+    """The mean of a stream's poses in [start, end] (chordal mean of the rotations), or None without samples."""
+    inside = (stream.timestamps_s >= start) & (stream.timestamps_s <= end)
+    if not inside.any():
+        return None
+    T = stream.T_world_body[inside]
+    u, _, vt = np.linalg.svd(T[:, :3, :3].sum(axis=0))
+    rotation = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    return make_transform(rotation, T[:, :3, 3].mean(axis=0))
 
 
 def _dropped_in(stream: PoseStream, start: float, end: float) -> int:
