@@ -83,7 +83,10 @@ def test_dispersion_is_reported_per_axis_with_marker_noise(tmp_path, rng):
     T_true = make_transform(random_rotations(rng, 1)[0], np.array([0.09, 0.0, -0.02]))
     calibration = calibrate_rig(
         open_recording(_rig_take(tmp_path, rng, T_true, noise_m=0.0005)),
-        name="left", rig_body="Rig", gel_ball="GelBall", R_rig_sensor_cad=T_true[:3, :3],
+        name="left",
+        rig_body="Rig",
+        gel_ball="GelBall",
+        R_rig_sensor_cad=T_true[:3, :3],
     )
     dispersion = np.asarray(calibration.gel_ball["dispersion_mm"])
     # 80 samples per pose: the pose means scatter by about 0.5 / sqrt(80) = 0.056 mm per axis
@@ -96,14 +99,21 @@ def test_too_few_poses_and_a_wandering_ball_are_refused(tmp_path, rng):
     with pytest.raises(InputError, match=r"gel.csv: the rig 'Rig' stood still in 3 distinct poses.*at least 5"):
         calibrate_rig(
             open_recording(_rig_take(tmp_path, rng, T_true, poses=3)),
-            name="left", rig_body="Rig", gel_ball="GelBall", R_rig_sensor_cad=np.eye(3),
+            name="left",
+            rig_body="Rig",
+            gel_ball="GelBall",
+            R_rig_sensor_cad=np.eye(3),
         )
     # A ball lying on the table, not on the rig: it wanders in the rig body.
     T_poses = [make_transform(R, rng.uniform(-0.2, 0.2, 3)) for R in random_rotations(rng, 6)]
     times = np.arange(0, 6 * 1.3, 0.01)
     path = write_motive_csv(
-        tmp_path / "loose.csv", times, {"Rig": still_hops(rng, T_poses, times, 0.8, 0.5)},
-        {"GelBall": np.tile([0.1, 0.2, 0.0], (len(times), 1))}, capture_start=START, frame_rate_hz=100.0,
+        tmp_path / "loose.csv",
+        times,
+        {"Rig": still_hops(rng, T_poses, times, 0.8, 0.5)},
+        {"GelBall": np.tile([0.1, 0.2, 0.0], (len(times), 1))},
+        capture_start=START,
+        frame_rate_hz=100.0,
     )
     with pytest.raises(InputError, match=r"loose.csv: the gel ball 'GelBall' moves by up to .* mm in the rig body"):
         calibrate_rig(open_recording(path), name="left", rig_body="Rig", gel_ball="GelBall", R_rig_sensor_cad=np.eye(3))
@@ -141,7 +151,9 @@ def test_object_calibration_from_beads(tmp_path, rng, builtin_models):
     picks_file = tmp_path / "beads.json"
     import json
 
-    picks_file.write_text(json.dumps({"bead_radius_mm": 5, "beads": [{"name": f"B{k}", "vertex": v} for k, v in enumerate(chosen)]}))
+    picks_file.write_text(
+        json.dumps({"bead_radius_mm": 5, "beads": [{"name": f"B{k}", "vertex": v} for k, v in enumerate(chosen)]})
+    )
     picks = read_bead_picks(picks_file, vertices)
     centres = bead_centres_mesh(picks, vertices, faces)
     assert np.all(np.abs(np.linalg.norm(centres - vertices[chosen], axis=1) - 0.005) < 1e-6)
@@ -149,9 +161,17 @@ def test_object_calibration_from_beads(tmp_path, rng, builtin_models):
     T_world_body = make_transform(np.eye(3), transform_points(T_world_mesh, centres).mean(axis=0))
     times = np.arange(0, 1, 0.01)
     markers = {f"B{k}": np.tile(transform_points(T_world_mesh, c), (len(times), 1)) for k, c in enumerate(centres)}
-    take = write_motive_csv(tmp_path / "beads.csv", times, {"Object": np.tile(T_world_body, (len(times), 1, 1))}, markers,
-                            capture_start=START, frame_rate_hz=100.0)
-    calibration = calibrate_object(open_recording(take), picks, vertices, faces, object_name="figurine", object_body="Object")
+    take = write_motive_csv(
+        tmp_path / "beads.csv",
+        times,
+        {"Object": np.tile(T_world_body, (len(times), 1, 1))},
+        markers,
+        capture_start=START,
+        frame_rate_hz=100.0,
+    )
+    calibration = calibrate_object(
+        open_recording(take), picks, vertices, faces, object_name="figurine", object_body="Object"
+    )
     np.testing.assert_allclose(calibration.T_objectbody_mesh, np.linalg.inv(T_world_body) @ T_world_mesh, atol=CSV_M)
     assert calibration.residual_mm["max"] < 0.01
     # Two beads' names swapped in the picks: refused, saying which.

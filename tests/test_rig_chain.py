@@ -43,13 +43,27 @@ def session(tmp_path_factory, builtin_models, gelsight):
     model = builtin_models["fruit"]
     out = tmp_path_factory.mktemp("session")
     config = RecordingConfig(
-        mocap_rate_hz=100.0, camera_rate_hz=12.0, single_trials=2, dual_trials=1, miss_trials=1, dropout_trials=1,
-        calibration_poses=5, plate_presses=3, noise=MocapNoise.mocap(), seed=1,
+        mocap_rate_hz=100.0,
+        camera_rate_hz=12.0,
+        single_trials=2,
+        dual_trials=1,
+        miss_trials=1,
+        dropout_trials=1,
+        calibration_poses=5,
+        plate_presses=3,
+        noise=MocapNoise.mocap(),
+        seed=1,
     )
     truth = simulate_recording(model, gelsight, out, config, formats=("ros1", "motive"))
     calibrations = {fmt: calibrate_session(out, fmt, model, GelCalibrationConfig()) for fmt in ("ros1", "motive")}
-    return {"model": model, "out": out, "truth": json.loads((out / "truth.json").read_text()), "calibrations": calibrations,
-            "config": config, "raw_truth": truth}
+    return {
+        "model": model,
+        "out": out,
+        "truth": json.loads((out / "truth.json").read_text()),
+        "calibrations": calibrations,
+        "config": config,
+        "raw_truth": truth,
+    }
 
 
 def _label(session, gelsight, fmt="ros1", **overrides):
@@ -57,7 +71,10 @@ def _label(session, gelsight, fmt="ros1", **overrides):
     from yoto.rig.streams import open_recording
 
     info, files, rigs, object_calibration = session["calibrations"][fmt]
-    sides = [RigSide(side, rigs[side], info["images"][fmt][side], overrides.get(side, gelsight)) for side in ("left", "right")]
+    sides = [
+        RigSide(side, rigs[side], info["images"][fmt][side], overrides.get(side, gelsight))
+        for side in ("left", "right")
+    ]
     return label_recording(open_recording(files["trials"]), session["model"], object_calibration, sides)
 
 
@@ -127,8 +144,12 @@ def test_written_labels_feed_pose_and_training(session, gelsight, tmp_path):
 
 
 def test_a_calibration_for_another_sensor_is_refused(session, gelsight):
-    other = dataclasses.replace(gelsight, background=np.clip(gelsight.background.astype(int) + 40, 0, 255).astype(np.uint8))
-    with pytest.raises(InputError, match=r"trials.bag: right GelSight frames on '/gelsight_right/image_raw' do not fit"):
+    other = dataclasses.replace(
+        gelsight, background=np.clip(gelsight.background.astype(int) + 40, 0, 255).astype(np.uint8)
+    )
+    with pytest.raises(
+        InputError, match=r"trials.bag: right GelSight frames on '/gelsight_right/image_raw' do not fit"
+    ):
         _label(session, gelsight, right=other)
 
 

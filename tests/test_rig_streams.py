@@ -10,7 +10,7 @@ import pytest
 from conftest import TOL
 
 from yoto.errors import InputError
-from yoto.geometry import make_transform, random_rotations, rotation_to_quaternion_xyzw
+from yoto.geometry import make_transform, random_rotations
 from yoto.rig.motive import read_motive_csv, write_motive_csv
 from yoto.rig.streams import open_recording, read_image_stream, read_point_stream, read_pose_stream
 from yoto.rig.timeline import clean_timeline, make_pose_stream
@@ -33,8 +33,13 @@ def _take(rng, frames=50):
 def test_motive_csv_round_trip(tmp_path, rng, units):
     times, T, marker = _take(rng)
     path = write_motive_csv(
-        tmp_path / "take.csv", times, {"RigLeft": T}, {"GelBall": marker},
-        capture_start=dt.datetime(2024, 3, 1, 14, 15, 30, 250000), frame_rate_hz=100.0, length_units=units,
+        tmp_path / "take.csv",
+        times,
+        {"RigLeft": T},
+        {"GelBall": marker},
+        capture_start=dt.datetime(2024, 3, 1, 14, 15, 30, 250000),
+        frame_rate_hz=100.0,
+        length_units=units,
     )
     t, T_read = read_pose_stream(path, "RigLeft")
     valid = np.isfinite(T).all(axis=(1, 2))
@@ -145,14 +150,20 @@ def _write_bag(path, kind, frames, rng, encoding="rgb8", size=(240, 320)):
             t = 1_700_000_000.0 + 0.01 * k
             T = make_transform(random_rotations(rng, 1)[0], rng.normal(size=3))
             poses.append(T)
-            writer.write("/vrpn_client_node/RigLeft/pose", "geometry_msgs/msg/PoseStamped", t, writer.pose_stamped(t, "world", T))
+            writer.write(
+                "/vrpn_client_node/RigLeft/pose", "geometry_msgs/msg/PoseStamped", t, writer.pose_stamped(t, "world", T)
+            )
             writer.write("/tf", "tf2_msgs/msg/TFMessage", t, writer.tf_message(t, "world", "Object", T))
-            writer.write("/mocap/marker/GelBall", "geometry_msgs/msg/PointStamped", t, writer.point_stamped(t, "world", T[:3, 3]))
+            writer.write(
+                "/mocap/marker/GelBall", "geometry_msgs/msg/PointStamped", t, writer.point_stamped(t, "world", T[:3, 3])
+            )
         for k, frame in enumerate(frames):
             t = 1_700_000_000.0 + 0.05 * k
             image = frame[: size[0], : size[1]]
             writer.write("/gelsight/image_raw", "sensor_msgs/msg/Image", t, writer.image(t, "gel", image, encoding))
-            writer.write("/gelsight/compressed", "sensor_msgs/msg/CompressedImage", t, writer.compressed_image(t, "gel", image))
+            writer.write(
+                "/gelsight/compressed", "sensor_msgs/msg/CompressedImage", t, writer.compressed_image(t, "gel", image)
+            )
     return np.array(poses)
 
 
@@ -184,9 +195,13 @@ def test_bag_errors_name_the_file_the_topic_and_the_problem(tmp_path, rng, frame
     pytest.importorskip("rosbags")
     path = tmp_path / "rec.bag"
     _write_bag(path, "ros1", frames, rng)
-    with pytest.raises(InputError, match=r"rec.bag: no topic '/natnet/RigRight/pose'.*topics in the bag: .*/gelsight/image_raw"):
+    with pytest.raises(
+        InputError, match=r"rec.bag: no topic '/natnet/RigRight/pose'.*topics in the bag: .*/gelsight/image_raw"
+    ):
         read_pose_stream(path, "/natnet/RigRight/pose")
-    with pytest.raises(InputError, match="topic '/gelsight/image_raw' has type sensor_msgs/msg/Image, but a rigid body"):
+    with pytest.raises(
+        InputError, match="topic '/gelsight/image_raw' has type sensor_msgs/msg/Image, but a rigid body"
+    ):
         read_pose_stream(path, "/gelsight/image_raw")
     small = tmp_path / "small.bag"
     _write_bag(small, "ros1", frames, rng, size=(120, 160))

@@ -226,11 +226,12 @@ class BagWriter:
             self.typestore.register(get_types_from_msg(TF_MSG_DEFINITION, TF_TYPE))
             self._writer: Any = Writer(self._tmp)
         else:
-            from rosbags.rosbag2 import StoragePlugin, Writer
+            from rosbags.rosbag2 import StoragePlugin
+            from rosbags.rosbag2 import Writer as Writer2
 
             self.typestore = get_typestore(Stores.ROS2_HUMBLE)
             plugin = StoragePlugin.SQLITE3 if kind == "ros2-db3" else StoragePlugin.MCAP
-            self._writer = Writer(self._tmp, version=9, storage_plugin=plugin)
+            self._writer = Writer2(self._tmp, version=9, storage_plugin=plugin)
         self._writer.open()
         self._connections: dict[str, Any] = {}
         self._types: dict[str, str] = {}

@@ -184,10 +184,10 @@ def read_json_roundtrip(payload: Any) -> Any:
 def summary_tables(results: list[dict[str, Any]], header: str) -> str:
     lines = [header, ""]
     lines += [
-        "| object | format | labelled / trials | label error mm mean / median / max (n) | paper's gel-centre label mm mean |"
-        " gel-centre dispersion mm (x/y/z, worst rig) | gel centre error mm | sensor z error deg | bead residuals mm"
-        " mean / max | object calibration error mm | label error after contact refinement mm mean | pose error mm / deg,"
-        " median (n) |",
+        "| object | format | labelled / trials | label error mm mean / median / max (n) |"
+        " paper's gel-centre label mm mean | gel-centre dispersion mm (x/y/z, worst rig) | gel centre error mm |"
+        " sensor z error deg | bead residuals mm mean / max | object calibration error mm |"
+        " label error after contact refinement mm mean | pose error mm / deg, median (n) |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for result in results:
@@ -198,25 +198,26 @@ def summary_tables(results: list[dict[str, Any]], header: str) -> str:
             worst = max(SIDES, key=lambda side: max(r["rigs"][side]["dispersion_mm"]))
             beads = r["bead_residuals_mm"]
             poses = [p for p in r["poses"] if "translation_mm" in p]
-            pose_text = (
-                f"{np.median([p['translation_mm'] for p in poses]):.2f} / {np.median([p['rotation_deg'] for p in poses]):.2f}"
-                f" ({len(poses)})"
-                if poses
-                else "-"
-            )
+            pose_text = "-"
+            if poses:
+                translation = np.median([p["translation_mm"] for p in poses])
+                pose_text = f"{translation:.2f} / {np.median([p['rotation_deg'] for p in poses]):.2f} ({len(poses)})"
             refined_errors = r["refinement"].get("label_error_mm")
             refined_text = f"{np.mean(refined_errors):.2f}" if refined_errors else "-"
             lines.append(
                 f"| {result['object']} | {fmt} | {sum(row['status'] == 'labelled' for row in r['trials'])} / "
-                f"{len(r['trials'])} | {errors['mean']:.2f} / {errors['median']:.2f} / {errors['max']:.2f} ({len(labelled)}) | "
+                f"{len(r['trials'])} | {errors['mean']:.2f} / {errors['median']:.2f} / {errors['max']:.2f} "
+                f"({len(labelled)}) | "
                 f"{paper['mean']:.2f} | {'/'.join(f'{v:.3f}' for v in r['rigs'][worst]['dispersion_mm'])} | "
                 f"{max(r['rigs'][s]['gel_centre_error_mm'] for s in SIDES):.3f} | "
                 f"{max(r['rigs'][s]['z_axis_error_deg'] for s in SIDES):.3f} | "
-                f"{np.mean(beads):.2f} / {np.max(beads):.2f} | {r['object_calibration_error_mm']:.2f} | {refined_text} | "
+                f"{np.mean(beads):.2f} / {np.max(beads):.2f} | {r['object_calibration_error_mm']:.2f} | "
+                f"{refined_text} | "
                 f"{pose_text} |"
             )
     refused = [
-        f"{result['object']} {fmt} {row['side']} trial {row['trial']} ({row['kind']}): {row['reason'] or ', '.join(row['flags'])}"
+        f"{result['object']} {fmt} {row['side']} trial {row['trial']} ({row['kind']}): "
+        f"{row['reason'] or ', '.join(row['flags'])}"
         for result in results
         for fmt, r in result["formats"].items()
         for row in r["trials"]
@@ -244,7 +245,8 @@ def run_rig_benchmark(
     header = (
         f"# Rig benchmark (commit {info['commit']}, {info['device']}, seed {config.seed})\n\n"
         f"Simulated sessions: {config.single_trials} single contacts per rig, {config.dual_trials} dual contacts, "
-        f"mocap {config.mocap_rate_hz:g} Hz, GelSight {config.camera_rate_hz:g} Hz, noise {dataclasses.asdict(config.noise)}."
+        f"mocap {config.mocap_rate_hz:g} Hz, GelSight {config.camera_rate_hz:g} Hz, "
+        f"noise {dataclasses.asdict(config.noise)}."
     )
     markdown = summary_tables(results, header)
     write_text_atomic(out_dir / "rig_bench.md", markdown)

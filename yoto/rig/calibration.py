@@ -218,16 +218,15 @@ def ball_in_rig(
             continue
         points = np.concatenate(samples)
         means.append(points.mean(axis=0))
-        rows.append(
-            {
-                "pose": index,
-                "start_s": segments[0][0],
-                "end_s": segments[-1][1],
-                "frames": len(points),
-                "p_rig_mm": (points.mean(axis=0) * 1e3).round(4).tolist(),
-                "jitter_mm": float(np.sqrt(np.mean(np.sum((points - points.mean(0)) ** 2, axis=1))) * 1e3),
-            }
-        )
+        row: dict[str, Any] = {
+            "pose": index,
+            "start_s": segments[0][0],
+            "end_s": segments[-1][1],
+            "frames": len(points),
+            "p_rig_mm": (points.mean(axis=0) * 1e3).round(4).tolist(),
+            "jitter_mm": float(np.sqrt(np.mean(np.sum((points - points.mean(0)) ** 2, axis=1))) * 1e3),
+        }
+        rows.append(row)
     if not means:
         raise InputError(f"marker '{marker}' was never seen while the rig stood still", recording.path)
     return np.asarray(means), rows
@@ -268,7 +267,8 @@ def calibrate_rig(
         raise InputError(
             f"the rig '{rig_body}' stood still in {len(poses)} distinct poses; the dual-ball procedure needs at least "
             f"{config.min_poses} (hold each for {config.min_still_s:g} s or more, turned by "
-            f"{config.distinct_rotation_deg:g} deg or moved by {config.distinct_translation_m * 1e3:g} mm from the others)",
+            f"{config.distinct_rotation_deg:g} deg or moved by {config.distinct_translation_m * 1e3:g} mm from the "
+            "others)",
             recording.path,
         )
     ball_means, ball_rows = ball_in_rig(recording, rig, gel_ball, poses, config)
@@ -278,8 +278,8 @@ def calibrate_rig(
     if gel["max_deviation_mm"] > config.max_dispersion_m * 1e3:
         raise InputError(
             f"the gel ball '{gel_ball}' moves by up to {gel['max_deviation_mm']:.1f} mm in the rig body between poses "
-            f"(limit {config.max_dispersion_m * 1e3:g} mm): it slid on the gel, the marker is mislabelled, or '{rig_body}' "
-            "is not this rig",
+            f"(limit {config.max_dispersion_m * 1e3:g} mm): it slid on the gel, the marker is mislabelled, or "
+            f"'{rig_body}' is not this rig",
             recording.path,
         )
     if len(ball_means) < config.min_poses:
@@ -367,8 +367,8 @@ def plate_presses(
     directions = np.array([p["z_rig"] for p in presses])
     z_mean = normalize(directions.mean(axis=0))
     residuals = np.degrees(np.arccos(np.clip(directions @ z_mean, -1, 1)))
-    for press, residual in zip(presses, residuals):
-        press["z_rig"] = press["z_rig"].tolist()
+    for press, direction, residual in zip(presses, directions, residuals):
+        press["z_rig"] = direction.tolist()
         press["residual_deg"] = float(residual)
     return {
         "recording": str(recording.path),

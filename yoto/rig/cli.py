@@ -82,6 +82,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     label.add_argument("--out", required=True, help="output folder: contacts/ (training samples) and pairs/")
     label.add_argument("--workspace", help="workspace folder")
     label.add_argument("--strict", action="store_true", help="exit with status 1 when a trial is refused or flagged")
+    label.add_argument(
+        "--refine-object-calibration",
+        metavar="PATH",
+        help="refine the bead calibration with the labelled contacts (docs/rig.md), write it to PATH, label with it",
+    )
     label.set_defaults(run=_run_label)
 
     bench = commands.add_parser("bench", help="the whole chain on simulated recordings, against their truth")
@@ -136,15 +141,16 @@ def _run_inspect(args: argparse.Namespace) -> int:
                 print(f"  {kind:17s} {name:30s} {len(stream)} samples, {stream.dropped} dropped")
         return 0
     if path.is_dir() and not is_bag(path):
-        stream = image_folder_stream(path)
-        a, b = stream.span_s
-        print(f"{path}: {len(stream)} GelSight frames, {a:.3f} to {b:.3f} s, {stream.rate_hz:.1f} Hz")
+        frames = image_folder_stream(path)
+        a, b = frames.span_s
+        print(f"{path}: {len(frames)} GelSight frames, {a:.3f} to {b:.3f} s, {frames.rate_hz:.1f} Hz")
         return 0
     summaries = bag_topics(path)
     width = max((len(s.name) for s in summaries), default=10)
     print(f"{path}: {len(summaries)} topics")
     print(
-        f"  {'topic':{width}s}  {'type':40s} {'messages':>8s} {'rate Hz':>8s}  {'start s':>17s}  {'end s':>17s}  frame / size"
+        f"  {'topic':{width}s}  {'type':40s} {'messages':>8s} {'rate Hz':>8s}  {'start s':>17s}  {'end s':>17s}  "
+        "frame / size"
     )
     for s in summaries:
         print(
@@ -218,7 +224,14 @@ def _run_label(args: argparse.Namespace) -> int:
     from yoto.io import write_json_atomic, write_text_atomic
     from yoto.rig.beads import load_object_calibration
     from yoto.rig.calibration import load_rig_calibration
-    from yoto.rig.labelling import RigSide, label_recording, write_labels
+    from yoto.rig.labelling import (
+        LabelConfig,
+        LabelReport,
+        RigSide,
+        label_recording,
+        refine_object_calibration,
+        write_labels,
+    )
     from yoto.rig.streams import open_recording
     from yoto.sensor.calibration import load_calibration
     from yoto.sensor.spec import GELSIGHT_MINI
@@ -252,15 +265,33 @@ def _run_label(args: argparse.Namespace) -> int:
     if not sides:
         raise InputError("no rig given: use --left-rig/--left-images and/or --right-rig/--right-images")
     out = Path(args.out)
+    recordings = [open_recording(path, args.time_offset) for path in args.recordings]
+    reports = [
+        label_recording(recording, model, object_calibration, sides, object_body=args.object_body)
+        for recording in recordings
+    ]
+    if args.refine_object_calibration:
+        combined = LabelReport(trials=[trial for report in reports for trial in report.trials])
+        refined, change = refine_object_calibration(combined, model, object_calibration, LabelConfig())
+        if not change["refined"]:
+            raise InputError(f"the object calibration cannot be refined: {change['reason']}", args.object_calibration)
+        print(
+            f"object calibration refined with {change['contacts']} contacts: moved {change['moved_at_centre_mm']:.2f} "
+            f"mm at the object's centre, turned {change['rotated_deg']:.2f} deg; contact-to-mesh RMS "
+            f"{change['surface_rms_before_mm']:.2f} -> {change['surface_rms_after_mm']:.2f} mm"
+        )
+        print(f"-> {refined.save(args.refine_object_calibration)}")
+        reports = [
+            label_recording(recording, model, refined, sides, object_body=args.object_body) for recording in recordings
+        ]
     refused = flagged = 0
     rows = []
-    for path in args.recordings:
-        recording = open_recording(path, args.time_offset)
-        report = label_recording(recording, model, object_calibration, sides, object_body=args.object_body)
+    for path, report in zip(args.recordings, reports):
         written = write_labels(report, out, Path(path).name.split(".")[0])
         print(report.summary())
         print(
-            f"-> {len(written['contacts'])} contacts in {out / 'contacts'}, {len(written['pairs'])} pairs in {out / 'pairs'}"
+            f"-> {len(written['contacts'])} contacts in {out / 'contacts'}, "
+            f"{len(written['pairs'])} pairs in {out / 'pairs'}"
         )
         refused += sum(t.status == "refused" for t in report.trials)
         flagged += sum(bool(t.flags) for t in report.trials)
@@ -273,7 +304,8 @@ def _run_label(args: argparse.Namespace) -> int:
     for r in rows:
         lines.append(
             f"| {r['recording']} | {r['side']} | {r['trial']} | {r['status']} | {r.get('contact_frames', '-')} | "
-            f"{r.get('rejected_frames', '-')} | {r.get('spread_mm', float('nan')):.2f} | {', '.join(r['flags']) or r['reason']} |"
+            f"{r.get('rejected_frames', '-')} | {r.get('spread_mm', float('nan')):.2f} | "
+            f"{', '.join(r['flags']) or r['reason']} |"
         )
     write_text_atomic(out / "label_report.md", "\n".join(lines) + "\n")
     return 1 if args.strict and (refused or flagged) else 0

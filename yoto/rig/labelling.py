@@ -12,8 +12,8 @@ In each trial:
    `g_sensor = (c_x, c_y, 0)`, is mapped into the mesh frame at every mocap frame of the trial and its signed
    distance to the mesh found by ray casting;
 3. frames with distance <= 0 are contact frames (the soft gel sinks into the rigid mesh); the closest mesh point of
-   `T_mesh_sensor(t) @ c_sensor` in each is a per-frame estimate; estimates further than 3 sigma from their mean are rejected, and the mean of the
-   rest, projected onto the mesh, is `p_object` (mesh file's frame);
+   `T_mesh_sensor(t) @ c_sensor` in each is a per-frame estimate; estimates further than 3 sigma from their mean
+   are rejected, and the mean of the rest, projected onto the mesh, is `p_object` (mesh file's frame);
 4. the trial is refused (nothing written) when the images show no contact, mocap shows no contact frame, too few
    mocap frames remain, or a mocap dropout longer than `max_dropout_s` cuts the hold; it is flagged `slip` when
    the estimates drift during the hold by more than `slip_m`.
@@ -163,7 +163,8 @@ def side_streams(
     T_objectbody_mesh: np.ndarray,
     max_gap_s: float,
 ) -> SideStreams:
-    """Eq. 3 at every rig sample: T_mesh_sensor = inv(T_world_objectbody @ T_objectbody_mesh) @ T_world_rig @ T_rig_sensor."""
+    """Eq. 3 at every rig sample:
+    T_mesh_sensor = inv(T_world_objectbody @ T_objectbody_mesh) @ T_world_rig @ T_rig_sensor."""
     T_world_body, ok = object_stream.at(rig_stream.timestamps_s, max_gap_s)
     T_world_sensor = rig_stream.T_world_body @ rig.T_rig_sensor
     T_mesh_sensor = np.linalg.inv(T_world_body[ok] @ T_objectbody_mesh) @ T_world_sensor[ok]
@@ -479,7 +480,7 @@ def write_labels(report: LabelReport, out_dir: str | Path, prefix: str) -> dict[
     written: dict[str, list[Path]] = {"contacts": [], "pairs": []}
     names: dict[int, tuple[str, str]] = {}
     for trial in report.trials:
-        if trial.labelled is None:
+        if trial.labelled is None or trial.frame is None:
             continue
         stem = f"{prefix}_{trial.side}_{trial.index:03d}"
         folder = out_dir / "contacts"
@@ -551,6 +552,7 @@ def refine_object_calibration(
     clouds = []
     for trial in used:
         labelled = trial.labelled
+        assert labelled is not None  # `used` holds labelled trials only
         T_body_sensor = T_body_mesh @ np.linalg.inv(labelled.T_world_mesh) @ labelled.contact.T_world_sensor
         points = labelled.contact.points_sensor
         keep = rng.choice(len(points), min(config.refine_points_per_contact, len(points)), replace=False)

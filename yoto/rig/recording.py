@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
+import functools
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -91,7 +92,7 @@ class MocapNoise:
 
     @classmethod
     def preset(cls, name: str) -> MocapNoise:
-        presets = {"paper": cls, "mocap": cls.mocap, "none": cls.none}
+        presets: dict[str, Callable[[], MocapNoise]] = {"paper": cls, "mocap": cls.mocap, "none": cls.none}
         if name not in presets:
             raise InputError(f"unknown noise preset '{name}' (use {', '.join(presets)})")
         return presets[name]()
@@ -308,17 +309,17 @@ class Outputs:
 
     def body(self, name: str, times: np.ndarray, T: np.ndarray, delivered: np.ndarray) -> None:
         for t, pose in zip(times[delivered], T[delivered]):
-            self.events.append((float(t), 0, lambda t=t, pose=pose: self._write_body(name, float(t), pose)))
+            self.events.append((float(t), 0, functools.partial(self._write_body, name, float(t), pose)))
         self.csv_bodies[name] = np.where(delivered[:, None, None], T, np.nan)
 
     def marker(self, name: str, times: np.ndarray, p: np.ndarray, delivered: np.ndarray) -> None:
         for t, point in zip(times[delivered], p[delivered]):
-            self.events.append((float(t), 1, lambda t=t, point=point: self._write_marker(name, float(t), point)))
+            self.events.append((float(t), 1, functools.partial(self._write_marker, name, float(t), point)))
         self.csv_markers[name] = np.where(delivered[:, None], p, np.nan)
 
     def images(self, side: str, times: np.ndarray, render: Callable[[float], np.ndarray]) -> None:
         for t in times:
-            self.events.append((float(t), 2, lambda t=t: self._write_image(side, float(t), render(float(t)))))
+            self.events.append((float(t), 2, functools.partial(self._write_rendered, side, float(t), render)))
 
     def _write_body(self, name: str, t: float, pose: np.ndarray) -> None:
         stamp = self.start + t
@@ -334,6 +335,9 @@ class Outputs:
         for writer in self.bags.values():
             message = writer.point_stamped(stamp, "world", point)
             writer.write(MARKER_TOPIC.format(name), "geometry_msgs/msg/PointStamped", stamp, message)
+
+    def _write_rendered(self, side: str, t: float, render: Callable[[float], np.ndarray]) -> None:
+        self._write_image(side, t, render(t))
 
     def _write_image(self, side: str, t: float, frame: np.ndarray) -> None:
         stamp = self.start + t
@@ -637,6 +641,7 @@ def _trials(
                 T_world_sensor[side][inside] = T
                 active[side].append((start, trial, park))
                 a, b, c, _ = trial.timings(config)
+                assert trial.press.p_object is not None  # scripted trials are accepted presses
                 truth.append(
                     {
                         "side": side,

@@ -195,7 +195,7 @@ def make_pose_stream(
 def make_point_stream(source: Path, name: str, timestamps_s: np.ndarray, positions: np.ndarray) -> PointStream:
     """A PointStream from raw samples; NaN positions are dropouts."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-    kept, dropped, rate = clean_timeline(timestamps_s, np.isfinite(positions).all(axis=1), source, name)
+    kept, dropped, rate = clean_timeline(timestamps_s, np.asarray(np.isfinite(positions).all(axis=1)), source, name)
     return PointStream(source, name, np.asarray(timestamps_s, np.float64)[kept], dropped, rate, positions[kept])
 
 
@@ -228,10 +228,10 @@ def static_segments(
     still = usable & (moved <= max_speed_m_s * np.maximum(span, 1e-9)) & (turned <= max_angular_speed_rad_s * span)
     # A still sample vouches for the window after it.
     covered = np.zeros(len(t), bool)
-    for i in np.flatnonzero(still):
-        covered[i : later[i] + 1] = True
+    for k in np.flatnonzero(still):
+        covered[k : later[k] + 1] = True
     segments = []
-    start = None
+    start: float | None = None
     for i in range(len(t)):
         gap = i > 0 and t[i] - t[i - 1] > window_s
         if covered[i] and start is not None and gap:
