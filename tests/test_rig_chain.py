@@ -66,11 +66,12 @@ def session(tmp_path_factory, builtin_models, gelsight):
     }
 
 
-def _label(session, gelsight, fmt="ros1", **overrides):
+def _label(session, gelsight, fmt="ros1", object_calibration=None, **overrides):
     from yoto.rig.labelling import RigSide, label_recording
     from yoto.rig.streams import open_recording
 
-    info, files, rigs, object_calibration = session["calibrations"][fmt]
+    info, files, rigs, bead_calibration = session["calibrations"][fmt]
+    object_calibration = object_calibration or bead_calibration
     sides = [
         RigSide(side, rigs[side], info["images"][fmt][side], overrides.get(side, gelsight))
         for side in ("left", "right")
@@ -171,3 +172,57 @@ def test_recording_cli_and_inspect(session, capsys):
     assert "/vrpn_client_node/RigLeft/pose" in text and "sensor_msgs/msg/Image" in text and "320x240 rgb8" in text
     assert main(["rig", "inspect", str(session["out"] / "motive" / "beads.csv")]) == 0
     assert "Bead3" in capsys.readouterr().out
+
+
+def test_contacts_refine_a_poor_bead_calibration(session, gelsight):
+    """A bead fit off by 2 deg and 1.5 mm (poor picks) is pulled back towards the truth by the contacts."""
+    from yoto.geometry import make_transform, so3_exp
+    from yoto.rig.labelling import LabelConfig, refine_object_calibration
+
+    _, _, _, object_calibration = session["calibrations"]["ros1"]
+    T_true = np.asarray(session["truth"]["T_objectbody_mesh"])
+    offset = make_transform(so3_exp(np.radians(2.0) * np.array([0.6, -0.8, 0.0])), np.array([0.0015, 0.0, -0.0005]))
+    poor = dataclasses.replace(object_calibration, T_objectbody_mesh=object_calibration.T_objectbody_mesh @ offset)
+    report = _label(session, gelsight, object_calibration=poor)
+    refined, change = refine_object_calibration(report, session["model"], poor, LabelConfig())
+    assert change["refined"] and change["contacts"] == 6
+    assert change["surface_rms_after_mm"] < 0.5 * change["surface_rms_before_mm"]
+    centre = session["model"].T_mesh_object[:3, 3]
+
+    def error_mm(T):
+        return np.linalg.norm((T @ np.append(centre, 1))[:3] - (T_true @ np.append(centre, 1))[:3]) * 1e3
+
+    assert error_mm(refined.T_objectbody_mesh) < 0.5 * error_mm(poor.T_objectbody_mesh)
+    assert rotation_angle_rad(refined.T_objectbody_mesh, T_true) < 0.5 * rotation_angle_rad(
+        poor.T_objectbody_mesh, T_true
+    )
+
+
+def test_label_cli_writes_labels_report_and_refined_calibration(session, gelsight, tmp_path):
+    from yoto.cli import main
+    from yoto.rig.beads import load_object_calibration
+
+    info, files, rigs, object_calibration = session["calibrations"]["ros1"]
+    paths = {side: rigs[side].save(tmp_path / f"{side}.rig.json") for side in ("left", "right")}
+    object_path = object_calibration.save(tmp_path / "fruit.object.json")
+    gelsight_path = gelsight.save(tmp_path / "gelsight.npz")
+    model_path = session["model"].save(tmp_path / "fruit.npz")
+    out = tmp_path / "labelled"
+    args = ["rig", "label", str(files["trials"]), "--object", str(model_path), "--object-calibration", str(object_path)]
+    for side in ("left", "right"):
+        args += [f"--{side}-rig", str(paths[side]), f"--{side}-images", info["images"]["ros1"][side]]
+    args += [
+        "--gelsight",
+        str(gelsight_path),
+        "--out",
+        str(out),
+        "--refine-object-calibration",
+        str(tmp_path / "r.json"),
+    ]
+    assert main(args) == 0
+    assert main([*args, "--strict"]) == 1  # the near miss and the dropout are refused
+    rows = json.loads((out / "label_report.json").read_text())["trials"]
+    assert [row["status"] for row in rows].count("labelled") == 6 and len(rows) == 8
+    assert len(list((out / "pairs").glob("*.json"))) == 1
+    refined = load_object_calibration(tmp_path / "r.json")
+    assert refined.sources["refined_with_contacts"]["contacts"] == 6

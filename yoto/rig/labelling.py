@@ -62,7 +62,6 @@ class LabelConfig:
     steady_speed_m_s: float = 0.005  # frames this slow (or within 1.5x of the slowest) count as steady
     pair_overlap_s: float = 0.1  # trials of both rigs in contact together this long form a dual contact
     max_object_motion_m: float = 0.0005  # the object may move this much between the two frames of a pair
-    refine_object: bool = True  # refine the bead calibration with the contacts themselves (`refine_object_calibration`)
     refine_min_contacts: int = 4  # fewer labelled contacts: no refinement
     refine_points_per_contact: int = 300  # each contact weighs the same in the refinement
     refine_reach_m: float = 0.004  # contact points further than this from the mesh are left out of the refinement
