@@ -140,7 +140,7 @@ def test_written_labels_feed_pose_and_training(session, gelsight, tmp_path):
     assert contact.object_name == "fruit" and (contact.contact.points_sensor[:, 2] <= 1e-9).all()
     samples, files = load_contact_samples([tmp_path / "contacts"], {"fruit": session["model"]})
     assert len(files) == 6 and len(samples["fruit"]) == 6
-    # Refused trials write nothing: 8 trials, 6 contacts on disk, each with its cloud and frame.
+    # Refused trials write nothing: 10 trials, 6 contacts on disk, each with its cloud and frame.
     assert len(list((tmp_path / "contacts").glob("*.ply"))) == 6
 
 
@@ -184,8 +184,10 @@ def test_contacts_refine_a_poor_bead_calibration(session, gelsight):
     offset = make_transform(so3_exp(np.radians(2.0) * np.array([0.6, -0.8, 0.0])), np.array([0.0015, 0.0, -0.0005]))
     poor = dataclasses.replace(object_calibration, T_objectbody_mesh=object_calibration.T_objectbody_mesh @ offset)
     report = _label(session, gelsight, object_calibration=poor)
+    labelled = sum(trial.labelled is not None for trial in report.trials)
+    assert 4 <= labelled < 6  # the poor calibration puts some holds outside the mesh: refused
     refined, change = refine_object_calibration(report, session["model"], poor, LabelConfig())
-    assert change["refined"] and change["contacts"] == 6
+    assert change["refined"] and change["contacts"] == labelled
     assert change["surface_rms_after_mm"] < 0.5 * change["surface_rms_before_mm"]
     centre = session["model"].T_mesh_object[:3, 3]
 
@@ -196,6 +198,8 @@ def test_contacts_refine_a_poor_bead_calibration(session, gelsight):
     assert rotation_angle_rad(refined.T_objectbody_mesh, T_true) < 0.5 * rotation_angle_rad(
         poor.T_objectbody_mesh, T_true
     )
+    relabelled = _label(session, gelsight, object_calibration=refined)
+    assert sum(trial.labelled is not None for trial in relabelled.trials) == 6  # labelled again with the refined one
 
 
 def test_label_cli_writes_labels_report_and_refined_calibration(session, gelsight, tmp_path):
@@ -222,7 +226,7 @@ def test_label_cli_writes_labels_report_and_refined_calibration(session, gelsigh
     assert main(args) == 0
     assert main([*args, "--strict"]) == 1  # the near miss and the dropout are refused
     rows = json.loads((out / "label_report.json").read_text())["trials"]
-    assert [row["status"] for row in rows].count("labelled") == 6 and len(rows) == 8
+    assert [row["status"] for row in rows].count("labelled") == 6 and len(rows) == 10
     assert len(list((out / "pairs").glob("*.json"))) == 1
     refined = load_object_calibration(tmp_path / "r.json")
     assert refined.sources["refined_with_contacts"]["contacts"] == 6

@@ -32,7 +32,7 @@ import numpy as np
 
 from yoto.contacts import SIDES, TactileContact
 from yoto.errors import InputError
-from yoto.geometry import make_transform, so3_log, transform_points
+from yoto.geometry import make_transform, procrustes_rotation, so3_log, transform_points
 from yoto.io import write_bytes_atomic, write_json_atomic, write_ply_points
 from yoto.objects.model import ObjectModel
 from yoto.rig.beads import ObjectCalibration
@@ -383,8 +383,8 @@ def mean_pose(stream: PoseStream, start: float, end: float) -> np.ndarray | None
     if not inside.any():
         return None
     T = stream.T_world_body[inside]
-    u, _, vt = np.linalg.svd(T[:, :3, :3].sum(axis=0))
-    rotation = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    # The rotation nearest the sum of the rotations: Procrustes of their axes onto the identity's.
+    rotation, _ = procrustes_rotation(np.hstack(list(T[:, :3, :3])), np.tile(np.eye(3), len(T)))
     return make_transform(rotation, T[:, :3, 3].mean(axis=0))
 
 

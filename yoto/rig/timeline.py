@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from yoto.errors import InputError
-from yoto.geometry import make_transform, quaternion_xyzw_to_rotation, rotation_to_quaternion_xyzw
+from yoto.geometry import quaternion_xyzw_to_rotation, rotation_to_quaternion_xyzw
 
 # A stream whose timestamps step back, or jump forward by more than this, has a broken clock.
 MAX_CLOCK_JUMP_S = 5.0
@@ -197,10 +197,6 @@ def make_point_stream(source: Path, name: str, timestamps_s: np.ndarray, positio
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     kept, dropped, rate = clean_timeline(timestamps_s, np.asarray(np.isfinite(positions).all(axis=1)), source, name)
     return PointStream(source, name, np.asarray(timestamps_s, np.float64)[kept], dropped, rate, positions[kept])
-
-
-def pose_from_xyz_quaternion(position: np.ndarray, quaternion_xyzw: np.ndarray) -> np.ndarray:
-    return make_transform(quaternion_xyzw_to_rotation(np.asarray(quaternion_xyzw)), np.asarray(position))
 
 
 def static_segments(
