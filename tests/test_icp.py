@@ -192,6 +192,9 @@ def test_flat_patches_never_leave_icp_worse_than_its_start(builtin_models, rng):
         if (normals[model.kdtree.query_ball_point(model.points_object[i], PATCH_RADIUS_M)] @ normals[i]).min() > 0.9999
     )
     points_sensor, T_object_sensor, _ = cut_patch(model, int(flat), 0.0)
+    # The flat face pressed 0.5 mm into the gel (a flat patch on the gel plane is no contact at all).
+    points_sensor[:, 2] -= 0.0005
+    T_object_sensor = T_object_sensor @ make_transform(np.eye(3), np.array([0.0, 0.0, 0.0005]))
     points_sensor = points_sensor + rng.normal(scale=3e-5, size=points_sensor.shape)
     starts = np.stack([T_object_sensor @ random_perturbation(rng, 0.001, np.radians(4)) for _ in range(6)])
     localizer = IcpLocalizer()

@@ -118,9 +118,12 @@ def test_reconstruction_fields_and_frame(synthetic):
     cx, cy, a = synthetic["circles"][17]
     row, col = np.unravel_index(np.argmin(recon.height_map_m), recon.height_map_m.shape)
     assert np.hypot(col - cx, row - cy) < 2.0
-    # The mask is the contact disc (Hertz: the edge is at half the depth).
+    # The core is the contact disc (Hertz: the edge is at half the depth); the contact the gel felt (the mask,
+    # for localization) holds the core and the gel pressed around it, one connected region.
     disc = np.hypot(*np.meshgrid(np.arange(SPEC.width_px) - cx, np.arange(SPEC.height_px) - cy)) < a
-    assert (recon.mask & disc).sum() / (recon.mask | disc).sum() > 0.75
+    assert (recon.core_mask & disc).sum() / (recon.core_mask | disc).sum() > 0.75
+    assert not (recon.core_mask & ~recon.mask).any() and recon.mask.sum() > 1.5 * disc.sum()
+    assert ndimage.label(recon.mask)[1] == 1
 
 
 def test_fast_gradients_match_the_polynomial_reference(synthetic):

@@ -11,17 +11,25 @@ A pair file is JSON with fixed keys; its point clouds are PLY files next to it:
      "ground_truth": {"T_world_object": 4x4, "left_p_object": [x,y,z], "right_p_object": [x,y,z]}}
 `ground_truth` is optional and is expressed in the mesh file's frame; in code that frame is called
 `mesh` (`T_world_mesh`, `p_mesh`) to keep it apart from YOTO's canonical `object` frame.
+
+A side may give a GelSight image instead of (or beside) its points (SPEC, "Dual contact"):
+    "left": {"image": "pair_0000_left.png", "background": "left_background.png", "calibration": "mini.npz",
+             "T_world_sensor": 4x4}
+(paths relative to the JSON file; `background` and `calibration` optional). This module reads the keys; the
+reconstruction is the sensor stage's (`yoto.sensor.pair_images.ImageSides`), passed to `read_contact_pair`.
 """
 
 from __future__ import annotations
 
+import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from yoto.errors import InputError
+from yoto.errors import InputError, NoContactError
 from yoto.geometry import normalize, rotate_vectors, transform_points, validate_transform
 from yoto.io import read_json, read_ply_points, write_json_atomic, write_ply_points
 from yoto.pointcloud import covariance_eigh
@@ -32,6 +40,24 @@ WELL_CONDITIONED = 0.15  # sigma_2 / sigma_1 of [d, n_L, n_R] below this: rotati
 LOCAL_FIT_RADIUS_M = 0.002  # radius of the surface patch fitted at the contact centre of a tactile cloud
 LOCAL_FIT_MIN_POINTS = 12
 LINE_POINTS = 8  # points averaged where the centroid's normal line meets the cloud
+# No contact: the cloud's deepest points (the INDENTATION_POINTS-th deepest) are no deeper than this, nor than
+# NOISE_MARGIN times the RMS height of the points above the gel plane (which can only be noise).
+NO_INDENTATION_M = 5e-5
+NOISE_MARGIN = 5.0
+INDENTATION_POINTS = 20
+
+
+@dataclass(frozen=True)
+class TactileImage:
+    """A side given as a GelSight image (SPEC "Dual contact"); paths as found (absolute or relative to the cwd)."""
+
+    image: Path  # the frame
+    background: Path | None = None  # a no-contact frame of the same sensor and session (else the calibration's)
+    calibration: Path | None = None  # the sensor's calibration file (else the reader's default)
+
+
+# Turns an image side into its tactile cloud (N, 3), sensor frame, metres (yoto.sensor.pair_images.ImageSides).
+ImageReconstructor = Callable[[TactileImage], np.ndarray]
 
 
 @dataclass
@@ -40,7 +66,8 @@ class TactileContact:
 
     points_sensor: np.ndarray  # (N, 3) metres, contact-surface points, z <= 0 where pressed
     T_world_sensor: np.ndarray  # (4, 4) the sensor's calibrated pose
-    source: Path | None = None  # the PLY file it came from, for messages
+    source: Path | None = None  # the PLY (or image) file it came from, for messages
+    image: TactileImage | None = None  # the GelSight image the side gives, if any (kept on rewrite)
 
 
 @dataclass
@@ -97,14 +124,16 @@ def contact_in_sensor(points_sensor: np.ndarray) -> tuple[np.ndarray, np.ndarray
     offsets = points_sensor - centroid
     # Plain distances beat building a KD-tree for one query on a dense (~20k-point) tactile cloud.
     nearest = points_sensor[np.argmin(np.einsum("ij,ij->i", offsets, offsets))]
-    squared = np.einsum("ij,ij->i", points_sensor - nearest, points_sensor - nearest)
+    from_nearest = points_sensor - nearest
+    squared = np.einsum("ij,ij->i", from_nearest, from_nearest)
     neighbours = np.flatnonzero(squared <= LOCAL_FIT_RADIUS_M**2)
     if len(neighbours) < LOCAL_FIT_MIN_POINTS:
         neighbours = np.argsort(squared)[:LOCAL_FIT_MIN_POINTS]
     _, _, eigenvectors = covariance_eigh(points_sensor[neighbours])
     normal = eigenvectors[:, 0] if eigenvectors[2, 0] <= 0 else -eigenvectors[:, 0]
     along = offsets @ normal
-    off_line = np.linalg.norm(offsets - along[:, None] * normal, axis=1)
+    across = offsets - along[:, None] * normal
+    off_line = np.einsum("ij,ij->i", across, across)  # squared distances from the line (same order, no root)
     closest_to_line = np.argpartition(off_line, min(LINE_POINTS, len(off_line) - 1))[:LINE_POINTS]
     return centroid + along[closest_to_line].mean() * normal, normal
 
@@ -137,8 +166,8 @@ def validate_tactile_points(points: np.ndarray, source: str | Path | None) -> np
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise InputError(f"tactile cloud must be (N, 3), got shape {points.shape}", source)
-    finite = np.isfinite(points).all(axis=1)
-    if not finite.all():
+    if not np.isfinite(points).all():
+        finite = np.isfinite(points).all(axis=1)
         raise InputError(f"tactile cloud has {int((~finite).sum())} points with NaN or inf coordinates", source)
     if len(points) < MIN_TACTILE_POINTS:
         raise InputError(
@@ -146,7 +175,7 @@ def validate_tactile_points(points: np.ndarray, source: str | Path | None) -> np
             "a contact",
             source,
         )
-    extent = float(np.ptp(points, axis=0).max())
+    extent = max(float(np.ptp(points[:, axis])) for axis in range(3))  # column by column: faster than axis=0
     if extent > 0.1:
         raise InputError(
             f"tactile cloud spans {extent * 1000:.0f} mm, larger than any GelSight pad: is it in metres and in the "
@@ -155,7 +184,36 @@ def validate_tactile_points(points: np.ndarray, source: str | Path | None) -> np
         )
     if extent < 1e-4:
         raise InputError(f"tactile cloud spans only {extent * 1e3:.3f} mm: it holds no contact surface", source)
+    depth, floor = indentation_m(points)
+    if depth <= floor:
+        mirrored_depth, mirrored_floor = indentation_m(points * np.array([1.0, 1.0, -1.0]))
+        hint = (
+            " (are its z values flipped? SPEC: z <= 0 where the gel is pressed)"
+            if mirrored_depth > mirrored_floor
+            else ""
+        )
+        raise NoContactError(
+            f"no contact: the tactile cloud is not pressed into the gel (its deepest points are "
+            f"{max(depth, 0.0) * 1e3:.3f} mm deep, within the {floor * 1e3:.3f} mm noise floor of the undeformed "
+            f"gel){hint}",
+            source,
+        )
     return points
+
+
+def indentation_m(points_sensor: np.ndarray) -> tuple[float, float]:
+    """(depth, floor): how deep a tactile cloud's deepest points are pressed, and the depth below which that is noise.
+
+    depth: the INDENTATION_POINTS-th deepest point's -z (a few spikes do not make a contact). floor: the larger of
+    NO_INDENTATION_M and NOISE_MARGIN x the RMS height of the points above the gel plane (z > 0 can only be
+    noise), so a flat noisy cloud lying on the gel plane is no contact, whether or not it is dense.
+    """
+    z = points_sensor[:, 2]
+    k = min(INDENTATION_POINTS, len(z))
+    depth = float(-np.partition(z, k - 1)[k - 1])
+    above = z[z > 0]
+    noise = float(np.sqrt(np.mean(above * above))) if len(above) else 0.0
+    return depth, max(NO_INDENTATION_M, NOISE_MARGIN * noise)
 
 
 def _read_matrix(record: dict, key: str, what: str, path: Path) -> np.ndarray:
@@ -171,8 +229,14 @@ def _read_point(record: dict, key: str, what: str, path: Path) -> np.ndarray:
     return value
 
 
-def read_contact_pair(path: str | Path) -> ContactPair:
-    """Read and validate a pair file and its two point clouds. Errors name the file and the problem."""
+def read_contact_pair(
+    path: str | Path, images: ImageReconstructor | None = None, from_images: bool = False
+) -> ContactPair:
+    """Read and validate a pair file and its two tactile clouds. Errors name the file and the problem.
+
+    A side's cloud is its `points` PLY, or the reconstruction of its GelSight `image` by `images` when it gives no
+    points or when `from_images` is set. Raises NoContactError (an InputError) when a side shows no contact.
+    """
     path = Path(path)
     payload = read_json(path)
     if not isinstance(payload, dict):
@@ -183,18 +247,7 @@ def read_contact_pair(path: str | Path) -> ContactPair:
     if not isinstance(payload["object"], str) or not payload["object"]:
         raise InputError("'object' must be the object's name", path)
 
-    contacts = {}
-    for side in SIDES:
-        record = payload[side]
-        if not isinstance(record, dict) or "points" not in record:
-            raise InputError(f"'{side}' must be an object with 'points' and 'T_world_sensor'", path)
-        cloud_path = path.parent / str(record["points"])
-        points, _ = read_ply_points(cloud_path)
-        contacts[side] = TactileContact(
-            points_sensor=validate_tactile_points(points, cloud_path),
-            T_world_sensor=_read_matrix(record, "T_world_sensor", side, path),
-            source=cloud_path,
-        )
+    contacts = {side: _read_side(payload[side], side, path, images, from_images) for side in SIDES}
 
     pair = ContactPair(object_name=payload["object"], left=contacts["left"], right=contacts["right"], path=path)
     truth = payload.get("ground_truth")
@@ -216,8 +269,41 @@ def read_contact_pair(path: str | Path) -> ContactPair:
     return pair
 
 
+def _read_side(
+    record: Any, side: str, path: Path, images: ImageReconstructor | None, from_images: bool
+) -> TactileContact:
+    """One side of a pair file: its cloud (from `points`, or reconstructed from `image`) and sensor pose."""
+    if not isinstance(record, dict) or not ("points" in record or "image" in record):
+        raise InputError(f"'{side}' must be an object with 'points' (or 'image') and 'T_world_sensor'", path)
+    T_world_sensor = _read_matrix(record, "T_world_sensor", side, path)
+    image = None
+    if "image" in record:
+        optional = {key: path.parent / str(record[key]) for key in ("background", "calibration") if record.get(key)}
+        image = TactileImage(path.parent / str(record["image"]), **optional)
+    if "points" in record and not (from_images and image is not None):
+        cloud_path = path.parent / str(record["points"])
+        points, _ = read_ply_points(cloud_path)
+        return TactileContact(validate_tactile_points(points, cloud_path), T_world_sensor, cloud_path, image)
+    assert image is not None
+    if images is None:
+        raise InputError(
+            f"'{side}' gives a GelSight image ({image.image.name}): reconstructing it needs the sensor's calibration "
+            '(`yoto pose --calibration CAL`, or a "calibration" entry in the side)',
+            path,
+        )
+    try:
+        points = images(image)
+    except NoContactError as exc:
+        raise NoContactError(f"{side}: {exc.problem}", exc.path) from exc
+    return TactileContact(validate_tactile_points(points, image.image), T_world_sensor, image.image, image)
+
+
 def write_contact_pair(path: str | Path, pair: ContactPair) -> Path:
-    """Write a pair file and its two PLY clouds (named after the pair file) atomically."""
+    """Write a pair file and its two PLY clouds (named after the pair file) atomically.
+
+    A side read from (or beside) a GelSight image keeps its `image`, `background` and `calibration` entries, as
+    paths relative to the new pair file.
+    """
     path = Path(path)
     stem = path.stem
     payload: dict[str, Any] = {"object": pair.object_name}
@@ -226,6 +312,11 @@ def write_contact_pair(path: str | Path, pair: ContactPair) -> Path:
         cloud_name = f"{stem}_{side}.ply"
         write_ply_points(path.parent / cloud_name, contact.points_sensor)
         payload[side] = {"points": cloud_name, "T_world_sensor": contact.T_world_sensor}
+        if contact.image is not None:
+            for key in ("image", "background", "calibration"):
+                file = getattr(contact.image, key)
+                if file is not None:
+                    payload[side][key] = os.path.relpath(Path(file).resolve(), path.parent.resolve())
     if pair.T_world_mesh_true is not None:
         truth: dict[str, Any] = {"T_world_object": pair.T_world_mesh_true}
         for side in SIDES:
@@ -266,12 +357,15 @@ __all__ = [
     "WELL_CONDITIONED",
     "ContactEstimate",
     "ContactPair",
+    "ImageReconstructor",
     "TactileContact",
+    "TactileImage",
     "WorldContact",
     "contact_in_sensor",
     "contact_in_world",
     "dual_contact_conditioning",
     "find_pair_files",
+    "indentation_m",
     "read_contact_pair",
     "validate_tactile_points",
     "write_contact_pair",

@@ -21,6 +21,10 @@ class InputError(YotoError):
         super().__init__(f"{self.path}: {problem}" if self.path is not None else problem)
 
 
+class NoContactError(InputError):
+    """The tactile input shows no contact: a cloud with no indentation, or an image in which nothing touches the gel."""
+
+
 class DegenerateGeometryError(YotoError):
     """The geometry cannot determine the requested quantity (coincident contacts, parallel normals...)."""
 

@@ -49,6 +49,7 @@ class MethodSpec:
     method: str  # "oracle", "icp" or "yoto"
     checkpoint: str | None = None  # for "yoto"
     model_suffix: str = ""  # localize on object model NAME+suffix (e.g. "_scan": trained on a scan-like mesh)
+    via_images: bool = False  # the same pairs, each cloud reconstructed from its rendered GelSight image
 
 
 @dataclass(frozen=True)
@@ -61,7 +62,8 @@ class BenchConfig:
     sensor_noise_mm: float = 0.0  # mean calibration error of each reported sensor position
     sensor_noise_deg: float = 0.0  # mean calibration error of each reported sensor orientation
     pose_stages: tuple[str, ...] = ("full", "paper")  # pose stages to report for every method (same localizations)
-    image_calibration: str | None = None  # GelSight calibration: contacts go height map -> image -> reconstruction
+    image_calibration: str | None = None  # rows "via images": a calibration file or "shading[:SEED]" (image_route)
+    image_variation: float = 0.0  # how much each rendered image's lighting, noise and gel stray from the sensor's
 
 
 @dataclass
@@ -148,16 +150,31 @@ def simulate_benchmark_pairs(model: ObjectModel, config: BenchConfig) -> list:
         calibration_translation_m=config.sensor_noise_mm / 1000.0,
         calibration_rotation_rad=np.radians(config.sensor_noise_deg),
     )
-    reconstruct = None
-    if config.image_calibration:
-        from yoto.sensor import image_path_reconstructor, load_calibration
-
-        reconstruct = image_path_reconstructor(load_calibration(config.image_calibration))
-    simulator = PairSimulator(model, scenario, reconstruct)
+    simulator = PairSimulator(model, scenario)
     return [
         simulator.pair(config.seed, index)
         for index in tqdm(range(config.num_pairs), desc=f"{model.name}: simulating", unit="pair", leave=False)
     ]
+
+
+def pairs_via_images(pairs: list, config: BenchConfig) -> list:
+    """The same simulated pairs (same poses, same truth), each tactile cloud replaced by the reconstruction of the
+    GelSight image its noise-free gel height map renders to (`yoto.sensor.optical.image_route`); a frame the
+    reconstruction finds no contact in gives an empty cloud, which the methods count as a failure."""
+    from dataclasses import replace
+
+    from yoto.sensor.optical import image_route
+
+    assert config.image_calibration is not None
+    to_cloud = image_route(config.image_calibration, config.image_variation)
+    out = []
+    for simulated in tqdm(pairs, desc="rendering and reconstructing images", unit="pair", leave=False):
+        sides = {
+            side: replace(simulated.pair.contact(side), points_sensor=to_cloud(simulated.height_maps[side]))
+            for side in SIDES
+        }
+        out.append(replace(simulated, pair=replace(simulated.pair, **sides)))
+    return out
 
 
 def run_benchmark(
@@ -180,7 +197,8 @@ def run_benchmark(
     for spec_string in objects:
         model = resolve_object(spec_string, workspace)
         results[model.name] = {}
-        pairs = None
+        pairs: list | None = None
+        image_pairs: list | None = None
         for spec in methods:
             cache = partial_dir / f"{model.name}__{spec.label.replace(' ', '_')}__{run_key}.json"
             fingerprint = {"model": model.fingerprint, "spec": asdict(spec)}
@@ -192,7 +210,10 @@ def run_benchmark(
                     continue
             if pairs is None:
                 pairs = simulate_benchmark_pairs(model, config)
-            by_stage = evaluate_method(spec, model, pairs, config, workspace)
+            if spec.via_images and image_pairs is None:
+                image_pairs = pairs_via_images(pairs, config)
+            method_pairs = image_pairs if spec.via_images and image_pairs is not None else pairs
+            by_stage = evaluate_method(spec, model, method_pairs, config, workspace)
             write_json_atomic(cache, {"fingerprint": fingerprint, "results": [asdict(r) for r in by_stage.values()]})
             for result in by_stage.values():
                 results[model.name][result.label] = result
@@ -257,6 +278,7 @@ def build_report(results: dict[str, dict[str, MethodResult]], methods: list[Row]
             "confidence_bins": _confidence_bins(gather("confidence"), gather("translation_mm"), gather("rotation_deg")),
             "pairs": len(gather("translation_mm")),
             "failures": sum(item.failures for item in items),
+            "right_share": right_share(gather("translation_mm"), gather("rotation_deg"), items),
         }
 
     for object_name, by_label in results.items():
@@ -267,6 +289,16 @@ def build_report(results: dict[str, dict[str, MethodResult]], methods: list[Row]
         )
     report["methods"] = [asdict(spec) for spec in methods]
     return report
+
+
+RIGHT_MM, RIGHT_DEG = 5.0, 5.0  # SPEC: a pose counts as right within 5 mm and 5 deg of the truth
+
+
+def right_share(translation_mm: list[float], rotation_deg: list[float], items: list[MethodResult]) -> float:
+    """Share of all attempted pairs (failures count as wrong) whose pose is right (SPEC: 5 mm and 5 deg)."""
+    attempted = len(translation_mm) + sum(item.failures for item in items)
+    right = sum(t <= RIGHT_MM and r <= RIGHT_DEG for t, r in zip(translation_mm, rotation_deg, strict=True))
+    return right / attempted if attempted else float("nan")
 
 
 def format_markdown(report: dict[str, Any]) -> str:
@@ -314,6 +346,19 @@ def format_markdown(report: dict[str, Any]) -> str:
     for label in labels:
         row = [pose_cell(report["objects"][o][label]) if label in report["objects"][o] else "-" for o in objects]
         lines.append(f"| {label} | " + " | ".join(row) + f" | {pose_cell(report['all'][label])} |")
+    lines += [
+        "",
+        f"## Poses right (within {RIGHT_MM:g} mm and {RIGHT_DEG:g} deg; failures count as wrong)",
+        "",
+        "| Method | " + " | ".join(objects) + " | All |",
+        "|---|" + "---|" * (len(objects) + 1),
+    ]
+    for label in labels:
+        row = [
+            f"{report['objects'][o][label]['right_share']:.0%}" if label in report["objects"][o] else "-"
+            for o in objects
+        ]
+        lines.append(f"| {label} | " + " | ".join(row) + f" | {report['all'][label]['right_share']:.0%} |")
     lines += [
         "",
         "## Latency (ms, warm-up excluded): per contact median / p90; per pose median",

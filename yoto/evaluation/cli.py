@@ -41,8 +41,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--via-images",
         metavar="CALIBRATION",
-        help="send every simulated contact through a rendered GelSight image and its reconstruction "
-        "(a calibration file from `yoto sensor calibrate`)",
+        help="add a row per method on the same pairs with every contact sent through a rendered GelSight image "
+        "and its reconstruction: a calibration file from `yoto sensor calibrate` (images from its own optical "
+        "model), or 'shading[:SEED]' (images from a second, physically based optical model, calibrated from ball "
+        "presses it renders)",
+    )
+    parser.add_argument(
+        "--image-variation",
+        type=float,
+        default=0.0,
+        help="with --via-images: vary each image's lighting, noise, blur and gel response around the sensor's "
+        "(0: none, 1: LEDs +-15%%, noise x/÷2, blur +-1 px, gel smoothing up to 0.1 mm)",
     )
     parser.add_argument(
         "--pose-stages",
@@ -84,6 +93,10 @@ def run(args: argparse.Namespace) -> int:
 
     labels = {"oracle": "Oracle (true contacts)", "icp": "ICP (30 starts)", "match": "Matched filter (no training)"}
     methods = [MethodSpec(label=labels[m], method=m) for m in args.methods] + parse_yoto_rows(args.yoto)
+    if args.via_images:
+        from dataclasses import replace
+
+        methods += [replace(m, label=f"{m.label}, via images", via_images=True) for m in methods]
     config = BenchConfig(
         num_pairs=args.pairs,
         seed=args.seed,
@@ -91,6 +104,7 @@ def run(args: argparse.Namespace) -> int:
         sensor_noise_deg=args.sensor_noise_deg,
         pose_stages=tuple(args.pose_stages),
         image_calibration=args.via_images,
+        image_variation=args.image_variation,
     )
     run_benchmark(args.objects, methods, config, args.out, args.workspace, args.overwrite)
     from pathlib import Path

@@ -17,9 +17,9 @@ def make_localizer(method: str, checkpoint: str | None = None) -> ContactLocaliz
 
         return IcpLocalizer()
     if method == "match":
-        from yoto.localize.match import MatchLocalizer
+        from yoto.localize.scaled_match import ScaledMatchLocalizer
 
-        return MatchLocalizer()
+        return ScaledMatchLocalizer()  # the matched filter, with finer cells for contacts too small for its default
     if method == "yoto":
         require_torch("the YOTO network localizer")
         from yoto.localize.network import NetworkLocalizer

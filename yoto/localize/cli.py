@@ -1,19 +1,30 @@
-"""`yoto localize CLOUD.ply --object NAME`: where on the object is this tactile contact?"""
+"""`yoto localize CLOUD.ply|FRAME.png --object NAME`: where on the object is this tactile contact?"""
 
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from yoto.sensor.pair_images import ImageSides
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "localize",
         help="locate tactile contacts on an object model",
-        description="Locate each tactile cloud (PLY, sensor frame, metres) on the object model: the contact "
-        "location and outward normal (mesh file's frame and YOTO's object frame), its block, scores and the "
-        "other candidates, best first.",
+        description="Locate each tactile cloud (PLY, sensor frame, metres) or GelSight image (reconstructed with "
+        "--calibration) on the object model: the contact location and outward normal (mesh file's frame and YOTO's "
+        "object frame), its block, scores and the other candidates, best first. An input that shows no contact "
+        "(a cloud not pressed into the gel, an image where nothing touches it) is reported as such.",
     )
-    parser.add_argument("clouds", nargs="+", help="tactile point clouds (PLY, sensor frame, metres)")
+    parser.add_argument(
+        "clouds", nargs="+", help="tactile point clouds (PLY, sensor frame, metres) or GelSight images (PNG, ...)"
+    )
+    parser.add_argument("--calibration", help="sensor calibration for image inputs (from `yoto sensor calibrate`)")
+    parser.add_argument("--background", help="a fresh no-contact frame of the sensor for image inputs")
     parser.add_argument("--object", required=True, help="object name (workspace or built-in) or model file")
     parser.add_argument(
         "--method",
@@ -56,22 +67,43 @@ def result_json(estimates: list, model, cloud: str, latency_ms: float) -> dict:
     }
 
 
+def read_tactile_input(path: str, images: ImageSides) -> np.ndarray:
+    """The tactile cloud of a PLY file, or of a GelSight image reconstructed by `images` (ImageSides)."""
+    from pathlib import Path
+
+    from yoto.contacts import TactileImage, validate_tactile_points
+    from yoto.io import read_ply_points
+    from yoto.sensor.presses import IMAGE_SUFFIXES
+
+    if Path(path).suffix.lower() in IMAGE_SUFFIXES:
+        return validate_tactile_points(images(TactileImage(Path(path), images.background)), path)
+    points, _ = read_ply_points(path)
+    return validate_tactile_points(points, path)
+
+
 def run(args: argparse.Namespace) -> int:
     import time
+    from pathlib import Path
 
-    from yoto.contacts import validate_tactile_points
-    from yoto.io import read_ply_points, write_json_atomic
+    from yoto.errors import NoContactError
+    from yoto.io import write_json_atomic
     from yoto.localize import make_localizer
     from yoto.objects.build import load_object_model
+    from yoto.sensor.pair_images import ImageSides
 
     localizer = make_localizer(args.method, args.checkpoint)
     model = load_object_model(args.object, args.workspace)
     if hasattr(localizer, "prepare_object"):
         localizer.prepare_object(model)  # per-object set-up outside the timed localization
+    images = ImageSides(args.calibration, Path(args.background) if args.background else None)
     results = []
     for cloud in args.clouds:
-        points, _ = read_ply_points(cloud)
-        points = validate_tactile_points(points, cloud)
+        try:
+            points = read_tactile_input(cloud, images)
+        except NoContactError as exc:
+            results.append({"cloud": cloud, "object": model.name, "contact": None, "no_contact": exc.problem})
+            print(f"{cloud}: {exc.problem}")
+            continue
         tick = time.perf_counter()
         estimates = localizer.localize(points, model)
         latency = 1000.0 * (time.perf_counter() - tick)

@@ -30,6 +30,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="the paper's pose stage exactly: each contact's top candidate, SVD, no verification or refinement",
     )
+    parser.add_argument(
+        "--calibration",
+        help="sensor calibration (`yoto sensor calibrate`) for sides that give a GelSight 'image' and no "
+        "'calibration' of their own",
+    )
+    parser.add_argument(
+        "--from-images",
+        action="store_true",
+        help="reconstruct every side that gives an 'image' from it, even when it also gives 'points'",
+    )
     parser.set_defaults(run=run)
 
 
@@ -37,22 +47,24 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from yoto.contacts import find_pair_files, read_contact_pair
-    from yoto.errors import YotoError
+    from yoto.errors import NoContactError, YotoError
     from yoto.io import write_json_atomic
     from yoto.localize import make_localizer
     from yoto.metrics import pose_errors
     from yoto.objects.build import load_object_model
     from yoto.objects.model import ObjectModel
     from yoto.pose.pipeline import PAPER, PoseConfig, estimate_pose, pose_result_path
+    from yoto.sensor.pair_images import ImageSides
 
     method = "oracle" if args.oracle else args.method
     pose_config = PAPER if args.paper else PoseConfig()
     localizer = make_localizer(method, args.checkpoint)
+    images = ImageSides(args.calibration)
     models: dict[str, ObjectModel] = {}
-    failures, errors = 0, []
+    failures, no_contact, errors = 0, 0, []
     for path in find_pair_files(args.pairs):
         try:
-            pair = read_contact_pair(path)
+            pair = read_contact_pair(path, images, args.from_images)
             key = args.model or pair.object_name
             if key not in models:
                 models[key] = load_object_model(key, args.workspace)
@@ -70,6 +82,9 @@ def run(args: argparse.Namespace) -> int:
                 )
             write_json_atomic(pose_result_path(path, args.out), result)
             print(line + "".join(f"\n  warning: {w}" for w in estimate.solution.warnings))
+        except NoContactError as exc:
+            no_contact += 1
+            print(f"{path}: no pose, a sensor shows no contact: {exc}")
         except YotoError as exc:
             failures += 1
             print(f"{path}: error: {exc}")
@@ -80,6 +95,8 @@ def run(args: argparse.Namespace) -> int:
             f"{len(errors)} poses vs ground truth ({method}): translation median {np.median(t):.2f} mm "
             f"(mean {t.mean():.2f}), rotation median {np.median(r):.2f} deg (mean {r.mean():.2f})"
         )
+    if no_contact:
+        print(f"{no_contact} pair(s) without a contact on one sensor: no pose")
     if failures:
         print(f"{failures} pair(s) failed; see the errors above")
-    return 1 if failures else 0
+    return 1 if failures or no_contact else 0

@@ -26,6 +26,8 @@ _EXPORTS = {
     "reconstruct": "yoto.sensor.reconstruction",
     "render_image": "yoto.sensor.optical",
     "image_path_reconstructor": "yoto.sensor.optical",
+    "ImageSides": "yoto.sensor.pair_images",
+    "ShadingSensor": "yoto.sensor.shading",
     "find_contact_circle": "yoto.sensor.presses",
     "load_image": "yoto.sensor.presses",
 }

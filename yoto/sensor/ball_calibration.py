@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -35,8 +35,11 @@ from yoto.sensor.models import (
     ImageModelConfig,
     fit_gradient_model,
     fit_image_model,
+    gradient_design,
+    image_design,
     model_colour_change,
     normalised_xy,
+    solve_ridge,
 )
 from yoto.sensor.presses import (
     CircleConfig,
@@ -49,6 +52,7 @@ from yoto.sensor.presses import (
 from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
 from yoto.sensor.sphere import refine_centre, sphere_gradients
 
+SELECTION_STRIDE = 4  # the model-shape choices score every 4th sample
 DEFAULT_RENDER_BLUR_PX = 2.0  # the optical simulator's blur of its colour change (pixels): a default, not fitted
 
 
@@ -67,6 +71,11 @@ class CalibrationConfig:
     flat_stride: int = 21  # use every n-th flat pixel (raster order) of each press
     flat_weight: float = 1.0  # least-squares weight of a flat pixel relative to a contact pixel
     refine_iterations: int = 2  # centre/radius refinements on the model's predicted gradients
+    position_degrees: tuple[int, ...] = (2, 3, 4)  # candidate position degrees of the final colour -> gradient
+    # model (bias and gains); the one with the lowest press-wise cross-validated gradient error is used
+    image_shapes: tuple[tuple[int, int], ...] = ((2, 1), (4, 2))  # candidate (position degree, gain degree) of
+    # the gradient -> colour model, chosen by cross-validated colour error
+    selection_folds: int = 4  # folds (by press) of those choices
     min_presses: int = 4  # fewer usable presses than this is an error
     max_background_change: float = 10.0  # median colour change of a press against the background (0-255)
     saturation_level: int = 255  # a channel at or above this level is saturated
@@ -204,6 +213,13 @@ def calibrate(
         fraction = config.inside_fraction
         model = _fit_round(changes, circles, ball_radius_px, fraction, config, spec)
 
+    # The final model's shape by held-out error on these presses (more presses afford more position terms).
+    model_config, gradient_errors = _choose_gradient_model(changes, circles, ball_radius_px, fraction, config, spec)
+    if model_config != config.gradient_model:
+        model = _fit_round(
+            changes, circles, ball_radius_px, fraction, replace(config, gradient_model=model_config), spec
+        )
+
     # Final report per press, the inverse model, the noise level.
     raw = {i: images[i].astype(np.int16) - background_i16 for i in usable}
     rmse = {}
@@ -214,7 +230,8 @@ def calibrate(
         inside = r < fraction * a
         rmse[i] = float(np.sqrt(np.mean((gx - tx)[inside] ** 2 + (gy - ty)[inside] ** 2)))
         results[i] = PressResult(results[i].name, True, "", results[i].disc, cx, cy, a, rmse[i])
-    image_model = _fit_image(raw, circles, ball_radius_px, fraction, config, spec)
+    image_config, colour_errors = _choose_image_model(raw, circles, ball_radius_px, fraction, config, spec)
+    image_model = _fit_image(raw, circles, ball_radius_px, fraction, replace(config, image_model=image_config), spec)
     noise_std = _noise_level(raw, circles)
 
     seconds = time.perf_counter() - start
@@ -225,6 +242,8 @@ def calibrate(
         "config": _config_json(config),
         "presses": [p.to_json() for p in results],
         "training_gradient_rmse": report.gradient_rmse,
+        "held_out_gradient_rmse_by_position_degree": {str(k): v for k, v in gradient_errors.items()},
+        "held_out_colour_rmse_by_image_shape": {f"{k[0]},{k[1]}": v for k, v in colour_errors.items()},
     }
     calibration = SensorCalibration(
         spec,
@@ -277,6 +296,87 @@ def _training_samples(
     return tuple(np.concatenate(v) for v in out.values())
 
 
+def _held_out_rmse(samples: dict[int, tuple[np.ndarray, ...]], design: Any, ridge: float, folds: int) -> float:
+    """Press-wise k-fold RMS error of a linear model: press -> (features input, positions, targets, weights, scored).
+
+    `design(inputs, positions)` builds the features; each fold is fitted on the other presses' samples and scored
+    on its own presses' `scored` samples.
+    """
+    stride = SELECTION_STRIDE  # neighbouring pixels are nearly the same sample: every few is as good and faster
+    samples = {k: tuple(v[::stride] for v in value) for k, value in samples.items()}
+    presses = sorted(samples)
+    squared, count = 0.0, 0
+    for fold in range(folds):
+        held = [k for n, k in enumerate(presses) if n % folds == fold]
+        train = [samples[k] for k in presses if k not in held]
+        if not held or not train:
+            continue
+        inputs, positions, targets, weights, _ = (np.concatenate(parts) for parts in zip(*train, strict=True))
+        coefficients = solve_ridge(design(inputs, positions), targets, weights, ridge)
+        for k in held:
+            inputs, positions, targets, _, scored = samples[k]
+            residual = design(inputs[scored], positions[scored]) @ coefficients - targets[scored]
+            squared += float(np.sum(residual * residual))
+            count += int(scored.sum())
+    return float(np.sqrt(squared / max(count, 1)))
+
+
+def _choose_gradient_model(
+    changes, circles, ball_radius_px, fraction, config: CalibrationConfig, spec
+) -> tuple[GradientModelConfig, dict[int, float]]:
+    """The colour -> gradient model's position degree with the lowest held-out gradient error inside the contacts."""
+    samples: dict[int, tuple[np.ndarray, ...]] = {}
+    for i in changes:
+        colours, positions, gradients, weights = _training_samples(
+            {i: changes[i]}, {i: circles[i]}, ball_radius_px, fraction, config, spec
+        )
+        samples[i] = (colours, positions, gradients, weights, np.any(gradients != 0, axis=1))
+    errors = {}
+    for degree in config.position_degrees:
+        candidate = replace(config.gradient_model, position_degree=degree)
+        errors[degree] = _held_out_rmse(
+            samples, lambda c, p, m=candidate: gradient_design(c, p, m), candidate.ridge, config.selection_folds
+        )
+    best = min(errors, key=errors.__getitem__)
+    return replace(config.gradient_model, position_degree=best), errors
+
+
+def _image_samples(raw, circles, ball_radius_px, fraction, spec) -> dict[int, tuple[np.ndarray, ...]]:
+    """Per press: gradients, positions and drift-free colour changes of its contact pixels (`_fit_image`)."""
+    shape = (spec.height_px, spec.width_px)
+    x, y = normalised_xy(*shape)
+    out: dict[int, tuple[np.ndarray, ...]] = {}
+    for i, change in raw.items():
+        cx, cy, a = circles[i]
+        gx, gy, r = sphere_gradients(cx, cy, ball_radius_px, shape)
+        inside = r < fraction * a
+        drift = np.median(change[r > 3 * a], axis=0)
+        colours = change[inside].astype(np.float64) - drift
+        out[i] = (
+            np.stack([gx[inside], gy[inside]], 1),
+            np.stack([x[inside], y[inside]], 1),
+            colours,
+            np.ones(len(colours)),
+            np.ones(len(colours), dtype=bool),
+        )
+    return out
+
+
+def _choose_image_model(
+    raw, circles, ball_radius_px, fraction, config: CalibrationConfig, spec
+) -> tuple[ImageModelConfig, dict[tuple[int, int], float]]:
+    """The gradient -> colour model's (position degree, gain degree) with the lowest held-out colour error."""
+    samples = _image_samples(raw, circles, ball_radius_px, fraction, spec)
+    errors = {}
+    for position_degree, gain_degree in config.image_shapes:
+        candidate = replace(config.image_model, position_degree=position_degree, gain_degree=gain_degree)
+        errors[(position_degree, gain_degree)] = _held_out_rmse(
+            samples, lambda g, p, m=candidate: image_design(g, p, m), candidate.ridge, config.selection_folds
+        )
+    position_degree, gain_degree = min(errors, key=errors.__getitem__)
+    return replace(config.image_model, position_degree=position_degree, gain_degree=gain_degree), errors
+
+
 def _fit_round(changes, circles, ball_radius_px, fraction, config, spec) -> GradientModel:
     colours, positions, gradients, weights = _training_samples(changes, circles, ball_radius_px, fraction, config, spec)
     return fit_gradient_model(
@@ -310,19 +410,9 @@ def _fit_image(raw, circles, ball_radius_px, fraction, config, spec) -> ImageMod
     little between the background and the press) is not part of the optics, and the model is anchored to
     render the background exactly where the gel is flat.
     """
-    shape = (spec.height_px, spec.width_px)
-    x, y = normalised_xy(*shape)
-    g, p, c = [], [], []
-    for i, change in raw.items():
-        cx, cy, a = circles[i]
-        gx, gy, r = sphere_gradients(cx, cy, ball_radius_px, shape)
-        inside = r < fraction * a
-        drift = np.median(change[r > 3 * a], axis=0)
-        g.append(np.stack([gx[inside], gy[inside]], 1))
-        p.append(np.stack([x[inside], y[inside]], 1))
-        c.append(change[inside].astype(np.float64) - drift)
-    gradients, positions, colours = np.concatenate(g), np.concatenate(p), np.concatenate(c)
-    return fit_image_model(gradients, positions, colours, np.ones(len(colours)), config.image_model)
+    samples = _image_samples(raw, circles, ball_radius_px, fraction, spec).values()
+    gradients, positions, colours, weights, _ = (np.concatenate(parts) for parts in zip(*samples, strict=True))
+    return fit_image_model(gradients, positions, colours, weights, config.image_model)
 
 
 def _noise_level(raw, circles) -> np.ndarray:

@@ -24,7 +24,7 @@ from yoto.sensor.reconstruction import (
     _pixel_xy,
     box_gradients,
     check_frame,
-    contact_mask,
+    contact_masks,
     integrate_box,
     reconstruct,
     touched_box,
@@ -123,7 +123,7 @@ def run_benchmark(calibration: SensorCalibration, frames: list[np.ndarray], repe
         "Poisson integration in the box (DCT/DST, float32)": lambda f: integrate_box(
             *at(gradients)(f)[:2], at(boxes)(f), at(blocks)(f), spec.pixel_size_m
         ),
-        "contact mask": lambda f: contact_mask(at(gradients)(f)[2], at(heights)(f), calibration.mask),
+        "contact masks": lambda f: contact_masks(at(gradients)(f)[2], at(heights)(f), calibration.mask, at(boxes)(f)),
         "points (sensor frame)": lambda f: np.stack(
             [x[at(masks)(f)], y[at(masks)(f)], at(heights)(f)[at(masks)(f)]], 1
         ),

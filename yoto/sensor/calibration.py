@@ -35,8 +35,10 @@ class MaskConfig:
     """Which pixels of a reconstruction belong to the contact."""
 
     colour_threshold: float = 15.0  # RGB distance (0-255) by which a contact's pixels change colour
-    relative_depth: float = 0.5  # contact pixels are this fraction of the deepest depth or deeper
-    min_depth_m: float = 5e-5  # ... and at least this deep (metres); shallower frames have no contact
+    relative_depth: float = 0.5  # the contact's core (sphere fits): pixels this fraction of the deepest depth or deeper
+    min_depth_m: float = 5e-5  # every contact pixel is at least this deep (metres); shallower frames have no contact
+    felt_relative_depth: float = 0.05  # the contact (localization): pixels deeper than this fraction of the deepest
+    # depth and min_depth_m, connected to the core: the whole region the gel felt, above the reconstruction's noise
     min_area_px: int = 40  # fewer changed or contact pixels than this: no contact (explicit empty result)
 
 
@@ -185,7 +187,7 @@ def load_calibration(path: str | Path, spec: GelSightSpec | None = None) -> Sens
         )
         model = meta["model"]
         gradient_config = GradientModelConfig(**model["gradient"])
-        image_config = ImageModelConfig(**model["image"])
+        image_config = ImageModelConfig(**{"gain_degree": 1, **model["image"]})  # files before gain_degree: 1
         mask = MaskConfig(**meta["mask"])
         background = arrays["background"]
         gradient_model = load_gradient_model(

@@ -7,16 +7,18 @@ and a small MLP did no better than the cubic while taking minutes to train on th
 
 Forward model (reconstruction, must be fast):
     g(c, x, y) = T(c) + b(x, y) + sum_j c_j M_j(x, y)
-with c the RGB colour change against the background, T a cubic in c, b and M_j quadratics in pixel position.
+with c the RGB colour change against the background, T a cubic in c, b and M_j polynomials in pixel position
+(degree 2 to 4, chosen per calibration by held-out error on its presses: ball_calibration).
 After fitting it is baked into a 3D lookup table for T (indexed by the quantised colour change; cells no
 training colour came near take the value of the nearest cell that one did, so the cubic never extrapolates)
 and per-pixel maps for b and M_j: inference is one table gather and three multiply-adds per output.
 
 Inverse model (the optical simulator):
-    c(g, x, y) = S(g) + sum_k g_k N_k(x, y)
-with S a quartic in the gradient (gx, gy) without constant term, N_k quadratics in position: a flat gel
-(zero gradient) renders exactly the background. Evaluated directly (no table), gradients clamped to the
-magnitude range seen in calibration.
+    c(g, x, y) = S(g) + sum_k m_k(g) N_k(x, y)
+with S a quartic in the gradient (gx, gy) without constant term, m_k the gradient's monomials up to a gain
+degree (1: gx, gy; 2: also their squares and product) and N_k polynomials in position (both chosen per
+calibration by held-out error): a flat gel (zero gradient) renders exactly the background. Evaluated
+directly (no table), gradients clamped to the magnitude range seen in calibration.
 """
 
 from __future__ import annotations
@@ -45,13 +47,13 @@ def monomial_exponents(num_vars: int, degree: int) -> np.ndarray:
 
 def monomials(values: np.ndarray, exponents: np.ndarray) -> np.ndarray:
     """(N, M) monomials of (N, num_vars) values."""
-    values = np.asarray(values, dtype=np.float64)
-    out = np.ones((len(values), len(exponents)))
+    columns = np.ascontiguousarray(np.asarray(values, dtype=np.float64).T)
+    out = np.ones((len(exponents), columns.shape[1]))  # monomial-major: each row written contiguously
     for m, exponent in enumerate(exponents):
         for var, power in enumerate(exponent):
             if power:
-                out[:, m] *= values[:, var] ** power
-    return out
+                out[m] *= columns[var] if power == 1 else columns[var] ** power
+    return out.T
 
 
 def normalised_xy(rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
@@ -68,22 +70,27 @@ def _mixed_design(
     degree: int,
     position_degree: int,
     anchored: bool = False,
+    gain_degree: int = 1,
 ) -> np.ndarray:
-    """Design matrix [monomials(inputs) | pos | inputs_j * pos], pos the non-constant position monomials.
+    """Design matrix [monomials(inputs) | pos | m_j(inputs) * pos], pos the non-constant position monomials and
+    m_j the non-constant input monomials up to `gain_degree` (1: the inputs themselves).
 
     `anchored` drops the columns that do not vanish at zero input (the constant and `pos`), so the model
     predicts exactly zero for a zero input.
     """
     scaled = inputs / input_scale
-    main = monomials(scaled, monomial_exponents(inputs.shape[1], degree))
+    exponents = monomial_exponents(inputs.shape[1], degree)
+    main = monomials(scaled, exponents)
     position = monomials(xy, monomial_exponents(2, position_degree))[:, 1:]
-    gains = [scaled[:, [j]] * position for j in range(inputs.shape[1])]
+    gained = main[:, 1 : len(monomial_exponents(inputs.shape[1], gain_degree))]
+    gains = [gained[:, [j]] * position for j in range(gained.shape[1])]
     if anchored:
         return np.hstack([main[:, 1:], *gains])
     return np.hstack([main, position, *gains])
 
 
-def _solve_ridge(design: np.ndarray, targets: np.ndarray, weights: np.ndarray, ridge: float) -> np.ndarray:
+def solve_ridge(design: np.ndarray, targets: np.ndarray, weights: np.ndarray, ridge: float) -> np.ndarray:
+    """Weighted least squares with a Tikhonov weight `ridge` (relative to the sample count): the coefficients."""
     sqrt_w = np.sqrt(weights)[:, None]
     a = design * sqrt_w
     normal = a.T @ a
@@ -222,9 +229,14 @@ def fit_gradient_model(
     """
     if config.lut_step & (config.lut_step - 1):
         raise ValueError(f"lut_step must be a power of two, got {config.lut_step}")
-    design = _mixed_design(diffs, xy, config.colour_scale, config.colour_degree, config.position_degree)
-    coefficients = _solve_ridge(design, gradients, weights, config.ridge)
+    design = gradient_design(diffs, xy, config)
+    coefficients = solve_ridge(design, gradients, weights, config.ridge)
     return bake_gradient_model(coefficients, diffs, image_shape, config)
+
+
+def gradient_design(diffs: np.ndarray, xy: np.ndarray, config: GradientModelConfig) -> np.ndarray:
+    """Design matrix of the colour -> gradient model for colour changes (N, 3) at normalised positions (N, 2)."""
+    return _mixed_design(diffs, xy, config.colour_scale, config.colour_degree, config.position_degree)
 
 
 def bake_gradient_model(
@@ -302,7 +314,8 @@ class ImageModelConfig:
     """Shape of the gradient -> colour model of the optical simulator."""
 
     gradient_degree: int = 4  # degree of the polynomial in (gx, gy)
-    position_degree: int = 2  # degree of the position polynomials of the bias and per-gradient gains
+    position_degree: int = 2  # degree of the position polynomials of the per-gradient gains
+    gain_degree: int = 1  # the gains multiply the gradient's monomials up to this degree (1: gx and gy only)
     ridge: float = 1e-6  # Tikhonov weight (relative to the sample count)
 
 
@@ -315,21 +328,32 @@ class ImageModel:
     config: ImageModelConfig
 
     def predict(self, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
-        """(rows, cols, 3) float32 colour change of (rows, cols) gradient maps."""
+        """(rows, cols, 3) float32 colour change of (rows, cols) gradient maps (exactly zero where the gel is flat,
+        which is skipped)."""
         rows, cols = gx.shape
         magnitude = np.hypot(gx, gy)
-        scale = np.minimum(1.0, self.max_gradient / np.maximum(magnitude, 1e-12))
-        g = np.stack([(gx * scale).ravel(), (gy * scale).ravel()], 1)
+        sloped = magnitude > 0
+        scale = np.minimum(1.0, self.max_gradient / np.maximum(magnitude[sloped], 1e-12))
+        g = np.stack([gx[sloped] * scale, gy[sloped] * scale], 1)
         x, y = normalised_xy(rows, cols)
-        design = _mixed_design(
-            g,
-            np.stack([x.ravel(), y.ravel()], 1),
-            1.0,
-            self.config.gradient_degree,
-            self.config.position_degree,
-            anchored=True,
-        )
-        return (design @ self.coefficients).reshape(rows, cols, 3).astype(np.float32)
+        change = np.zeros((rows, cols, 3), dtype=np.float32)
+        change[sloped] = self._evaluate(g, np.stack([x[sloped], y[sloped]], 1))
+        return change
+
+    def _evaluate(self, gradients: np.ndarray, xy: np.ndarray) -> np.ndarray:
+        """`image_design(gradients, xy) @ coefficients` without forming the design: monomials times their
+        coefficients plus, per gained monomial, its value times its position polynomial (N, 3)."""
+        config = self.config
+        main = monomials(gradients, monomial_exponents(2, config.gradient_degree))[:, 1:]
+        position = monomials(xy, monomial_exponents(2, config.position_degree))[:, 1:]
+        # einsum, not BLAS: a threaded matrix product of a tall thin matrix stalls on a busy machine.
+        out = np.einsum("nk,kc->nc", main, self.coefficients[: main.shape[1]])
+        gained = len(monomial_exponents(2, config.gain_degree)) - 1
+        blocks = self.coefficients[main.shape[1] :].reshape(gained, position.shape[1], -1)
+        gains = np.einsum("np,jpc->jnc", position, blocks)
+        for j in range(gained):
+            out += main[:, [j]] * gains[j]
+        return out
 
     def arrays(self, prefix: str) -> dict[str, np.ndarray]:
         return {f"{prefix}coefficients": self.coefficients}
@@ -343,7 +367,20 @@ def fit_image_model(
     config: ImageModelConfig = ImageModelConfig(),
 ) -> ImageModel:
     """Fit gradients (N, 2) at normalised positions (N, 2) -> colour change (N, 3)."""
-    design = _mixed_design(gradients, xy, 1.0, config.gradient_degree, config.position_degree, anchored=True)
-    coefficients = _solve_ridge(design, diffs, weights, config.ridge)
+    design = image_design(gradients, xy, config)
+    coefficients = solve_ridge(design, diffs, weights, config.ridge)
     max_gradient = float(np.percentile(np.hypot(gradients[:, 0], gradients[:, 1]), 99.5))
     return ImageModel(coefficients, max_gradient, config)
+
+
+def image_design(gradients: np.ndarray, xy: np.ndarray, config: ImageModelConfig) -> np.ndarray:
+    """Design matrix of the gradient -> colour model for gradients (N, 2) at normalised positions (N, 2)."""
+    return _mixed_design(
+        gradients,
+        xy,
+        1.0,
+        config.gradient_degree,
+        config.position_degree,
+        anchored=True,
+        gain_degree=config.gain_degree,
+    )

@@ -11,6 +11,9 @@ in real held-out presses and comparing with those images (docs/sensor.md).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import numpy as np
 from scipy import ndimage
 
@@ -63,12 +66,59 @@ def render_image(
     return np.clip(np.rint(image), 0, 255).astype(np.uint8)
 
 
-def image_path_reconstructor(calibration: SensorCalibration, sensor_noise: bool = True):
+@dataclass(frozen=True)
+class OpticsVariation:
+    """How far each rendered image strays from the calibration's own optics (drawn per image, uniformly)."""
+
+    lighting: float = 0.0  # each channel's colour change is scaled by up to exp(+-lighting) (LEDs, another unit)
+    noise: float = 0.0  # the sensor noise is scaled by up to exp(+-noise)
+    blur_px: float = 0.0  # the optical blur differs by up to this many pixels (never below zero)
+    gel_sigma_m: float = 0.0  # the gel smooths the indenter's shape by a Gaussian of up to this sigma (metres)
+
+    @classmethod
+    def of(cls, amount: float) -> OpticsVariation:
+        """A variation of size `amount` (0: none; 1: LEDs +-15%, noise x/÷2, blur +-1 px, gel up to 0.1 mm)."""
+        return cls(lighting=0.15 * amount, noise=0.7 * amount, blur_px=1.0 * amount, gel_sigma_m=1e-4 * amount)
+
+    @property
+    def none(self) -> bool:
+        return self == OpticsVariation()
+
+
+def render_varied(
+    height_map_m: np.ndarray, calibration: SensorCalibration, rng: np.random.Generator, variation: OpticsVariation
+) -> np.ndarray:
+    """`render_image` with lighting, noise, blur and gel response drawn from `variation` around the calibration's."""
+    spec = calibration.spec
+    gains = np.exp(rng.uniform(-variation.lighting, variation.lighting, 3))
+    noise = float(np.exp(rng.uniform(-variation.noise, variation.noise)))
+    blur = max(0.0, calibration.render_blur_px + float(rng.uniform(-variation.blur_px, variation.blur_px)))
+    sigma_px = float(rng.uniform(0.0, variation.gel_sigma_m)) / spec.pixel_size_m
+    if sigma_px > 0:
+        height_map_m = ndimage.gaussian_filter(np.asarray(height_map_m, dtype=np.float64), sigma_px, mode="nearest")
+    change = render_image(height_map_m, calibration, blur_px=blur).astype(np.float32) - calibration.background
+    image = calibration.background + change * gains.astype(np.float32)
+    image += rng.normal(size=image.shape).astype(np.float32) * (noise * calibration.noise_std).astype(np.float32)
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+Renderer = Callable[[np.ndarray, "np.random.Generator | None"], np.ndarray]
+
+
+def image_path_reconstructor(
+    calibration: SensorCalibration,
+    sensor_noise: bool = True,
+    render: Renderer | None = None,
+    variation: OpticsVariation = OpticsVariation(),
+) -> Callable[[np.ndarray], np.ndarray]:
     """A height map -> tactile cloud function that goes through a rendered GelSight image and its reconstruction.
 
     Plug it into the contact simulator (`PairSimulator(..., reconstruct=...)`) so contacts carry the real
-    reconstruction's errors. The sensor noise of each image is seeded from the height map itself, so a
-    contact's cloud does not depend on the order contacts are simulated in.
+    reconstruction's errors. Images come from the calibration's own optical model (`render_image`, varied per
+    image by `variation`), or from `render(height_map_m, rng)`, another optical model (e.g.
+    `ShadingSensor.render`, calibrated into `calibration` from its own ball presses). The sensor noise of each
+    image is seeded from the height map itself, so a contact's cloud does not depend on the order contacts are
+    simulated in. A frame in which the reconstruction finds no contact gives an empty cloud.
     """
     import hashlib
 
@@ -76,9 +126,41 @@ def image_path_reconstructor(calibration: SensorCalibration, sensor_noise: bool 
 
     def height_map_to_points(height_map_m: np.ndarray) -> np.ndarray:
         rng = None
-        if sensor_noise:
+        if sensor_noise or not variation.none:
             digest = hashlib.sha256(np.ascontiguousarray(height_map_m, dtype=np.float64).tobytes()).digest()
             rng = np.random.default_rng(int.from_bytes(digest[:8], "little"))
-        return reconstruct(render_image(height_map_m, calibration, rng), calibration).points_sensor
+        if render is not None:
+            image = render(height_map_m, rng if sensor_noise else None)
+        elif rng is not None and not variation.none:
+            image = render_varied(height_map_m, calibration, rng, variation)
+        else:
+            image = render_image(height_map_m, calibration, rng)
+        return reconstruct(image, calibration).points_sensor
 
     return height_map_to_points
+
+
+def image_route(source: str, variation: float = 0.0) -> Callable[[np.ndarray], np.ndarray]:
+    """The height map -> image -> reconstructed cloud function a benchmark names by `source`.
+
+    `source`: a calibration file (images from its own fitted optical model), or `shading[:SEED]`: images from the
+    second optical model (`shading.ShadingSensor`: the nominal sensor for seed 0, else one varied by the seed),
+    reconstructed with a calibration made from 44 ball presses it renders, as a lab calibrates a new sensor.
+    `variation` (0: none, 1: large) varies lighting, noise, blur and gel response per image around that sensor.
+    """
+    if source == "shading" or source.startswith("shading:"):
+        from yoto.sensor.shading import ShadingSensor, calibrate_shading_sensor
+
+        seed = int(source.partition(":")[2] or 0)
+        rng = np.random.default_rng(seed)
+        sensor = ShadingSensor() if seed == 0 else ShadingSensor().varied(rng, 1.0)
+        calibration = calibrate_shading_sensor(sensor, rng)
+
+        def render(height_map_m: np.ndarray, image_rng: np.random.Generator | None) -> np.ndarray:
+            varied = sensor.varied(image_rng, variation) if variation > 0 and image_rng is not None else sensor
+            return varied.render(height_map_m, image_rng)
+
+        return image_path_reconstructor(calibration, render=render)
+    from yoto.sensor.calibration import load_calibration
+
+    return image_path_reconstructor(load_calibration(source), variation=OpticsVariation.of(variation))

@@ -191,8 +191,8 @@ def evaluate_press(
     error = (recon.height_map_m - ideal)[inside]
     offset = float(error.mean())
     disc = r < a
-    union = np.count_nonzero(disc | recon.mask)
-    iou = np.count_nonzero(disc & recon.mask) / union if union else 0.0
+    union = np.count_nonzero(disc | recon.core_mask)
+    iou = np.count_nonzero(disc & recon.core_mask) / union if union else 0.0
     result = PressValidation(
         name,
         fold,
@@ -300,9 +300,9 @@ def write_validation_figure(
     axes[1].imshow(image)
     axes[1].plot(circle_x, circle_y, "w--", lw=1)
     axes[1].set_title("found contact circle", fontsize=9)
-    axes[2].imshow(recon.mask, cmap="gray")
+    axes[2].imshow(recon.core_mask, cmap="gray")
     axes[2].plot(circle_x, circle_y, "r--", lw=1)
-    axes[2].set_title("contact mask vs circle", fontsize=9)
+    axes[2].set_title("contact core vs circle", fontsize=9)
     shown = axes[3].imshow(recon.height_map_m * 1e3, cmap="viridis")
     fig.colorbar(shown, ax=axes[3], fraction=0.046, label="z (mm)")
     axes[3].set_title("height map", fontsize=9)

@@ -1,0 +1,276 @@
+"""GelSight images in, contacts out: a second optical model calibrated like a lab's sensor, the contact the gel
+felt (for localization) against its core (for sphere fits), varied lighting, noise and gel, and the benchmark's
+image path."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from yoto.sensor.ball_calibration import CalibrationConfig
+from yoto.sensor.optical import OpticsVariation, image_path_reconstructor, render_varied
+from yoto.sensor.reconstruction import reconstruct
+from yoto.sensor.shading import ShadingSensor, calibrate_shading_sensor
+from yoto.sensor.spec import GELSIGHT_MINI
+from yoto.sensor.sphere import press_height_map
+from yoto.sensor.validation import evaluate_press
+from yoto.simulate.gel import GelModel, gel_surface
+
+SPEC = GELSIGHT_MINI
+BALL_RADIUS_M = 3.155e-3
+
+
+@pytest.fixture(scope="module")
+def shading():
+    """A shading sensor with other LEDs, gel and camera than the nominal one, calibrated from 16 ball presses it
+    renders (as a lab calibrates a new sensor)."""
+    rng = np.random.default_rng(5)
+    sensor = ShadingSensor().varied(rng, 1.0)
+    return sensor, calibrate_shading_sensor(sensor, rng, presses=16)
+
+
+def quadric_curvatures(height_m: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Principal curvatures (1/m, ascending) of the quadric z(x, y) fitted to the masked pixels."""
+    x, y = SPEC.pixel_xy_sensor()
+    xs, ys = x[mask], y[mask]
+    design = np.stack([np.ones_like(xs), xs, ys, xs * xs, xs * ys, ys * ys], axis=1)
+    c, *_ = np.linalg.lstsq(design, height_m[mask].astype(np.float64), rcond=None)
+    return np.linalg.eigvalsh(np.array([[2 * c[3], c[4]], [c[4], 2 * c[5]]]))
+
+
+def broad_contact(radii_m=(0.03, 0.05), depth_m=1.0e-3, centre_px=(200.0, 100.0)) -> np.ndarray:
+    """The gel under an ellipsoidal cap (curvature radii 30 and 50 mm) pressed 1 mm deep off the pad's centre: a
+    broad contact, several millimetres across, that reaches the pad's edge."""
+    x, y = SPEC.pixel_xy_sensor()
+    cx = (centre_px[0] - (SPEC.width_px - 1) / 2) * SPEC.pixel_size_m
+    cy = (centre_px[1] - (SPEC.height_px - 1) / 2) * SPEC.pixel_size_m
+    object_z = -depth_m + (x - cx) ** 2 / (2 * radii_m[0]) + (y - cy) ** 2 / (2 * radii_m[1])
+    height, _, _ = gel_surface(object_z, GelModel(), SPEC)
+    return height
+
+
+def test_a_second_optical_model_calibrates_like_a_lab(shading):
+    """Ball presses the shading model renders (other optics than the fitted model's) reconstruct to spheres of the
+    ball's radius with a calibration made from its own presses, as a lab's would."""
+    sensor, calibration = shading
+    rng = np.random.default_rng(17)
+    errors = []
+    for cx, cy, a in ((90.0, 70.0, 26.0), (230.0, 160.0, 28.0), (160.0, 120.0, 24.0)):
+        image = sensor.render(press_height_map(cx, cy, a, BALL_RADIUS_M), rng)
+        result, recon = evaluate_press(image, calibration, BALL_RADIUS_M, "held out", 0)
+        assert result.found and recon is not None and recon.contact
+        errors.append(result.radius_error(BALL_RADIUS_M * 1e3))
+    assert np.median(np.abs(errors)) < 0.06, errors
+    assert np.abs(errors).max() < 0.12, errors
+    # The shape was chosen by held-out error on the presses: every candidate was scored.
+    config = CalibrationConfig()
+    assert set(calibration.meta["held_out_gradient_rmse_by_position_degree"]) == {
+        str(d) for d in config.position_degrees
+    }
+
+
+def test_a_broad_contact_keeps_its_whole_area_and_shape(shading):
+    """The contact the gel felt is the whole contact (the core, at least half as deep as the deepest point, is a
+    small part of it), and the reconstructed surface keeps the contact's depth and curvatures."""
+    sensor, calibration = shading
+    truth = broad_contact()
+    recon = reconstruct(sensor.render(truth, np.random.default_rng(3)), calibration)
+    assert recon.contact
+    felt = truth < -0.1e-3
+    assert (recon.mask & felt).sum() > 0.95 * felt.sum()
+    assert (recon.core_mask & felt).sum() < 0.7 * felt.sum()
+    assert not (recon.core_mask & ~recon.mask).any() and ndimage.label(recon.mask)[1] == 1
+    assert recon.touches_border
+    assert 0.85 < recon.max_depth_m / -truth.min() < 1.15
+    contact = truth < -0.5e-3
+    true_k, recon_k = quadric_curvatures(truth, contact), quadric_curvatures(recon.height_map_m, contact)
+    np.testing.assert_allclose(recon_k, true_k, rtol=0.25)
+
+
+@pytest.mark.parametrize("draw", range(3))
+def test_reconstruction_does_not_depend_on_lighting_noise_and_gel(shading, draw):
+    """The fitted optical model with its lighting (per channel), noise, blur and gel smoothing varied around the
+    calibration's: the contact's area and depth come back the same."""
+    _, calibration = shading
+    truth = broad_contact(radii_m=(0.02, 0.02), depth_m=0.8e-3, centre_px=(150.0, 120.0))
+    image = render_varied(truth, calibration, np.random.default_rng(100 + draw), OpticsVariation.of(1.0))
+    recon = reconstruct(image, calibration)
+    felt = truth < -0.1e-3
+    assert (recon.mask & felt).sum() / (recon.mask | felt).sum() > 0.8
+    assert 0.8 < recon.max_depth_m / -truth.min() < 1.25
+
+
+def test_the_image_path_is_seeded_by_the_height_map_and_can_use_another_renderer(shading):
+    """`image_path_reconstructor` gives the same cloud for the same height map, with any renderer, and an empty
+    cloud for a frame without contact."""
+    sensor, calibration = shading
+    truth = broad_contact()
+    for hook in (
+        image_path_reconstructor(calibration, variation=OpticsVariation.of(0.5)),
+        image_path_reconstructor(calibration, render=sensor.render),
+    ):
+        first = hook(truth)
+        assert len(first) > 1000 and np.array_equal(hook(truth), first)
+        assert hook(np.zeros_like(truth)).shape == (0, 3)
+
+
+# ------------------------------------------------------------------------------------------------ image inputs
+def write_image_pair(folder, simulated, sensor, calibration_path, model, with_points=False):
+    """A contact-pair file whose sides give GelSight images (PNG, rendered by `sensor`) instead of clouds."""
+    from PIL import Image
+
+    from yoto.io import write_json_atomic, write_ply_points
+
+    folder.mkdir(parents=True, exist_ok=True)
+    payload = {"object": model.name}
+    for k, side in enumerate(("left", "right")):
+        image = sensor.render(simulated.height_maps[side], np.random.default_rng(k))
+        Image.fromarray(image).save(folder / f"{side}.png")
+        payload[side] = {"image": f"{side}.png", "T_world_sensor": simulated.pair.contact(side).T_world_sensor.tolist()}
+        if with_points:  # a wrong cloud beside the image: the other side's, so using it gives a wrong pose
+            other = simulated.pair.contact("right" if side == "left" else "left").points_sensor
+            write_ply_points(folder / f"{side}.ply", other)
+            payload[side]["points"] = f"{side}.ply"
+    payload["ground_truth"] = {
+        "T_world_object": simulated.pair.T_world_mesh_true.tolist(),
+        **{f"{side}_p_object": simulated.pair.p_mesh_true[side].tolist() for side in ("left", "right")},
+    }
+    return write_json_atomic(folder / "pair.json", payload)
+
+
+@pytest.fixture(scope="module")
+def image_pair(shading, builtin_models, tmp_path_factory):
+    """A simulated pair on the fruit, its sides as rendered images, the calibration file and the model file."""
+    from yoto.simulate.scenarios import PairSimulator
+
+    sensor, calibration = shading
+    root = tmp_path_factory.mktemp("image_pairs")
+    calibration_path = calibration.save(root / "sensor.npz")
+    model = builtin_models["fruit"]
+    model_path = model.save(root / "fruit.npz")
+    simulated = PairSimulator(model).pair(seed=21, index=0)
+    return {
+        "sensor": sensor,
+        "calibration": calibration_path,
+        "model": model_path,
+        "simulated": simulated,
+        "root": root,
+    }
+
+
+def test_pose_reads_pair_files_whose_sides_are_images(image_pair, builtin_models, capsys):
+    """`yoto pose --calibration` reconstructs image sides (SPEC "Dual contact"); a side's own "calibration" entry
+    works without it; without any, the error says what to give."""
+    import json
+
+    from yoto.cli import main
+    from yoto.io import read_json, write_json_atomic
+
+    folder = image_pair["root"] / "images_only"
+    path = write_image_pair(folder, image_pair["simulated"], image_pair["sensor"], None, builtin_models["fruit"])
+    args = ["pose", str(path), "--model", str(image_pair["model"]), "--method", "oracle"]
+    assert main(args) == 1
+    assert "a GelSight image needs the sensor's calibration: give one (`--calibration CAL`" in capsys.readouterr().out
+    assert main([*args, "--calibration", str(image_pair["calibration"])]) == 0
+    error = json.loads(path.with_suffix(".pose.json").read_text())["error"]
+    assert error["translation_mm"] < 2.0 and error["rotation_deg"] < 2.0, error
+    # A side naming its own calibration (relative to the pair file) needs no --calibration.
+    payload = read_json(path)
+    for side in ("left", "right"):
+        payload[side]["calibration"] = "../sensor.npz"
+    write_json_atomic(path, payload)
+    assert main(args) == 0
+
+
+def test_points_win_over_images_unless_from_images(image_pair, builtin_models):
+    """A side with both a cloud and an image uses the cloud; `from_images` (`yoto pose --from-images`) the image."""
+    from yoto.contacts import read_contact_pair
+    from yoto.sensor.pair_images import ImageSides
+
+    folder = image_pair["root"] / "both"
+    path = write_image_pair(
+        folder, image_pair["simulated"], image_pair["sensor"], None, builtin_models["fruit"], with_points=True
+    )
+    images = ImageSides(image_pair["calibration"])
+    from_points = read_contact_pair(path, images)
+    from_images = read_contact_pair(path, images, from_images=True)
+    assert from_points.left.source.suffix == ".ply" and from_images.left.source.suffix == ".png"
+    assert from_images.left.image is not None and from_images.left.image.image.name == "left.png"
+    truth = image_pair["simulated"].pair
+    assert np.allclose(from_points.left.points_sensor, truth.right.points_sensor)
+    # The reconstructed cloud is the left contact: its centroid lies near the true left cloud's.
+    assert np.linalg.norm(from_images.left.points_sensor.mean(axis=0) - truth.left.points_sensor.mean(axis=0)) < 1e-3
+
+
+def test_rewritten_pairs_keep_their_image_entries(image_pair, builtin_models, tmp_path):
+    from yoto.contacts import read_contact_pair, write_contact_pair
+    from yoto.io import read_json
+    from yoto.sensor.pair_images import ImageSides
+
+    path = write_image_pair(
+        image_pair["root"] / "rewrite", image_pair["simulated"], image_pair["sensor"], None, builtin_models["fruit"]
+    )
+    pair = read_contact_pair(path, ImageSides(image_pair["calibration"]))
+    copy = write_contact_pair(tmp_path / "copy" / "pair.json", pair)
+    payload = read_json(copy)
+    assert (copy.parent / payload["left"]["image"]).resolve() == (path.parent / "left.png").resolve()
+    assert (copy.parent / payload["left"]["points"]).is_file()
+
+
+def test_localize_takes_images_and_says_when_there_is_no_contact(image_pair, tmp_path, capsys):
+    """`yoto localize` on a GelSight image and on frames without contact: a flat cloud and an untouched image are
+    "no contact" (and the JSON says so), not ten equal-belief guesses."""
+    import json
+
+    from PIL import Image
+
+    from yoto.cli import main
+    from yoto.io import write_ply_points
+
+    sensor = image_pair["sensor"]
+    contact = tmp_path / "contact.png"
+    Image.fromarray(sensor.render(image_pair["simulated"].height_maps["left"], np.random.default_rng(0))).save(contact)
+    untouched = tmp_path / "untouched.png"
+    Image.fromarray(sensor.background(np.random.default_rng(1))).save(untouched)
+    x, y = np.meshgrid(np.linspace(-0.008, 0.008, 60), np.linspace(-0.006, 0.006, 40))
+    flat = write_ply_points(tmp_path / "flat.ply", np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1))
+    out = tmp_path / "found.json"
+    args = ["localize", str(contact), str(untouched), str(flat), "--object", str(image_pair["model"])]
+    assert main([*args, "--calibration", str(image_pair["calibration"]), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert f"{untouched}: no contact" in printed and f"{flat}: no contact" in printed
+    results = json.loads(out.read_text())
+    assert len(results[0]["candidates"]) >= 1 and results[0]["contact"] is not None
+    assert results[1]["contact"] is None and results[2]["contact"] is None and "no_contact" in results[2]
+
+
+def test_pose_says_no_contact_for_an_untouched_side(image_pair, builtin_models, capsys):
+    from PIL import Image
+
+    from yoto.cli import main
+
+    path = write_image_pair(
+        image_pair["root"] / "untouched", image_pair["simulated"], image_pair["sensor"], None, builtin_models["fruit"]
+    )
+    Image.fromarray(image_pair["sensor"].background(np.random.default_rng(2))).save(path.parent / "right.png")
+    args = ["pose", str(path), "--model", str(image_pair["model"]), "--calibration", str(image_pair["calibration"])]
+    assert main(args) == 1
+    printed = capsys.readouterr().out
+    assert "no pose, a sensor shows no contact" in printed and "right: no contact" in printed
+    assert not path.with_suffix(".pose.json").exists()
+
+
+def test_benchmark_image_rows_use_the_same_pairs(image_pair, builtin_models):
+    """`yoto bench --via-images`: the image rows see the same pairs (poses, truth), with reconstructed clouds."""
+    from yoto.evaluation.bench import BenchConfig, pairs_via_images, simulate_benchmark_pairs
+
+    config = BenchConfig(num_pairs=1, seed=3, image_calibration=str(image_pair["calibration"]))
+    pairs = simulate_benchmark_pairs(builtin_models["fruit"], config)
+    imaged = pairs_via_images(pairs, config)
+    for clean, image in zip(pairs, imaged, strict=True):
+        assert np.array_equal(clean.pair.T_world_mesh_true, image.pair.T_world_mesh_true)
+        for side in ("left", "right"):
+            assert np.array_equal(clean.pair.p_mesh_true[side], image.pair.p_mesh_true[side])
+            points = image.pair.contact(side).points_sensor
+            assert len(points) > 100 and not np.array_equal(points, clean.pair.contact(side).points_sensor)

@@ -1,0 +1,127 @@
+"""The matched filter at a resolution that fits the contact: small contacts are matched, never refused.
+
+The matched filter compares height maps of 1.5 mm cells over a 10.5 mm disc: right for the broad contacts of
+curved surfaces, but a tip, a ridge or an edge (a figurine's ear, a blade) presses a patch of a millimetre or
+less, which covers fewer than three cells and cannot be matched. Such a contact is matched with finer cells
+over a smaller disc instead: each halving of the cell halves the disc, so every level has about as many cells
+as the default, and the anchors are packed closer (`ScaleConfig`). The level is the coarsest whose cells the
+contact covers `min_cells` times over. Its anchor maps are built the first time a contact needs them (seconds)
+and cached like the default's. Candidates say which cell size found them (`match_cell_mm`). A small patch says
+little about where it is (and a gel smooths a sharp tip into a dimple wider than the tip), so below the default
+level the beliefs are scaled down by the contact's area: low, honest beliefs that the pose stage's confidence
+carries, while the joint choice with the other contact can still pick the right candidate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from yoto.contacts import ContactEstimate, contact_in_sensor, validate_tactile_points
+from yoto.errors import DegenerateGeometryError
+from yoto.geometry import tangent_basis
+from yoto.localize.match import AnchorConfig, AnchorMaps, MatchConfig, MatchLocalizer
+from yoto.objects.model import ObjectModel
+
+
+@dataclass(frozen=True)
+class ScaleConfig:
+    """How the matched filter's resolution follows the contact's size."""
+
+    min_cells: float = 4.0  # a level is used when the contact's area is at least this many of its coarse cells
+    levels: int = 4  # finer levels below the default, each with half the cell size (1.5 mm -> 94 um)
+    radius_cells: float = 7.0  # the height maps of a finer level cover a disc of this many cells' radius ...
+    min_radius_m: float = 0.001  # ... and at least this radius (free space around a tip must be seen)
+    anchor_spacing_m: float = 0.001  # anchors of the finer levels (the default's: 2 mm)
+    area_pixel_m: float = 1e-4  # pixel of the occupancy grid that measures the contact's area
+
+
+def contact_area_m2(points_sensor: np.ndarray, pixel_m: float) -> float:
+    """Area the tactile cloud covers in its own tangent plane: occupied pixels of at least the cloud's spacing."""
+    _, normal = contact_in_sensor(points_sensor)
+    u, v = tangent_basis(-normal)
+    local = np.stack([points_sensor @ u, points_sensor @ v], axis=1)
+    step = max(1, len(local) // 512)
+    distances, _ = cKDTree(local).query(local[::step], k=2)
+    pixel = max(pixel_m, float(np.median(distances[:, 1])))
+    cells = np.unique(np.floor(local / pixel).astype(np.int64), axis=0)
+    return len(cells) * pixel * pixel
+
+
+class ScaledMatchLocalizer:
+    """The matched filter (`MatchLocalizer`), with finer height-map cells for contacts too small for the default."""
+
+    name = "match"
+    needs_ground_truth = False
+
+    def __init__(self, config: MatchConfig = MatchConfig(), scale: ScaleConfig = ScaleConfig()):
+        self.config = config
+        self.scale = scale
+        self.default = MatchLocalizer(config)
+        self._levels: dict[int, MatchLocalizer] = {0: self.default}
+
+    def prepare_object(self, model: ObjectModel) -> AnchorMaps:
+        """The default anchor maps (finer levels are built when a small contact first needs them)."""
+        return self.default.prepare_object(model)
+
+    def level_for(self, area_m2: float) -> int:
+        """The coarsest level whose coarse cells (half of all, checkerboard) the contact covers `min_cells` times."""
+        for level in range(self.scale.levels + 1):
+            if area_m2 >= self.min_area_m2(level):
+                return level
+        return self.scale.levels
+
+    def localizer(self, level: int) -> MatchLocalizer:
+        """The matched filter of a level: cells of cell_m / 2^level, a disc of `radius_cells` of them."""
+        if level not in self._levels:
+            cell = self.config.anchors.cell_m / 2**level
+            radius = max(self.scale.radius_cells * cell, self.scale.min_radius_m)
+            spacing = min(self.config.anchors.anchor_spacing_m, self.scale.anchor_spacing_m)
+            anchors: AnchorConfig = replace(
+                self.config.anchors,
+                cell_m=cell,
+                map_radius_m=radius,
+                anchor_spacing_m=spacing,
+                nms_radius_m=min(self.config.anchors.nms_radius_m, max(2.0 * spacing, radius)),
+            )
+            config = replace(
+                self.config,
+                anchors=anchors,
+                contact_pixel_m=min(self.config.contact_pixel_m, cell / 2.0),
+                contact_erode_px=self.config.contact_erode_px if level <= 1 else 0,
+                free_clearance_m=min(self.config.free_clearance_m, cell),
+            )
+            self._levels[level] = MatchLocalizer(config)
+        return self._levels[level]
+
+    def localize(
+        self, points_sensor: np.ndarray, model: ObjectModel, truth_p_object: np.ndarray | None = None
+    ) -> list[ContactEstimate]:
+        """The matched filter's candidates at the level that fits the contact (a finer one if it is still too small).
+
+        Below the default level the beliefs are scaled by the contact's area over the smallest area the default
+        level matches: a small patch says little about where it is, and the pose stage's confidence shows it.
+        """
+        points_sensor = validate_tactile_points(points_sensor, None)
+        area = contact_area_m2(points_sensor, self.scale.area_pixel_m)
+        level = self.level_for(area)
+        while True:
+            localizer = self.localizer(level)
+            try:
+                candidates = localizer.localize(points_sensor, model)
+                break
+            except DegenerateGeometryError:
+                if level >= self.scale.levels:
+                    raise
+                level += 1  # the filter's own cover test is stricter than the area estimate: one level finer
+        trust = min(1.0, area / self.min_area_m2(0)) if level > 0 else 1.0
+        for candidate in candidates:
+            candidate.probability *= trust
+            candidate.details["match_cell_mm"] = 1000.0 * localizer.config.anchors.cell_m
+        return candidates
+
+    def min_area_m2(self, level: int) -> float:
+        """The smallest contact area a level is chosen for."""
+        return self.scale.min_cells * 2.0 * (self.config.anchors.cell_m / 2**level) ** 2
