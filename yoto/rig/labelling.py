@@ -288,11 +288,21 @@ def label_trial(
     frame_indices = np.flatnonzero((images.timestamps_s >= start) & (images.timestamps_s <= end))
     reconstructions: dict[int, Reconstruction] = {}
     frames: dict[int, np.ndarray] = {}
+    # The recording's first frame passed `check_gelsight`; a frame refused later (a broad contact that changes
+    # nearly the whole pad, a saturated flash) is skipped and counted, and only a trial with no usable frame is
+    # refused for it.
+    unusable: list[str] = []
     for index, frame in images.frames(frame_indices):
-        result = reconstruct(frame, side.gelsight, source=f"{images.source} {images.name} frame {index}")
+        try:
+            result = reconstruct(frame, side.gelsight, source=f"{images.source} {images.name} frame {index}")
+        except InputError as exc:
+            unusable.append(str(exc))
+            continue
         if result.contact:
             reconstructions[index] = result
             frames[index] = frame
+    if not reconstructions and unusable:
+        raise TrialRefused(f"none of the {len(frame_indices)} GelSight frames of {where} is usable: {unusable[-1]}")
     if not reconstructions:
         raise TrialRefused(
             f"no contact in the GelSight frames ({len(frame_indices)} frames of {where}) although mocap puts the gel "
@@ -364,6 +374,7 @@ def label_trial(
         "p_object": p_mesh.tolist(),
         "p_object_gel_centre": p_gel_centre.tolist(),
         "dropped_frames": _dropped_in(streams.rig, contact_times[0], contact_times[-1]),
+        "unusable_gelsight_frames": len(unusable),
     }
     trial.contact_span_s = (float(contact_times[0]), float(contact_times[-1]))
     trial.image_time_s = image_time
