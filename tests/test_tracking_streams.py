@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import sys
-import types
-
 import numpy as np
 import pytest
 from conftest import TOL
@@ -104,34 +101,43 @@ def test_tactile_frame_folders(tmp_path, rng):
         list_tactile_frames(tmp_path / "empty")
 
 
-def test_recordings_go_to_the_rig_reader(tmp_path, monkeypatch, rng):
+def test_recordings_are_read_through_the_rig_readers(tmp_path, rng):
+    """A Motive take and a ROS1 bag give `yoto track` the same sensor stream a TUM file would."""
+    import datetime as dt
+
+    from yoto.rig.motive import write_motive_csv
+
+    expected = _random_stream(rng, 5, start=0.0)  # a take's clock starts at its first frame
+    take = write_motive_csv(
+        tmp_path / "take.csv",
+        expected.timestamps_s,
+        {"GelLeft": expected.T_world_frame},
+        {},
+        capture_start=dt.datetime(2024, 3, 1, 14, 15, 30),
+        frame_rate_hz=100.0,
+        length_units="Meters",
+    )
+    with pytest.raises(InputError, match="name the rigid body") as error:
+        read_sensor_stream(take)
+    assert str(take) in str(error.value)
+    stream = read_sensor_stream(take, "GelLeft")
+    np.testing.assert_allclose(stream.timestamps_s, expected.timestamps_s, atol=1e-6)
+    np.testing.assert_allclose(stream.T_world_frame[:, :3, 3], expected.T_world_frame[:, :3, 3], atol=1e-5)
+    np.testing.assert_allclose(stream.T_world_frame[:, :3, :3], expected.T_world_frame[:, :3, :3], atol=1e-5)
+
+    pytest.importorskip("rosbags")
+    from yoto.rig.bags import BagWriter
+
     bag = tmp_path / "session.bag"
-    bag.write_bytes(b"#ROSBAG V2.0\n")
+    with BagWriter(bag, "ros1") as writer:
+        for t, T in zip(expected.timestamps_s + 1.7e9, expected.T_world_frame, strict=True):
+            topic, kind = "/vrpn_client_node/GelLeft/pose", "geometry_msgs/msg/PoseStamped"
+            writer.write(topic, kind, t, writer.pose_stamped(t, "world", T))
     with pytest.raises(InputError, match="name the pose topic"):
         read_sensor_stream(bag)
-    monkeypatch.setitem(sys.modules, "yoto.rig", None)  # an installation without the rig readers
-    with pytest.raises(InputError, match="rig readers") as error:
-        read_sensor_stream(bag, "/vrpn_client_node/GelLeft/pose")
-    assert str(bag) in str(error.value)
-
-    expected = _random_stream(rng, 5)
-    calls = []
-
-    def read_pose_stream(path, topic):
-        calls.append((path, topic))
-        return expected.timestamps_s, expected.T_world_frame
-
-    rig = types.ModuleType("yoto.rig")
-    rig.streams = types.SimpleNamespace(read_pose_stream=read_pose_stream)  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "yoto.rig", rig)
-    monkeypatch.setitem(sys.modules, "yoto.rig.streams", rig.streams)
     stream = read_sensor_stream(bag, "/vrpn_client_node/GelLeft/pose")
-    assert calls == [(bag, "/vrpn_client_node/GelLeft/pose")]
-    assert np.array_equal(stream.T_world_frame, expected.T_world_frame)
-    csv = tmp_path / "take.csv"
-    csv.write_text("Format Version,1.23\n")
-    read_sensor_stream(csv, "GelRight")
-    assert calls[-1] == (csv, "GelRight")
+    np.testing.assert_allclose(stream.timestamps_s - 1.7e9, expected.timestamps_s, atol=1e-6)
+    np.testing.assert_allclose(stream.T_world_frame, expected.T_world_frame, atol=1e-6)
 
 
 def test_commands_refuse_bad_arguments(capsys):

@@ -26,6 +26,7 @@ STAGE_CLI_MODULES = [
     "yoto.tracking.cli",
     "yoto.evaluation.cli",
     "yoto.sensor.cli",
+    "yoto.rig.cli",
 ]
 
 

@@ -10,6 +10,7 @@ SIMULATE_EPILOG = """examples:
   yoto simulate press --object figurine --seed 3 --out press.png
   yoto simulate scan meshes/drill.ply --out drill_scan.ply --seed 0
   yoto simulate trajectory --object fruit -n 5 --out trajectories/fruit
+  yoto simulate recording --object fruit --gelsight gelsight.npz --out session/
 """
 
 
@@ -94,6 +95,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     scan.add_argument("--scale-error", type=float, help="relative scale error, e.g. 0.007 (default)")
     scan.add_argument("--holes", type=int, help="number of holes cut and bridged (default 4)")
     scan.set_defaults(run=_run_scan)
+
+    recording = commands.add_parser(
+        "recording",
+        help="a scripted rig session (calibrations, hand-held contacts) as ROS bags and a Motive CSV",
+        description="Simulate a lab session with two hand-held GelSight rigs and OptiTrack on a known mesh: the "
+        "dual-ball and plate calibrations, a bead capture, single and dual contacts with mocap noise and dropouts, "
+        "GelSight frames rendered from a sensor calibration. See docs/rig.md.",
+    )
+    _object_arguments(recording)
+    from yoto.rig.cli import add_recording_arguments
+
+    add_recording_arguments(recording)
 
 
 def _object_arguments(parser: argparse.ArgumentParser) -> None:

@@ -1,7 +1,7 @@
 """What `yoto track` reads during motion: the sensors' pose streams and their tactile frames, from any source.
 
 - Pose streams: TUM files (SPEC) are read here; ROS bags (ROS1 `.bag`, ROS2 folders or `.db3` / `.mcap` files) and
-  OptiTrack Motive CSV exports go to the rig's reader, `yoto.rig.streams.read_pose_stream(path, topic_or_body)`,
+  OptiTrack Motive CSV exports go to the rig stage's reader, `yoto.rig.streams.read_pose_stream(path, topic_or_body)`,
   with the topic (PoseStamped or TF) or rigid-body name the user gives.
 - Tactile frames: a folder of `<timestamp>.ply` clouds (SPEC; read lazily, frame by frame), a bag's GelSight image
   topic (the rig's `read_image_stream`, then the sensor stage's `reconstruct` with a calibration), or frames in
@@ -13,35 +13,17 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from yoto.errors import InputError
 from yoto.io import read_ply_points
+from yoto.rig.streams import read_image_stream, read_pose_stream
 from yoto.trajectory import PoseStream, list_tactile_frames, read_tum
 
 TUM_SUFFIXES = (".tum", ".txt")
 BAG_SUFFIXES = (".bag", ".db3", ".mcap")
 MOTIVE_SUFFIXES = (".csv",)
-
-
-def _rig_reader(name: str, what: str, path: Path) -> Callable[..., Any]:
-    """A reader function of `yoto.rig.streams`, or a clear error where this installation has none."""
-    try:
-        from yoto.rig import streams as rig_streams
-    except ModuleNotFoundError as exc:
-        if exc.name is not None and not exc.name.startswith("yoto"):
-            raise
-        raise InputError(
-            f"reading {what} needs YOTO's rig readers (yoto.rig.streams), which this installation does not have; "
-            "convert the stream to a TUM file ('timestamp tx ty tz qx qy qz qw' a line)",
-            path,
-        ) from exc
-    reader = getattr(rig_streams, name, None)
-    if reader is None:
-        raise InputError(f"reading {what} needs yoto.rig.streams.{name}, which this installation lacks", path)
-    return reader
 
 
 def is_recording(path: Path) -> bool:
@@ -75,7 +57,7 @@ def read_sensor_stream(path: str | Path, topic: str | None = None, name: str | N
             "(--left-topic / --right-topic)",
             path,
         )
-    timestamps, poses = _rig_reader("read_pose_stream", f"pose streams from {kind}", path)(path, topic)
+    timestamps, poses = read_pose_stream(path, topic)
     return PoseStream(np.asarray(timestamps), np.asarray(poses), name or f"{path.name}:{topic}", path)
 
 
@@ -126,10 +108,10 @@ def read_tactile_stream(
         )
     from yoto.sensor import load_calibration, reconstruct
 
-    timestamps, images = _rig_reader("read_image_stream", "GelSight images from a bag", path)(path, topic)
+    images = read_image_stream(path, topic)
     sensor = load_calibration(calibration)
 
     def load(index: int) -> np.ndarray:
-        return reconstruct(images[index], sensor, source=f"{path}:{topic} frame {index}").points_sensor
+        return reconstruct(images.frame(index), sensor, source=f"{path}:{topic} frame {index}").points_sensor
 
-    return TactileStream(np.asarray(timestamps, dtype=np.float64), load, name or f"{path.name}:{topic}", path)
+    return TactileStream(np.asarray(images.timestamps_s, dtype=np.float64), load, name or f"{path.name}:{topic}", path)
