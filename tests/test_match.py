@@ -13,6 +13,7 @@ from yoto.errors import DegenerateGeometryError  # noqa: E402
 from yoto.geometry import rotation_angle_rad  # noqa: E402
 from yoto.localize import make_localizer  # noqa: E402
 from yoto.localize.match import MapGrid, MatchConfig, MatchLocalizer, plane_costs  # noqa: E402
+from yoto.localize.match.rings import ContactRings, RingDescriptors, RingGrid, ring_distances  # noqa: E402
 from yoto.localize.scaled_match import ScaledMatchLocalizer  # noqa: E402
 from yoto.simulate.scenarios import PairSimulator  # noqa: E402
 
@@ -78,13 +79,18 @@ def test_every_rotation_of_the_sensor_is_searched(builtin_models, fruit_contacts
             assert np.linalg.norm(localizer.localize(rolled, model)[0].p_object - found) < 1.0e-3
 
 
-def test_a_flat_face_is_ambiguous_not_wrong(builtin_models):
-    """Pressing a flat region matches many places; every candidate still lies on the surface, facing the sensor."""
+@pytest.fixture(scope="module")
+def box():
+    """A plain box: flat faces everywhere."""
     import trimesh
 
     from yoto.objects.model import ObjectModelConfig, build_object_model
 
-    box = build_object_model(trimesh.creation.box((0.12, 0.08, 0.05)), "box", ObjectModelConfig(num_points=40_000))
+    return build_object_model(trimesh.creation.box((0.12, 0.08, 0.05)), "box", ObjectModelConfig(num_points=40_000))
+
+
+def test_a_flat_face_is_ambiguous_not_wrong(box):
+    """Pressing a flat region matches many places; every candidate still lies on the surface, facing the sensor."""
     x, y = np.meshgrid(np.arange(-4e-3, 4e-3, 1e-4), np.arange(-4e-3, 4e-3, 1e-4))
     depth = 0.3e-3
     points_sensor = np.stack([x.ravel(), y.ravel(), np.full(x.size, -depth)], axis=1)
@@ -121,12 +127,79 @@ def test_plane_costs_remove_offset_and_tilt():
     assert cost_offset[0, 0] > 1e-8
 
 
+def bumpy_heights(xy: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A random smooth height field at (N, 2) positions: a quadratic plus a few 3 mm bumps (metres)."""
+    a, b, c = rng.normal(0.0, 20.0, 3)
+    heights = 0.5 * a * xy[:, 0] ** 2 + b * xy[:, 0] * xy[:, 1] + 0.5 * c * xy[:, 1] ** 2
+    for centre, height in zip(rng.uniform(-0.008, 0.008, (4, 2)), rng.normal(0.0, 3e-4, 4), strict=True):
+        heights += height * np.exp(-np.sum((xy - centre) ** 2, axis=1) / (2 * 0.003**2))
+    return heights
+
+
+def rings_of(grid: RingGrid, heights: np.ndarray, used: np.ndarray) -> ContactRings:
+    means, magnitudes = grid.describe(heights)
+    return ContactRings(used, np.where(used, means, 0.0), np.where(used[:, None], magnitudes, 0.0))
+
+
+def test_ring_distance_ignores_roll_and_plane_and_bounds_the_fine_cost(rng):
+    """The coarse stage's distance is zero for the anchor's own surface seen rolled and tilted, and never exceeds
+    the squared height difference after the best roll (on the ring samples) and plane: pruning by it is safe."""
+    grid = RingGrid(0.00075, 0.0105, 24, 6)
+    xy = grid.centres
+    surfaces = [bumpy_heights(xy, rng) for _ in range(6)]
+    descriptors = RingDescriptors.from_samples(grid, np.array(surfaces))
+    used = np.zeros(len(grid.radii), dtype=bool)
+    used[[0, 1, 2, 4, 6, 7]] = True  # the rings a contact covers (not necessarily the inner ones)
+    weights = np.repeat(np.where(used, grid.radii, 0.0) / grid.radii[used].sum(), grid.angles) / grid.angles
+    for steps in (0, 5, 13):  # rolls by multiples of the angular step
+        roll = 2.0 * np.pi * steps / grid.angles
+        rolled = np.stack(
+            [np.cos(roll) * xy[:, 0] - np.sin(roll) * xy[:, 1], np.sin(roll) * xy[:, 0] + np.cos(roll) * xy[:, 1]], 1
+        )
+        contact = bumpy_heights(rolled, np.random.default_rng(rng.integers(1 << 30)))
+        seen = surfaces[2]  # the anchor's surface under the sensor, rolled: sample at the rolled positions
+        seen = np.roll(seen.reshape(-1, grid.angles), -steps, axis=1).ravel() + 2e-4 + 0.03 * xy[:, 0] - 0.02 * xy[:, 1]
+        distance = ring_distances(descriptors, rings_of(grid, seen, used))
+        assert distance[2] < 1e-12 < distance[[0, 1, 3, 4, 5]].min()
+        # Lower bound: brute force over every roll of the samples and the least-squares offset and tilt.
+        distance = ring_distances(descriptors, rings_of(grid, contact, used))
+        design = np.stack([np.ones(len(xy)), xy[:, 0], xy[:, 1]], axis=1) * np.sqrt(weights)[:, None]
+        for anchor, surface in enumerate(surfaces):
+            costs = []
+            for shift in range(grid.angles):
+                difference = contact - np.roll(surface.reshape(-1, grid.angles), shift, axis=1).ravel()
+                target = difference * np.sqrt(weights)
+                _, residual, *_ = np.linalg.lstsq(design, target, rcond=None)
+                costs.append(float(residual[0]))
+            assert distance[anchor] <= min(costs) * (1 + 1e-5) + 1e-12
+
+
+def test_a_thin_strip_uses_the_fallback_coarse_stage(box):
+    """A contact too narrow to cover its rings (a strip 2 mm wide, as on an edge) still localizes: the coarse
+    stage falls back to an offset-only filter of every anchor. On the box's flat face it is ambiguous, not lost."""
+    from yoto.localize.match.contact import contact_image
+    from yoto.localize.match.rings import contact_rings
+
+    x, y = np.meshgrid(np.arange(-5e-3, 5e-3, 1e-4), np.arange(-1e-3, 1e-3, 1e-4))
+    points_sensor = np.stack([x.ravel(), y.ravel(), np.full(x.size, -0.3e-3)], axis=1)
+    localizer = MatchLocalizer()
+    anchors = localizer.prepare_object(box)
+    image = contact_image(points_sensor, anchors.grid.radius_m, localizer.config)
+    assert contact_rings(image, anchors.rings.grid, localizer.config.ring_coverage).used.sum() < 2
+    candidates = localizer.localize(points_sensor, box)
+    assert len(candidates) >= 3
+    for candidate in candidates:
+        assert abs(box.raycaster.signed_distance(candidate.p_object)) < 0.5e-3
+
+
 def test_anchor_maps_are_built_once(builtin_models):
     model = builtin_models["figurine"]
     localizer = MatchLocalizer()
     first = localizer.prepare_object(model)
     assert localizer.prepare_object(model) is first
     assert first.heights.shape == (len(first.points_object), first.grid.size)
+    rings = first.rings.grid
+    assert first.rings.terms.shape == (len(rings.radii), len(first.points_object), 2 * rings.harmonics)
     # Anchors on the surface at about the configured spacing, each with most of its disc on the surface.
     assert np.abs(np.linalg.norm(first.normals_object, axis=1) - 1.0).max() < TOL["float32_unit"]
     assert np.median(first.valid.mean(axis=1)) > 0.8

@@ -124,14 +124,16 @@ def contact_in_sensor(points_sensor: np.ndarray) -> tuple[np.ndarray, np.ndarray
     offsets = points_sensor - centroid
     # Plain distances beat building a KD-tree for one query on a dense (~20k-point) tactile cloud.
     nearest = points_sensor[np.argmin(np.einsum("ij,ij->i", offsets, offsets))]
-    squared = np.einsum("ij,ij->i", points_sensor - nearest, points_sensor - nearest)
+    from_nearest = points_sensor - nearest
+    squared = np.einsum("ij,ij->i", from_nearest, from_nearest)
     neighbours = np.flatnonzero(squared <= LOCAL_FIT_RADIUS_M**2)
     if len(neighbours) < LOCAL_FIT_MIN_POINTS:
         neighbours = np.argsort(squared)[:LOCAL_FIT_MIN_POINTS]
     _, _, eigenvectors = covariance_eigh(points_sensor[neighbours])
     normal = eigenvectors[:, 0] if eigenvectors[2, 0] <= 0 else -eigenvectors[:, 0]
     along = offsets @ normal
-    off_line = np.linalg.norm(offsets - along[:, None] * normal, axis=1)
+    across = offsets - along[:, None] * normal
+    off_line = np.einsum("ij,ij->i", across, across)  # squared distances from the line (same order, no root)
     closest_to_line = np.argpartition(off_line, min(LINE_POINTS, len(off_line) - 1))[:LINE_POINTS]
     return centroid + along[closest_to_line].mean() * normal, normal
 
@@ -164,8 +166,8 @@ def validate_tactile_points(points: np.ndarray, source: str | Path | None) -> np
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise InputError(f"tactile cloud must be (N, 3), got shape {points.shape}", source)
-    finite = np.isfinite(points).all(axis=1)
-    if not finite.all():
+    if not np.isfinite(points).all():
+        finite = np.isfinite(points).all(axis=1)
         raise InputError(f"tactile cloud has {int((~finite).sum())} points with NaN or inf coordinates", source)
     if len(points) < MIN_TACTILE_POINTS:
         raise InputError(
@@ -173,7 +175,7 @@ def validate_tactile_points(points: np.ndarray, source: str | Path | None) -> np
             "a contact",
             source,
         )
-    extent = float(np.ptp(points, axis=0).max())
+    extent = max(float(np.ptp(points[:, axis])) for axis in range(3))  # column by column: faster than axis=0
     if extent > 0.1:
         raise InputError(
             f"tactile cloud spans {extent * 1000:.0f} mm, larger than any GelSight pad: is it in metres and in the "

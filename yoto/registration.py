@@ -117,9 +117,9 @@ class GaussNewtonConfig:
     prior_rotation_rad: float = float(np.radians(10.0))  # 1-sigma of the prior on the start: rotation ...
     prior_translation_m: float = 0.003  # ... and translation of the pivot
     translation_only_iterations: int = 0  # first iterations move translation only
-    step_tolerance_m: float = 1e-7  # stop when every translation update is below this ...
-    step_tolerance_rad: float = 1e-7  # ... and every rotation update below this (also in translation-only
-    # iterations: a start that needs no translation is not rotated)
+    step_tolerance_m: float = 1e-7  # a pose stops when its translation update is below this ...
+    step_tolerance_rad: float = 1e-7  # ... and its rotation update below this (also in translation-only
+    # iterations: a start that needs no translation is not rotated); each pose of a batch stops on its own
 
 
 def point_to_plane_gauss_newton(
@@ -146,31 +146,34 @@ def point_to_plane_gauss_newton(
     """
     poses = np.array(T_surface_source, dtype=np.float64).reshape(-1, 4, 4)
     start = poses.copy()
-    count = len(poses)
     prior = np.diag([1.0 / config.prior_rotation_rad**2] * 3 + [1.0 / config.prior_translation_m**2] * 3)
     # The source point whose displacement the prior measures: the pivot, or the source point at the origin.
     if pivot_source is None:
         anchor_source = np.einsum("kji,kj->ki", start[:, :3, :3], -start[:, :3, 3])  # T_start^-1 @ 0
     else:
-        anchor_source = np.broadcast_to(np.asarray(pivot_source, dtype=np.float64), (count, 3))
+        anchor_source = np.broadcast_to(np.asarray(pivot_source, dtype=np.float64), (len(poses), 3))
     anchor_start = np.einsum("kij,kj->ki", start[:, :3, :3], anchor_source) + start[:, :3, 3]
+    active = np.arange(len(poses))  # poses still moving: each stops on its own
     for iteration in range(config.iterations):
-        rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
-        p = _transform_batch(poses, points_source)
+        count = len(active)
+        rotation, translation = poses[active, :3, :3], poses[active, :3, 3]
+        source = points_source if np.ndim(points_source) == 2 else points_source[active]
+        p = _transform_batch(poses[active], source)
         facing = None if facing_source is None else (rotation @ facing_source)[:, None, :]
         r, use, _, n = plane_distances(surface, p, config.max_distance_m, facing)
-        if pivot_source is None:
-            centres = np.zeros((count, 3))
-        else:
-            centres = np.einsum("kij,kj->ki", rotation, anchor_source) + translation
+        anchor_now = np.einsum("kij,kj->ki", rotation, anchor_source[active]) + translation
+        centres = np.zeros((count, 3)) if pivot_source is None else anchor_now
         magnitude = np.abs(r)
         scale = np.maximum(config.surface_noise_m, 1.4826 * _row_medians(magnitude, use))
         weights = np.where(use, np.minimum(1.0, scale[:, None] / np.maximum(magnitude, 1e-12)), 0.0)
         weights /= config.surface_noise_m**2
-        jacobian = np.concatenate([np.cross(p - centres[:, None, :], n), n], axis=2)  # (K, M, 6): d r / d (w, tau)
-        anchor_now = np.einsum("kij,kj->ki", rotation, anchor_source) + translation
+        jacobian = _jacobian(p - centres[:, None, :], n)
         deviation = np.concatenate(
-            [so3_log(rotation @ np.transpose(start[:, :3, :3], (0, 2, 1))), anchor_now - anchor_start], axis=1
+            [
+                so3_log(rotation @ np.transpose(start[active, :3, :3], (0, 2, 1))),
+                anchor_now - anchor_start[active],
+            ],
+            axis=1,
         )
         weighted = jacobian * weights[:, :, None]
         hessian = np.transpose(weighted, (0, 2, 1)) @ jacobian + prior
@@ -182,14 +185,26 @@ def point_to_plane_gauss_newton(
             step = -np.linalg.solve(hessian, gradient[:, :, None])[:, :, 0]
         delta = so3_exp(step[:, :3])
         # p -> delta (p - c) + c + tau, composed onto each pose
-        poses[:, :3, :3] = delta @ rotation
-        poses[:, :3, 3] = np.einsum("kij,kj->ki", delta, translation - centres) + centres + step[:, 3:]
-        if (
-            np.linalg.norm(step[:, 3:], axis=1).max() < config.step_tolerance_m
-            and np.linalg.norm(step[:, :3], axis=1).max() < config.step_tolerance_rad
-        ):
+        poses[active, :3, :3] = delta @ rotation
+        poses[active, :3, 3] = np.einsum("kij,kj->ki", delta, translation - centres) + centres + step[:, 3:]
+        moving = (np.linalg.norm(step[:, 3:], axis=1) >= config.step_tolerance_m) | (
+            np.linalg.norm(step[:, :3], axis=1) >= config.step_tolerance_rad
+        )
+        active = active[moving]
+        if len(active) == 0:
             break
     return poses
+
+
+def _jacobian(lever: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(K, M, 6) d r / d (w, tau) of point-to-plane residuals: (lever x n, n). The cross product written out (what
+    np.cross computes, without its axis shuffling, which cost more than the arithmetic here)."""
+    jacobian = np.empty(lever.shape[:-1] + (6,))
+    jacobian[..., 0] = lever[..., 1] * normals[..., 2] - lever[..., 2] * normals[..., 1]
+    jacobian[..., 1] = lever[..., 2] * normals[..., 0] - lever[..., 0] * normals[..., 2]
+    jacobian[..., 2] = lever[..., 0] * normals[..., 1] - lever[..., 1] * normals[..., 0]
+    jacobian[..., 3:] = normals
+    return jacobian
 
 
 def _row_medians(values: np.ndarray, mask: np.ndarray) -> np.ndarray:

@@ -36,9 +36,10 @@ class BeliefConfig:
 
 def distinct_candidates(p_object: np.ndarray, order: np.ndarray, radius_m: float) -> list[int]:
     """Indices, in `order` (best first), of the locations (K, 3) not within `radius_m` of a better kept one."""
+    near = np.linalg.norm(p_object[:, None, :] - p_object[None, :, :], axis=2) < radius_m
     kept: list[int] = []
     for i in order:
-        if all(np.linalg.norm(p_object[i] - p_object[j]) >= radius_m for j in kept):
+        if not near[i, kept].any():
             kept.append(int(i))
     return kept
 

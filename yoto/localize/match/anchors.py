@@ -5,12 +5,14 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from yoto.geometry import tangent_basis
 from yoto.localize.match.config import AnchorConfig
+from yoto.localize.match.rings import RingDescriptors, RingGrid
 from yoto.objects.model import ObjectModel
 from yoto.pointcloud import voxel_downsample
 from yoto.raycast import MeshRaycaster
@@ -23,7 +25,7 @@ class MapGrid:
     cell_m: float
     radius_m: float
 
-    @property
+    @cached_property
     def centres(self) -> np.ndarray:
         """(C, 2) cell centres (x, y), row by row."""
         side = 2 * int(np.ceil(self.radius_m / self.cell_m))
@@ -36,7 +38,7 @@ class MapGrid:
     def size(self) -> int:
         return len(self.centres)
 
-    @property
+    @cached_property
     def coarse(self) -> np.ndarray:
         """(C,) bool: the checkerboard half of the cells (a lattice sqrt(2) cells apart), for the coarse stage."""
         side = 2 * int(np.ceil(self.radius_m / self.cell_m))
@@ -56,16 +58,11 @@ class AnchorMaps:
     heights: np.ndarray  # (A, C) float32 surface height into the object along -n at each cell centre (0: invalid)
     valid: np.ndarray  # (A, C) float32 1 where the anchor has surface at the cell centre
     grid: MapGrid
+    rings: RingDescriptors  # each anchor's height map on rings, described independently of roll (coarse stage)
     neighbours: list[np.ndarray]  # per anchor, the anchors within the NMS radius
+    kdtree: cKDTree  # over the anchors
+    area_m2: float  # surface area each anchor stands for (the free-space test samples the surface at the anchors)
     seconds: float  # time to build
-
-    def __post_init__(self):
-        # (C, A) contiguous right-hand sides of the matched filter's matrix products
-        self.valid_columns = np.ascontiguousarray(self.valid.T, dtype=np.float32)
-        self.height_columns = np.ascontiguousarray(self.heights.T, dtype=np.float32)
-        self.height2_columns = self.height_columns * self.height_columns
-        coarse = self.grid.coarse
-        self.coarse_columns = tuple(np.ascontiguousarray(a[coarse]) for a in (self.valid_columns, self.height_columns))
 
 
 def cast_height_maps(
@@ -74,39 +71,40 @@ def cast_height_maps(
     normals: np.ndarray,
     u: np.ndarray,
     v: np.ndarray,
-    grid: MapGrid,
+    centres: np.ndarray,
     config: AnchorConfig,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(A, C) surface heights at the cell centres of each anchor frame, by casting rays along -n onto the mesh.
+    """(A, C) surface heights at (C, 2) positions (u, v) of each anchor frame, by casting rays along -n onto the mesh.
 
     A ray starts `ray_start_m` in front of the tangent plane. Its first hit is the surface a sensor pressed
     along -n would meet; a back-face hit means the ray started inside the object (the surface rises above the
     start): height -ray_start_m. No hit, or a hit deeper than `ray_reach_m`: no surface (invalid).
     """
-    centres = grid.centres
-    heights = np.zeros((len(anchors), grid.size), dtype=np.float32)
-    valid = np.zeros((len(anchors), grid.size), dtype=np.float32)
-    chunk = max(1, 1_000_000 // grid.size)
+    size = len(centres)
+    heights = np.zeros((len(anchors), size), dtype=np.float32)
+    valid = np.zeros((len(anchors), size), dtype=np.float32)
+    chunk = max(1, 1_000_000 // size)
     for first in range(0, len(anchors), chunk):
         last = min(first + chunk, len(anchors))
-        count = (last - first) * grid.size
+        count = (last - first) * size
         origins = (
             anchors[first:last, None, :]
             + centres[None, :, 0, None] * u[first:last, None, :]
             + centres[None, :, 1, None] * v[first:last, None, :]
             + config.ray_start_m * normals[first:last, None, :]
         ).reshape(count, 3)
-        directions = np.broadcast_to(-normals[first:last, None, :], (last - first, grid.size, 3)).reshape(count, 3)
+        directions = np.broadcast_to(-normals[first:last, None, :], (last - first, size, 3)).reshape(count, 3)
         hits = raycaster.cast(origins, directions)
         h = np.where(hits.back_face, -config.ray_start_m, hits.t_hit - config.ray_start_m)
         ok = hits.hit & (h <= config.ray_reach_m)
-        heights[first:last] = np.where(ok, h, 0.0).reshape(last - first, grid.size)
-        valid[first:last] = ok.reshape(last - first, grid.size)
+        heights[first:last] = np.where(ok, h, 0.0).reshape(last - first, size)
+        valid[first:last] = ok.reshape(last - first, size)
     return heights, valid
 
 
 def build_anchor_maps(model: ObjectModel, config: AnchorConfig) -> AnchorMaps:
-    """Anchors every `anchor_spacing_m` on the parent cloud with their height maps (once per object model)."""
+    """Anchors every `anchor_spacing_m` on the parent cloud with their height maps and ring descriptors (once per
+    object model)."""
     start = time.perf_counter()
     points = model.points_object.astype(np.float64)
     (centres,) = voxel_downsample(points, config.anchor_spacing_m)
@@ -115,11 +113,18 @@ def build_anchor_maps(model: ObjectModel, config: AnchorConfig) -> AnchorMaps:
     normals = model.aggregated_normal(anchors, config.anchor_normal_neighbours)
     u, v = tangent_basis(-normals)  # (u, v, -n) right-handed: the frame of a sensor pressing along -n
     grid = MapGrid(config.cell_m, config.map_radius_m)
-    heights, valid = cast_height_maps(model.raycaster, anchors, normals, u, v, grid, config)
-    neighbours = [
-        np.asarray(n, dtype=np.int64) for n in cKDTree(anchors).query_ball_point(anchors, config.nms_radius_m)
-    ]
-    return AnchorMaps(anchors, normals, u, v, heights, valid, grid, neighbours, time.perf_counter() - start)
+    heights, valid = cast_height_maps(model.raycaster, anchors, normals, u, v, grid.centres, config)
+    ring_grid = RingGrid(config.ring_step_m, config.map_radius_m, config.ring_angles, config.ring_harmonics)
+    ring_heights, ring_valid = cast_height_maps(model.raycaster, anchors, normals, u, v, ring_grid.centres, config)
+    # Where the anchor has no surface within reach, describe the ring as if it lay at the reach: a contact that
+    # touched there does not match it.
+    rings = RingDescriptors.from_samples(ring_grid, np.where(ring_valid > 0, ring_heights, config.ray_reach_m))
+    kdtree = cKDTree(anchors)
+    neighbours = [np.asarray(n, dtype=np.int64) for n in kdtree.query_ball_point(anchors, config.nms_radius_m)]
+    area = float(model.meta["surface_area_m2"]) / len(anchors)
+    return AnchorMaps(
+        anchors, normals, u, v, heights, valid, grid, rings, neighbours, kdtree, area, time.perf_counter() - start
+    )
 
 
 _CACHE: dict[tuple[str, AnchorConfig], AnchorMaps] = {}

@@ -23,10 +23,17 @@ class AnchorConfig:
     ray_start_m: float = 0.005  # anchor rays start this far in front of the tangent plane
     ray_reach_m: float = 0.005  # surface further than this behind the tangent plane counts as absent
     nms_radius_m: float = 0.004  # matched-filter candidates closer than this are one (anchor neighbourhoods)
+    ring_step_m: float = 0.00075  # coarse stage: height samples on rings this far apart, out to map_radius_m ...
+    ring_angles: int = 24  # ... with this many samples per ring ...
+    ring_harmonics: int = 6  # ... described by their mean and the magnitudes of angular harmonics 2 to this
 
     def __post_init__(self):
         if self.cell_m <= 0 or self.map_radius_m <= self.cell_m or self.anchor_spacing_m <= 0:
             raise InputError("cell_m and anchor_spacing_m must be positive and map_radius_m larger than a cell")
+        if not 0 < self.ring_step_m <= self.map_radius_m:
+            raise InputError("ring_step_m must lie in (0, map_radius_m]")
+        if not 2 <= self.ring_harmonics <= self.ring_angles // 2:
+            raise InputError("ring_harmonics must lie between 2 and ring_angles / 2")
 
 
 @dataclass(frozen=True)
@@ -35,8 +42,10 @@ class MatchConfig:
 
     anchors: AnchorConfig = AnchorConfig()
     rolls: int = 36  # sensor roll angles tried by the fine stage (360 / rolls degrees apart)
-    coarse_rolls: int = 24  # roll angles of the coarse stage, which scores every anchor on half the cells
-    shortlist: int = 1500  # anchors (best by the coarse stage) scored by the fine stage
+    shortlist: int = 600  # anchors (best by the coarse stage) scored by the fine stage
+    ring_coverage: float = 0.75  # coarse stage: a ring counts when the contact covers this share of its samples
+    min_rings: int = 2  # fewer covered rings: the coarse stage falls back to an offset-only filter of every anchor
+    coarse_rolls: int = 24  # ... on half the cells at this many rolls
     air_penalty_m: float = 0.0005  # a contact cell with no anchor surface costs like this height error
     remove_tilt: bool = True  # fit and remove a plane (offset + tilt) instead of a constant offset
     contact_pixel_m: float = 0.0002  # pixel of the contact's local height image
@@ -46,16 +55,19 @@ class MatchConfig:
     free_clearance_m: float = 0.0005  # free space: cells this close to the contact are not judged
     pad_size_m: tuple[float, float] = GELSIGHT_MINI.pad_size_m  # sensed area of the gel (x, y extents)
     refine_candidates: int = 20  # best matched-filter candidates refined by ICP
-    icp_points: int = 300  # tactile points used by the per-candidate ICP
+    icp_points: int = 60  # tactile points used by the per-candidate ICP
     icp: GaussNewtonConfig = field(
         default_factory=lambda: GaussNewtonConfig(
-            iterations=8,
+            iterations=5,
             max_distance_m=0.002,
             surface_noise_m=0.00003,
             prior_rotation_rad=float(np.radians(10.0)),
             prior_translation_m=0.003,
         )
     )  # the per-candidate point-to-plane ICP, its start as a weak prior
+    polish_candidates: int = 3  # the best distinct candidates after ICP are refined again ...
+    polish_points: int = 300  # ... on this many tactile points ...
+    polish_iterations: int = 8  # ... for this many more iterations
     residual_tau_m: float = 0.0005  # truncation of the ranking residual
     belief: BeliefConfig = BeliefConfig()  # distinct candidates and their beliefs from the ranking residuals
     normal_neighbours: int = 20  # k of the aggregated model normal reported with a candidate

@@ -62,9 +62,12 @@ class ContactImage:
 
 
 def tactile_spacing_m(local: np.ndarray, samples: int = 512) -> float:
-    """Median in-plane distance between neighbouring tactile points (the cloud's own resolution)."""
-    step = max(1, len(local) // samples)
-    distances, _ = cKDTree(local[:, :2]).query(local[::step, :2], k=2)
+    """Median in-plane distance between neighbouring tactile points (the cloud's own resolution), measured on the
+    `samples` points nearest the contact centre, their neighbours found among the 4 x `samples` nearest."""
+    radial = local[:, 0] ** 2 + local[:, 1] ** 2
+    near = np.argpartition(radial, min(4 * samples, len(local)) - 1)[: 4 * samples]
+    near = near[np.argsort(radial[near])]
+    distances, _ = cKDTree(local[near, :2]).query(local[near[:samples], :2], k=2)
     return float(np.median(distances[:, 1]))
 
 

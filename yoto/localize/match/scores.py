@@ -7,7 +7,6 @@ import numpy as np
 from yoto.localize.match.anchors import AnchorMaps
 from yoto.localize.match.config import MatchConfig
 from yoto.localize.match.contact import ContactImage, ContactMaps
-from yoto.objects.model import ObjectModel
 
 
 def plane_costs(
@@ -80,36 +79,36 @@ def free_space_penalty(
     gel plane lies at `gel_heights`. Surface nearer the sensor than the plane (less a margin) on a cell where
     the sensor saw no contact contradicts the hypothesis.
     """
-    x, y = anchors.grid.centres.T
-    h = anchors.heights[anchor_index].astype(np.float64)
-    surface = h + beta[0][:, None] + beta[1][:, None] * x + beta[2][:, None] * y
+    x, y = anchors.grid.centres.T.astype(np.float32)
+    surface = anchors.heights[anchor_index] + beta[0][:, None] + beta[1][:, None] * x + beta[2][:, None] * y
     depth = np.minimum(
-        contact.gel_heights[roll_index] - contact.image.free_margin_m - surface, config.anchors.ray_start_m
+        contact.gel_heights[roll_index] - np.float32(contact.image.free_margin_m) - surface,
+        np.float32(config.anchors.ray_start_m),
     )
     judged = contact.free[roll_index] & (anchors.valid[anchor_index] > 0)
-    return np.sum(np.where(judged, np.maximum(depth, 0.0) ** 2, 0.0), axis=1)
+    squared = np.square(np.maximum(depth, 0.0), where=judged, out=np.zeros_like(depth))
+    return np.asarray(squared.sum(axis=1, dtype=np.float64))
 
 
 def free_space_violation(
-    model: ObjectModel, image: ContactImage, T_object_sensor: np.ndarray, config: MatchConfig
+    anchors: AnchorMaps, image: ContactImage, T_object_sensor: np.ndarray, config: MatchConfig
 ) -> np.ndarray:
     """(K,) mean squared depth (capped at tau) by which the object would push into the gel unseen, per tactile sample.
 
-    Parent points near the sensor are mapped into the sensor frame; those over the pad, beyond the gel
-    plane by more than the margin, and not near the observed contact, each contribute their depth squared,
-    weighted by the area they represent relative to a tactile sample's.
+    Anchors near the sensor (a sample of the surface every `anchor_spacing_m`) are mapped into the sensor frame;
+    those over the pad, beyond the gel plane by more than the margin, and not near the observed contact, each
+    contribute their depth squared, weighted by the area they represent relative to a tactile sample's.
     """
     pad = np.asarray(config.pad_size_m) / 2.0
     reach = float(np.hypot(*pad)) + 0.002
     tactile_samples = max(int(image.mask.sum()), 1)
     sample_area = image.pixel_m**2
-    point_area = model.point_spacing_m**2
-    members = model.kdtree.query_ball_point(T_object_sensor[:, :3, 3], reach)
+    members = anchors.kdtree.query_ball_point(T_object_sensor[:, :3, 3], reach)
     counts = np.array([len(m) for m in members])
     if counts.sum() == 0:
         return np.zeros(len(T_object_sensor))
     owner = np.repeat(np.arange(len(T_object_sensor)), counts)
-    p_object = model.points_object[np.concatenate([np.asarray(m, dtype=np.int64) for m in members])].astype(np.float64)
+    p_object = anchors.points_object[np.concatenate([np.asarray(m, dtype=np.int64) for m in members])]
     offsets = p_object - T_object_sensor[owner, :3, 3]
     p_sensor = np.einsum("ni,nij->nj", offsets, T_object_sensor[owner, :3, :3])
     depth = -p_sensor[:, 2] - image.free_margin_m
@@ -118,4 +117,4 @@ def free_space_violation(
     _, away = image.sample(local[:, 0], local[:, 1], ~image.touched)
     depth = np.minimum(depth[over][away], config.residual_tau_m)
     violation = np.bincount(owner[over][away], weights=depth**2, minlength=len(T_object_sensor))
-    return violation * point_area / sample_area / tactile_samples
+    return violation * anchors.area_m2 / sample_area / tactile_samples

@@ -1,0 +1,166 @@
+"""Latency for a control loop: per contact and per pose, every localizer side by side on the same contacts.
+
+For each object, dual contacts simulated exactly as `yoto bench` simulates them (same seed, same pairs), or
+contact pairs read from files; every method localizes both contacts of every pair in this one process, and
+the pose stage turns its candidates into a pose. Timed, per method:
+
+- per contact: `localizer.localize` end to end (wall clock, and the process's CPU time beside it);
+- pose stage: choosing, verifying and refining from the candidates (`pose_from_candidates`);
+- per pose: both contacts plus the pose stage, what a robot waits for after a grasp.
+
+The first pair of each (object, method) is warm-up and not counted (anchor maps, KD-trees, block encodings,
+lazy imports are built there; the once-per-object preparation is reported on its own). Medians and p90s,
+and each method's speed-up over ICP measured in the same run. Wall times on a shared machine rise with its
+load (printed); the CPU times are the steadier figure.
+
+    python benchmarks/pose_latency.py --objects tool fruit figurine MESHES/mug/mug.ply -n 30 --methods match icp
+    python benchmarks/pose_latency.py --pairs PAIRS/ --methods match yoto --checkpoint RUN/model.pt
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from collections import defaultdict
+
+import numpy as np
+
+
+class CpuTimed:
+    """A localizer that also records the process's CPU time of each `localize` call (ms)."""
+
+    def __init__(self, localizer):
+        self.localizer = localizer
+        self.name = localizer.name
+        self.needs_ground_truth = localizer.needs_ground_truth
+        self.cpu_ms: list[float] = []
+
+    def localize(self, points_sensor, model, truth_p_object=None):
+        tick = time.process_time()
+        candidates = self.localizer.localize(points_sensor, model, truth_p_object)
+        self.cpu_ms.append(1000.0 * (time.process_time() - tick))
+        return candidates
+
+
+def percentiles(values: list[float]) -> dict[str, float]:
+    array = np.asarray(values, dtype=np.float64)
+    if len(array) == 0:
+        return {"median": float("nan"), "p90": float("nan"), "count": 0}
+    return {"median": float(np.median(array)), "p90": float(np.percentile(array, 90)), "count": len(array)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--objects", nargs="+", help="object names (workspace or built-in) or mesh files")
+    source.add_argument("--pairs", nargs="+", help="contact pair files or folders (their objects in --workspace)")
+    parser.add_argument("-n", "--num-pairs", type=int, default=20, help="simulated pairs per object (--objects)")
+    parser.add_argument("--seed", type=int, default=7, help="simulation seed (yoto bench's default)")
+    parser.add_argument("--methods", nargs="+", default=["match", "icp"], choices=["match", "icp", "yoto", "oracle"])
+    parser.add_argument("--checkpoint", help="checkpoint of the yoto method (default: the shipped weights)")
+    parser.add_argument("--pose-stage", choices=["full", "paper"], default="full", help="pose stage to time")
+    parser.add_argument("--workspace", help="workspace folder for object models")
+    parser.add_argument("--json", help="write the figures here as JSON")
+    args = parser.parse_args()
+
+    from tqdm import tqdm
+
+    from yoto.contacts import SIDES, read_contact_pair
+    from yoto.evaluation.bench import BenchConfig, resolve_object, simulate_benchmark_pairs
+    from yoto.io import write_json_atomic
+    from yoto.localize import make_localizer
+    from yoto.objects.build import load_object_model
+    from yoto.pose.pipeline import PAPER, PoseConfig, localize_contacts, pose_from_candidates
+    from yoto.provenance import run_info
+    from yoto.training.data import find_pair_files_recursive
+
+    pose_config = PoseConfig() if args.pose_stage == "full" else PAPER
+    work: dict[str, tuple] = {}  # object name -> (model, pairs)
+    if args.objects:
+        for spec in args.objects:
+            model = resolve_object(spec, args.workspace)
+            simulated = simulate_benchmark_pairs(model, BenchConfig(num_pairs=args.num_pairs, seed=args.seed))
+            work[model.name] = (model, [s.pair for s in simulated])
+    else:
+        grouped = defaultdict(list)
+        for path in find_pair_files_recursive(args.pairs):
+            pair = read_contact_pair(path)
+            grouped[pair.object_name].append(pair)
+        work = {name: (load_object_model(name, args.workspace), pairs) for name, pairs in grouped.items()}
+
+    load_before = os.getloadavg()
+    results: dict = {**run_info(), "pose_stage": args.pose_stage, "seed": args.seed, "objects": {}, "all": {}}
+    pooled: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
+    for name, (model, pairs) in work.items():
+        results["objects"][name] = {}
+        for method in args.methods:
+            localizer = CpuTimed(make_localizer(method, args.checkpoint if method == "yoto" else None))
+            tick = time.perf_counter()
+            if hasattr(localizer.localizer, "prepare_object"):
+                localizer.localizer.prepare_object(model)
+            prepare_s = time.perf_counter() - tick
+            times: dict[str, list[float]] = defaultdict(list)
+            for number, pair in enumerate(tqdm(pairs, desc=f"{name}: {method}", unit="pair", leave=False)):
+                candidates, world, latency = localize_contacts(pair, model, localizer)
+                cpu = time.process_time()
+                estimate = pose_from_candidates(pair, model, candidates, world, pose_config, method)
+                cpu_pose = 1000.0 * (time.process_time() - cpu)
+                if number == 0:
+                    continue  # warm-up
+                contact_ms = [latency[f"localize_{side}"] for side in SIDES]
+                times["contact_ms"] += contact_ms
+                times["pose_stage_ms"].append(estimate.latency_ms["solve"])
+                times["pose_ms"].append(sum(contact_ms) + estimate.latency_ms["solve"])
+                times["contact_cpu_ms"] += localizer.cpu_ms[-2:]
+                times["pose_cpu_ms"].append(sum(localizer.cpu_ms[-2:]) + cpu_pose)
+            for key, values in times.items():
+                pooled[method][key] += values
+            results["objects"][name][method] = {
+                "prepare_s": prepare_s,
+                **{key: percentiles(values) for key, values in times.items()},
+            }
+    results["all"] = {method: {key: percentiles(v) for key, v in times.items()} for method, times in pooled.items()}
+    results["load_average"] = {"start": load_before, "end": os.getloadavg()}
+
+    def row(label: str, stats: dict) -> str:
+        def cell(key: str) -> str:
+            return f"{stats[key]['median']:7.1f} / {stats[key]['p90']:7.1f}"
+
+        return (
+            f"| {label} | {cell('contact_ms')} | {stats['contact_cpu_ms']['median']:6.1f} | {cell('pose_stage_ms')} "
+            f"| {cell('pose_ms')} | {stats['pose_cpu_ms']['median']:6.1f} |"
+        )
+
+    lines = [
+        f"commit {results['commit']} | {results['device']} | pose stage {args.pose_stage} | seed {args.seed} | "
+        f"load average {load_before[0]:.1f} at start, {results['load_average']['end'][0]:.1f} at end",
+        "",
+        "Latency in ms, median / p90 (warm-up pair excluded); CPU: the process's CPU time, median",
+        "",
+        "| object: method | per contact | CPU | pose stage | per pose | CPU |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, methods in results["objects"].items():
+        lines += [row(f"{name}: {method}", stats) for method, stats in methods.items()]
+    lines += [row(f"**all: {method}**", stats) for method, stats in results["all"].items()]
+    if "icp" in results["all"]:
+        icp = results["all"]["icp"]
+        for method, stats in results["all"].items():
+            if method in ("icp", "oracle"):
+                continue
+            ratios = {
+                key: icp[key]["median"] / stats[key]["median"] for key in ("contact_ms", "contact_cpu_ms", "pose_ms")
+            }
+            results["all"][method]["speedup_over_icp"] = ratios
+            lines.append(
+                f"\n{method} is {ratios['contact_ms']:.1f}x faster than ICP per contact "
+                f"({ratios['contact_cpu_ms']:.1f}x in CPU time), {ratios['pose_ms']:.1f}x per pose (medians, same run)."
+            )
+    print("\n".join(lines))
+    if args.json:
+        write_json_atomic(args.json, results)
+
+
+if __name__ == "__main__":
+    main()
