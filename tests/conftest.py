@@ -18,6 +18,7 @@ TOL = {
     "float32": 1e-5,  # values that passed through float32 storage, metres
     "float32_unit": 1e-6,  # unit vectors that passed through float32 storage
     "ply_text_m": 1e-8,  # coordinates written to and read back from PLY files
+    "tum_text": 1e-8,  # pose entries written to and read back from TUM files (9 decimals)
     "arccos_rad": 1e-6,  # angles read off arccos near 1 (its derivative diverges there)
     "pose_exact_m": 1e-9,  # noise-free pose recovery, translation
     "pose_exact_rad": 1e-9,  # noise-free pose recovery, rotation

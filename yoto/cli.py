@@ -23,8 +23,10 @@ STAGE_CLI_MODULES = [
     "yoto.training.cli",
     "yoto.localize.cli",
     "yoto.pose.cli",
+    "yoto.tracking.cli",
     "yoto.evaluation.cli",
     "yoto.sensor.cli",
+    "yoto.rig.cli",
 ]
 
 

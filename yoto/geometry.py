@@ -24,7 +24,14 @@ def make_transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
 
 
 def invert_transform(transform: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4x4 pose (uses R^T, not a general matrix inverse)."""
+    """Inverse of a rigid 4x4 pose, or of each of (..., 4, 4) poses (uses R^T, not a general matrix inverse)."""
+    if np.ndim(transform) > 2:
+        rotations_t = np.swapaxes(np.asarray(transform, dtype=np.float64)[..., :3, :3], -1, -2)
+        inverses = np.zeros(np.shape(transform))
+        inverses[..., :3, :3] = rotations_t
+        inverses[..., :3, 3] = -np.einsum("...ij,...j->...i", rotations_t, np.asarray(transform)[..., :3, 3])
+        inverses[..., 3, 3] = 1.0
+        return inverses
     rotation = transform[:3, :3]
     inverse = np.eye(4)
     inverse[:3, :3] = rotation.T
@@ -119,6 +126,24 @@ def se3_log(transforms: np.ndarray) -> np.ndarray:
     omega = so3_log(t[..., :3, :3])
     rho = np.linalg.solve(_so3_left_jacobian(omega), t[..., :3, 3][..., None])[..., 0]
     return np.concatenate([omega, rho], axis=-1)
+
+
+def pose_from_twist(twists: np.ndarray) -> np.ndarray:
+    """Poses (..., 4, 4) [exp(omega) | t] of (..., 6) (omega, t): a rotation about the origin by the rotation vector,
+    then the translation t. (Not SE(3)'s exponential, whose translation is V(omega) t: here t is where the origin
+    goes, which keeps rotation and translation errors apart for frames centred on an object.)"""
+    xi = np.asarray(twists, dtype=np.float64)
+    out = np.zeros(xi.shape[:-1] + (4, 4))
+    out[..., :3, :3] = so3_exp(xi[..., :3])
+    out[..., :3, 3] = xi[..., 3:]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def twist_of_pose(poses: np.ndarray) -> np.ndarray:
+    """(omega, t) (..., 6) of poses (..., 4, 4); the inverse of `pose_from_twist`."""
+    t = np.asarray(poses, dtype=np.float64)
+    return np.concatenate([so3_log(t[..., :3, :3]), t[..., :3, 3]], axis=-1)
 
 
 def rotation_about_axis(axis: np.ndarray, angle_rad: float) -> np.ndarray:

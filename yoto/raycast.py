@@ -64,6 +64,12 @@ class MeshRaycaster:
         closest = self.scene.compute_closest_points(query)["points"].numpy().astype(np.float64)
         return closest.reshape(np.shape(points))
 
+    def closest_points_and_normals(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The nearest surface point to each (N, 3) query point and the normal of the triangle it lies on (N, 3)."""
+        query = self._o3d.core.Tensor(np.asarray(points, dtype=np.float32).reshape(-1, 3))
+        closest = self.scene.compute_closest_points(query)
+        return closest["points"].numpy().astype(np.float64), closest["primitive_normals"].numpy().astype(np.float64)
+
     def signed_distance(self, points: np.ndarray) -> np.ndarray:
         """Distance to the surface of each (..., 3) point, negative inside the object (a closed mesh is assumed).
 

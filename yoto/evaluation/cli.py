@@ -36,8 +36,33 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="a YOTO row: its label, its checkpoint ('default' = shipped weights), and optionally "
         "a suffix naming the object models it localizes on (e.g. ':_scan' for NAME_scan). Repeatable.",
     )
-    parser.add_argument("--sensor-noise-mm", type=float, default=0.0, help="sensor calibration error, position")
-    parser.add_argument("--sensor-noise-deg", type=float, default=0.0, help="sensor calibration error, orientation")
+    parser.add_argument(
+        "--sensor-noise-mm",
+        type=float,
+        default=1.0,
+        help="mean calibration error of each simulated sensor's reported position (standard condition: 1 mm)",
+    )
+    parser.add_argument(
+        "--sensor-noise-deg",
+        type=float,
+        default=1.0,
+        help="mean calibration error of each simulated sensor's reported orientation (standard condition: 1 deg)",
+    )
+    parser.add_argument(
+        "--prior-mm", type=float, default=1.0, help="the pose stage's expected sensor calibration error, position"
+    )
+    parser.add_argument(
+        "--prior-deg", type=float, default=1.0, help="the pose stage's expected sensor calibration error, orientation"
+    )
+    parser.add_argument(
+        "--search",
+        choices=["auto", "always", "never"],
+        default="auto",
+        help="joint two-contact search: unless the localizers clearly agree (auto), always, or never",
+    )
+    parser.add_argument(
+        "--no-retouch", action="store_true", help="do not simulate the suggested re-touch of ambiguous pairs"
+    )
     parser.add_argument(
         "--via-images",
         metavar="CALIBRATION",
@@ -65,6 +90,32 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", default="bench_out", help="output folder")
     parser.add_argument("--overwrite", action="store_true", help="recompute cached results")
     parser.set_defaults(run=run)
+
+    calibrate = subparsers.add_parser(
+        "calibrate-confidence",
+        help="fit the pose confidence on simulated contacts of many objects, check it on held-out ones",
+        description="Simulate dual contacts (1 mm / 1 deg calibration error) on every object, run the pose stage, "
+        "fit P(pose within 5 mm and 5 deg) by logistic regression on the --objects and report it on the "
+        "--held-out objects. Objects: workspace/built-in names, mesh files, or procedural shapes "
+        "(proc_<family>_<index>, or --procedural N for N of them). Rows are cached in --work-dir.",
+    )
+    calibrate.add_argument("--objects", nargs="*", default=[], help="objects to fit on")
+    calibrate.add_argument(
+        "--procedural", type=int, default=0, help="also fit on this many procedural shapes (proc_*_0 ...)"
+    )
+    calibrate.add_argument("--held-out", nargs="*", default=[], help="objects never fitted on, to check the fit")
+    calibrate.add_argument(
+        "--held-out-procedural",
+        type=int,
+        default=0,
+        help="also check on this many procedural shapes numbered after the fitted ones",
+    )
+    calibrate.add_argument("-n", "--pairs", type=int, default=40, help="dual contacts per object")
+    calibrate.add_argument("--seed", type=int, default=11, help="simulation seed (the benchmark uses 7)")
+    calibrate.add_argument("--out", default="confidence.json", help="where to write the model (JSON)")
+    calibrate.add_argument("--work-dir", default="calibration_out", help="cached rows and the report")
+    calibrate.add_argument("--workspace", help="workspace folder")
+    calibrate.set_defaults(run=run_calibrate)
 
 
 def parse_yoto_rows(values: list[str]):
@@ -102,6 +153,10 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         sensor_noise_mm=args.sensor_noise_mm,
         sensor_noise_deg=args.sensor_noise_deg,
+        prior_mm=args.prior_mm,
+        prior_deg=args.prior_deg,
+        search=args.search,
+        retouch=not args.no_retouch,
         pose_stages=tuple(args.pose_stages),
         image_calibration=args.via_images,
         image_variation=args.image_variation,
@@ -110,4 +165,24 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     print((Path(args.out) / "bench.md").read_text())
+    return 0
+
+
+def run_calibrate(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from yoto.errors import InputError
+    from yoto.evaluation.calibrate import CalibrationConfig, calibrate_confidence
+    from yoto.evaluation.shapes import procedural_names
+
+    fit = list(args.objects) + procedural_names(args.procedural)
+    held_out = list(args.held_out) + procedural_names(args.held_out_procedural, first=args.procedural)
+    if not fit:
+        raise InputError("give objects to fit on (--objects and/or --procedural N)")
+    overlap = set(fit) & set(held_out)
+    if overlap:
+        raise InputError(f"objects both fitted on and held out: {sorted(overlap)}")
+    config = CalibrationConfig(pairs_per_object=args.pairs, seed=args.seed)
+    calibrate_confidence(fit, held_out, config, args.out, args.work_dir, args.workspace)
+    print((Path(args.work_dir) / "calibration.md").read_text())
     return 0

@@ -44,10 +44,13 @@ def contact_area_m2(points_sensor: np.ndarray, pixel_m: float) -> float:
     u, v = tangent_basis(-normal)
     local = np.stack([points_sensor @ u, points_sensor @ v], axis=1)
     step = max(1, len(local) // 512)
-    distances, _ = cKDTree(local).query(local[::step], k=2)
+    distances, _ = cKDTree(local, balanced_tree=False, compact_nodes=False).query(local[::step], k=2)  # quick build
     pixel = max(pixel_m, float(np.median(distances[:, 1])))
-    cells = np.unique(np.floor(local / pixel).astype(np.int64), axis=0)
-    return len(cells) * pixel * pixel
+    cells = np.floor(local / pixel).astype(np.int64)
+    cells -= cells.min(axis=0)
+    # One integer per cell: a 1-D unique is an order of magnitude faster than np.unique(axis=0) on rows.
+    occupied = np.unique(cells[:, 0] * (int(cells[:, 1].max()) + 1) + cells[:, 1])
+    return len(occupied) * pixel * pixel
 
 
 class ScaledMatchLocalizer:

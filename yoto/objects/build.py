@@ -76,12 +76,13 @@ def build_object(
     model = build_object_model(mesh, name, config, source=source, repair_report=report)
     model.save(out_path)
     log.info(
-        "%s: %d parent points, %d/%d valid blocks, bbox %s mm -> %s",
+        "%s: %d parent points, %d/%d valid blocks, bbox %s mm, symmetry: %s -> %s",
         name,
         len(model.points_object),
         model.num_blocks,
         int(np.prod(config.grid_shape)),
         " x ".join(f"{v * 1000:.1f}" for v in model.meta["bbox_object_m"]),
+        model.symmetry.describe(),
         out_path,
     )
     return out_path

@@ -148,7 +148,12 @@ def builtin_mesh(name: str, voxel_size_m: float = 0.001) -> trimesh.Trimesh:
     if name not in BUILTIN_OBJECTS:
         raise InputError(f"unknown built-in object {name!r} (built-ins: {', '.join(BUILTIN_OBJECTS)})")
     sdf, low, high, _ = BUILTIN_OBJECTS[name]
-    low_arr, high_arr = np.asarray(low), np.asarray(high)
+    return mesh_of_sdf(sdf, low, high, voxel_size_m)
+
+
+def mesh_of_sdf(sdf: SDF, low, high, voxel_size_m: float = 0.001) -> trimesh.Trimesh:
+    """Mesh the zero level of a signed distance function inside the box [low, high] (metres). Deterministic."""
+    low_arr, high_arr = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
     shape = np.ceil((high_arr - low_arr) / voxel_size_m).astype(int) + 1
     axes = [low_arr[i] + voxel_size_m * np.arange(shape[i]) for i in range(3)]
     # Evaluate on a grid `stride` times coarser, then exactly only in a band around the surface:

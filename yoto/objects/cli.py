@@ -20,6 +20,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     build.add_argument("--points", type=int, help="parent cloud size (default: 500 points per cm^2 of surface)")
     build.add_argument("--seed", type=int, default=0, help="surface sampling seed")
+    build.add_argument(
+        "--symmetry-tolerance-mm",
+        type=float,
+        default=1.0,
+        help="a rotation counts as a symmetry when the rotated surface lies this close to itself on 90%% of it",
+    )
     build.add_argument("--workspace", help="workspace folder (default: $YOTO_WORKSPACE or ./yoto_workspace)")
     build.add_argument("--out", help="write the model here instead of WORKSPACE/objects/NAME.npz")
     build.add_argument("--overwrite", action="store_true", help="rebuild even if an up-to-date model exists")
@@ -35,8 +41,10 @@ def _run_build(args: argparse.Namespace) -> int:
     from yoto.errors import InputError
     from yoto.objects.build import build_object
     from yoto.objects.model import ObjectModelConfig
+    from yoto.objects.symmetry import SymmetryConfig
 
-    config = ObjectModelConfig(num_points=args.points, seed=args.seed)
+    symmetry = SymmetryConfig(tolerance_m=args.symmetry_tolerance_mm / 1000.0)
+    config = ObjectModelConfig(num_points=args.points, seed=args.seed, symmetry=symmetry)
     if args.builtin:
         if args.mesh:
             raise InputError("give either a mesh file or --builtin, not both")
@@ -66,6 +74,6 @@ def _run_show(args: argparse.Namespace) -> int:
         print(
             f"{model.name}: {len(model.points_object)} parent points, {model.num_blocks}/{grid[0] * grid[1] * grid[2]} "
             f"valid blocks, bbox {bbox} mm, area {meta['surface_area_m2'] * 1e4:.1f} cm^2, "
-            f"watertight {meta['watertight']}, source {meta['source']}"
+            f"watertight {meta['watertight']}, symmetry: {model.symmetry.describe()}, source {meta['source']}"
         )
     return 0

@@ -22,6 +22,7 @@ from yoto.errors import InputError
 from yoto.geometry import invert_transform, make_transform, normalize, rotation_between, transform_points
 from yoto.io import load_npz, save_npz_atomic
 from yoto.objects.mesh import RepairReport, require_thickness
+from yoto.objects.symmetry import Symmetry, SymmetryConfig, detect_symmetry
 from yoto.pointcloud import covariance_eigh, estimate_normals
 from yoto.raycast import MeshRaycaster
 
@@ -43,6 +44,7 @@ class ObjectModelConfig:
     grid_shape: tuple[int, int, int] = (6, 3, 3)  # blocks along the object's x (longest), y, z (shortest) axes
     min_block_points: int = 10  # blocks holding fewer parent points are dropped (paper App. A.2)
     seed: int = 0  # surface sampling seed
+    symmetry: SymmetryConfig = SymmetryConfig()  # how the object's rotational symmetries are detected
 
 
 @dataclass
@@ -101,6 +103,15 @@ class ObjectModel:
         for array in (self.points_object, self.point_block, self.block_centres_object):
             digest.update(np.ascontiguousarray(array).tobytes())
         return digest.hexdigest()[:16]
+
+    @cached_property
+    def symmetry(self) -> Symmetry:
+        """The object's rotational symmetries (object frame), found at build time; models built before symmetry
+        detection existed get them detected on first use (about a second)."""
+        if "symmetry" in self.meta:
+            return Symmetry.from_json(self.meta["symmetry"])
+        log.info("%s: the model file predates symmetry detection; detecting it now", self.name)
+        return detect_symmetry(self.points_object, self.normals_object)
 
     @cached_property
     def mesh_scale_m(self) -> float:
@@ -282,6 +293,7 @@ def build_object_model(
         "bbox_object_m": np.ptp(points_object, axis=0).tolist(),
         "surface_area_m2": float(mesh_mesh.area),
         "watertight": bool(mesh_mesh.is_watertight),
+        "symmetry": detect_symmetry(points_object, normals_object, config.symmetry).to_json(),
     }
     return ObjectModel(
         name=name,

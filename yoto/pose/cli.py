@@ -31,6 +31,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="the paper's pose stage exactly: each contact's top candidate, SVD, no verification or refinement",
     )
     parser.add_argument(
+        "--search",
+        choices=["auto", "always", "never"],
+        default="auto",
+        help="joint two-contact search over the whole surface: unless the localizers clearly agree (auto), always, "
+        "or never",
+    )
+    parser.add_argument(
+        "--calibration-error-mm",
+        type=float,
+        default=1.0,
+        help="expected calibration error of each reported sensor position (mean, mm; 1 mm is what mocap gives)",
+    )
+    parser.add_argument(
+        "--calibration-error-deg",
+        type=float,
+        default=1.0,
+        help="expected calibration error of each reported sensor orientation (mean, deg)",
+    )
+    parser.add_argument("--confidence-model", help="confidence parameters file (default: the one shipped)")
+    parser.add_argument(
         "--calibration",
         help="sensor calibration (`yoto sensor calibrate`) for sides that give a GelSight 'image' and no "
         "'calibration' of their own",
@@ -44,6 +64,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
     import numpy as np
 
     from yoto.contacts import find_pair_files, read_contact_pair
@@ -54,10 +76,14 @@ def run(args: argparse.Namespace) -> int:
     from yoto.objects.build import load_object_model
     from yoto.objects.model import ObjectModel
     from yoto.pose.pipeline import PAPER, PoseConfig, estimate_pose, pose_result_path
+    from yoto.pose.refine import CalibrationPrior
     from yoto.sensor.pair_images import ImageSides
 
     method = "oracle" if args.oracle else args.method
-    pose_config = PAPER if args.paper else PoseConfig()
+    prior = CalibrationPrior(args.calibration_error_mm / 1000.0, float(np.radians(args.calibration_error_deg)))
+    pose_config = PAPER if args.paper else PoseConfig(calibration=prior, search=args.search)
+    if args.confidence_model:
+        pose_config = replace(pose_config, confidence_model=args.confidence_model)
     localizer = make_localizer(method, args.checkpoint)
     images = ImageSides(args.calibration)
     models: dict[str, ObjectModel] = {}
@@ -71,14 +97,24 @@ def run(args: argparse.Namespace) -> int:
             model = models[key]
             estimate = estimate_pose(pair, model, localizer, pose_config)
             result = estimate.to_json(model)
-            line = (
-                f"{path.name}: confidence {estimate.confidence:.2f}, conditioning {estimate.solution.conditioning:.2f}"
-            )
+            count = len(estimate.hypotheses)
+            line = f"{path.name}: confidence {estimate.confidence:.2f}, {count} hypothes{'i' if count == 1 else 'e'}s"
+            line += " (ambiguous)" if estimate.ambiguous else ""
+            if estimate.next_touch is not None:
+                line += f", touch next with the {estimate.next_touch.sensor} sensor"
             if pair.T_world_mesh_true is not None:
                 result["error"] = pose_errors(estimate.T_world_mesh, pair.T_world_mesh_true, model)
+                result["error"]["rotation_deg_modulo_symmetry"] = float(
+                    np.degrees(
+                        model.symmetry.rotation_error_rad(
+                            estimate.T_world_mesh @ model.T_mesh_object, pair.T_world_mesh_true @ model.T_mesh_object
+                        )
+                    )
+                )
                 errors.append(result["error"])
                 line += (
-                    f", error {result['error']['translation_mm']:.1f} mm / {result['error']['rotation_deg']:.1f} deg"
+                    f", error {result['error']['translation_mm']:.1f} mm / "
+                    f"{result['error']['rotation_deg_modulo_symmetry']:.1f} deg"
                 )
             write_json_atomic(pose_result_path(path, args.out), result)
             print(line + "".join(f"\n  warning: {w}" for w in estimate.solution.warnings))
@@ -90,10 +126,10 @@ def run(args: argparse.Namespace) -> int:
             print(f"{path}: error: {exc}")
     if errors:
         t = np.array([e["translation_mm"] for e in errors])
-        r = np.array([e["rotation_deg"] for e in errors])
+        r = np.array([e["rotation_deg_modulo_symmetry"] for e in errors])
         print(
             f"{len(errors)} poses vs ground truth ({method}): translation median {np.median(t):.2f} mm "
-            f"(mean {t.mean():.2f}), rotation median {np.median(r):.2f} deg (mean {r.mean():.2f})"
+            f"(mean {t.mean():.2f}), rotation median {np.median(r):.2f} deg (mean {r.mean():.2f}; modulo symmetry)"
         )
     if no_contact:
         print(f"{no_contact} pair(s) without a contact on one sensor: no pose")

@@ -1,11 +1,19 @@
-"""Checking and sharpening a pose with the tactile clouds themselves.
+"""Checking and sharpening pose hypotheses with the tactile clouds, under sensor-pose calibration error.
 
-Given a pose hypothesis T_world_object, both tactile clouds (mapped into the object frame through their
-sensor poses) must lie on the object's surface. `surface_fit` measures that (verification: a wrong
-pair of contact candidates leaves the clouds floating or buried by millimetres), and `refine_pose` runs a
-joint point-to-plane ICP of both clouds onto the parent cloud, starting from the SVD pose. Two contacts
-constrain all six degrees of freedom, and the start is already close, so a few iterations converge;
-unlike the ICP baseline there is no global search.
+Under the true pose both tactile clouds lie on the object's surface, but only under the true sensor poses.
+The calibrated `T_world_sensor` of each sensor is off by a small rigid error (about 1 mm / 1 deg with motion
+capture), so under any one object pose the two clouds cannot both lie exactly on the surface. The refinement
+therefore estimates, for each pose hypothesis, the object pose together with a small correction per sensor:
+
+    p_object = T_world_object^-1  T_world_sensor  E_sensor  p_sensor,     E_sensor = exp(xi_sensor)
+
+minimising the point-to-surface residuals of both clouds (Huber-weighted, read off `field.SurfaceField`) plus
+the prior xi_sensor ~ N(0, calibration covariance) of each correction, and a weak prior that keeps the object
+pose near its start where the surface leaves it free (sliding on a plane, spinning on a ball). Two contacts
+fix all six degrees of freedom wherever the surface is not featureless, so a few Gauss-Newton steps from a
+closed-form start converge. `refine_hypotheses` runs K hypotheses at once (an 18 x 18 system each) and reports
+what verification needs: each side's residual after the corrections, and the size of the corrections that
+were needed (a wrong hypothesis needs large ones, or fits badly even with them).
 """
 
 from __future__ import annotations
@@ -13,80 +21,283 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
-from yoto.geometry import invert_transform, transform_points
-from yoto.objects.model import ObjectModel
+from yoto.geometry import se3_exp, se3_log
 from yoto.pointcloud import voxel_downsample
-from yoto.registration import GaussNewtonConfig, point_to_plane_gauss_newton, truncated_plane_fit
+from yoto.pose.field import SurfaceField
+from yoto.sensor.spec import GELSIGHT_MINI
+from yoto.simulate.body import SensorBody
+
+_MEAN_NORM_3D = float(np.sqrt(8.0 / np.pi))  # E|x| of a 3-D standard normal vector
+_ANGLE_TO_AXIS_STD = float(np.sqrt(np.pi / 2.0) / np.sqrt(3.0))  # per-axis std of a rotation vector whose angle
+# is N(0, s) about a uniform axis, in units of the mean |angle|
+
+
+@dataclass(frozen=True)
+class CalibrationPrior:
+    """How far each reported sensor pose may be from the truth (the same meaning as the simulator's settings)."""
+
+    translation_m: float = 0.001  # mean |translation error| of each sensor's T_world_sensor
+    rotation_rad: float = float(np.radians(1.0))  # mean rotation error angle of each sensor's T_world_sensor
+
+    def information(self) -> np.ndarray:
+        """(6,) inverse variances of a correction twist (rotation vector, translation), per axis."""
+        rotation_std = max(self.rotation_rad, 1e-4) * _ANGLE_TO_AXIS_STD
+        translation_std = max(self.translation_m, 1e-5) / _MEAN_NORM_3D
+        return np.array([1.0 / rotation_std**2] * 3 + [1.0 / translation_std**2] * 3)
 
 
 @dataclass(frozen=True)
 class RefineConfig:
-    """How hypotheses are verified and the chosen pose refined."""
+    """How hypotheses are verified and refined."""
 
-    points_per_contact: int = 300  # tactile points used per contact (after down-sampling to the model spacing)
-    iterations: int = 30  # ICP iterations at most
-    max_distance_m: float = 0.008  # correspondences farther than this are ignored (the capture range)
-    inlier_distance_m: float = 0.0005  # a point within this of the surface counts as lying on it
-    max_step_m: float = 0.02  # refinement may move the pose at most this far in total (a guard)
-    prior_rotation_rad: float = float(np.radians(5.0))  # the SVD pose as a weak prior: 1-sigma rotation ...
-    prior_translation_m: float = 0.005  # ... and translation, so symmetric surfaces cannot slide the pose away
-    surface_noise_m: float = 0.00005  # 1-sigma of a tactile point's distance from the true surface
-    translation_only_iterations: int = 5  # first iterations move translation only (see refine_pose)
-    seed: int = 0
+    points_per_contact: int = 120  # tactile points used per contact (after down-sampling to the model spacing)
+    verify_points: int = 10  # of these, the points used to score unrefined seeds
+    seed_tilt_rad: float = float(np.radians(4.0))  # how far an unrefined seed's normals may be off (sampling)
+    screen_points: int = 24  # of these, the points used by the short refinement that screens many seeds
+    screen_iterations: int = 3  # iterations of that short refinement
+    iterations: int = 8  # Gauss-Newton iterations at most
+    max_distance_m: float = 0.003  # points further than this from the surface are ignored (the capture range)
+    surface_noise_m: float = 5e-5  # 1-sigma of a tactile point's distance from the true surface (weights)
+    prior_rotation_rad: float = float(np.radians(10.0))  # the starting pose as a weak prior: rotation ...
+    prior_translation_m: float = 0.01  # ... and translation, so featureless surfaces cannot slide the pose away
+    fit_tau_m: float = 0.0005  # residuals are truncated here when the fit is scored (a point off the surface
+    # counts as much as one this far)
+    inlier_distance_m: float = 0.0002  # a point within this of the surface counts as lying on it
+    free_spacing_m: float = 0.0015  # free space: grid spacing over the pad
+    free_depth_m: float = 0.0002  # ... the points lie this far into the gel (the object would have pressed there)
+    free_clearance_m: float = 0.001  # ... and at least this (one cell of that size) from the contact, across the pad
+    free_tau_m: float = 0.001  # a free-space point inside the object counts at most this deep
+    step_tolerance: float = 1e-5  # stop when every update is below this (radians and metres)
+    seed: int = 0  # which tactile points are used
 
 
 @dataclass
-class SurfaceFit:
-    """How well the tactile clouds lie on the model surface under a pose."""
+class ContactPoints:
+    """One contact's tactile points prepared for refinement, and the sensor that made it."""
 
-    rms_m: float  # RMS point-to-plane distance of the matched points (capped at max_distance_m)
-    inlier_fraction: float  # fraction of points within inlier_distance_m of the surface
+    points_sensor: np.ndarray  # (M, 3) a fixed subset of the tactile cloud, sensor frame
+    T_world_sensor: np.ndarray  # (4, 4) the reported sensor pose
+    sensor: int  # which sensor (0: left, 1: right): contacts of one sensor share its calibration error
+    free_sensor: np.ndarray  # (F, 3) points the object cannot occupy: the gel where it saw no contact (just
+    # inside the gel surface), and the face of the housing around it
 
 
-def contact_samples(points_sensor: np.ndarray, T_world_sensor: np.ndarray, spacing_m: float, config: RefineConfig):
-    """A fixed, deterministic subset of a tactile cloud in the world frame, at the model's point spacing."""
-    (points,) = voxel_downsample(points_sensor, spacing_m)
+def free_space_points(points_sensor: np.ndarray, config: RefineConfig) -> np.ndarray:
+    """Where the object cannot be, sensor frame: a grid over the pad, `free_depth_m` into the gel, away from the
+    contact (outside the cells of `free_clearance_m` that hold tactile points and their neighbours), and the
+    housing's face around the gel."""
+    width, height = GELSIGHT_MINI.pad_size_m
+    points_sensor = points_sensor[:: max(1, len(points_sensor) // 4000)]
+    cell = config.free_clearance_m
+    columns, rows = int(np.ceil(width / cell)) + 2, int(np.ceil(height / cell)) + 2
+    index = np.floor((points_sensor[:, :2] + [width / 2 + cell, height / 2 + cell]) / cell).astype(np.int64)
+    inside = (index[:, 0] >= 0) & (index[:, 0] < columns) & (index[:, 1] >= 0) & (index[:, 1] < rows)
+    touched = np.zeros((columns, rows), dtype=bool)
+    touched[index[inside, 0], index[inside, 1]] = True
+    touched = ndimage.binary_dilation(touched)  # a cell away from the contact, not just beside a point
+    step = config.free_spacing_m
+    x, y = np.meshgrid(np.arange(-width / 2, width / 2 + 1e-9, step), np.arange(-height / 2, height / 2 + 1e-9, step))
+    pad = np.stack([x.ravel(), y.ravel()], axis=1)
+    cells = np.floor((pad + [width / 2 + cell, height / 2 + cell]) / cell).astype(np.int64)
+    pad = pad[~touched[cells[:, 0], cells[:, 1]]]
+    gel = np.column_stack([pad, np.full(len(pad), -config.free_depth_m)])
+    body = SensorBody()
+    hx, hy = body.housing_size_m[0] / 2, body.housing_size_m[1] / 2
+    x, y = np.meshgrid(np.arange(-hx, hx + 1e-9, 2 * step), np.arange(-hy, hy + 1e-9, 2 * step))
+    rim = (np.abs(x) > width / 2 + step) | (np.abs(y) > height / 2 + step)  # the housing face around the gel
+    housing = np.column_stack([x[rim], y[rim], np.full(int(rim.sum()), -body.gel_protrusion_m)])
+    return np.vstack([gel, housing])
+
+
+def contact_points(
+    points_sensor: np.ndarray, T_world_sensor: np.ndarray, sensor: int, spacing_m: float, config: RefineConfig
+) -> ContactPoints:
+    """A fixed, deterministic subset of a tactile cloud at the model's point spacing, and its free space."""
+    stride = max(1, len(points_sensor) // (20 * config.points_per_contact))  # thin dense clouds before voxelising
+    (points,) = voxel_downsample(points_sensor[::stride], spacing_m)
     if len(points) > config.points_per_contact:
         rng = np.random.default_rng(config.seed)
-        points = points[rng.choice(len(points), config.points_per_contact, replace=False)]
-    return transform_points(T_world_sensor, points)
+        points = points[np.sort(rng.choice(len(points), config.points_per_contact, replace=False))]
+    free = free_space_points(points_sensor, config)
+    return ContactPoints(points, np.asarray(T_world_sensor, dtype=np.float64), sensor, free)
 
 
-def surface_fit(
-    model: ObjectModel, T_world_object: np.ndarray, points_world: np.ndarray, config: RefineConfig
-) -> SurfaceFit:
-    """Point-to-plane fit of world-frame tactile points to the model under a pose hypothesis."""
-    points_object = transform_points(invert_transform(T_world_object), points_world)
-    fit = truncated_plane_fit(model, points_object[None], config.max_distance_m, inlier_m=config.inlier_distance_m)
-    return SurfaceFit(rms_m=float(fit.rms_m[0]), inlier_fraction=float(fit.inlier_fraction[0]))
+@dataclass
+class Refined:
+    """K refined hypotheses: poses, sensor corrections and how well the clouds fit (arrays over K)."""
+
+    T_world_object: np.ndarray  # (K, 4, 4)
+    corrections: np.ndarray  # (K, 2, 6) twist (rotation vector, translation) of each sensor's correction E
+    fit_rms_m: np.ndarray  # (K, C) truncated RMS residual of each contact after the corrections
+    inlier_fraction: np.ndarray  # (K, C) share of each contact's points within inlier_distance_m of the surface
+    free_rms_m: np.ndarray  # (K, C) RMS depth (truncated) of each contact's free-space points inside the object
+    correction_cost: np.ndarray  # (K,) Mahalanobis square of both corrections under the calibration prior
+    start_offset: np.ndarray  # (K, 6) twist from the starting pose (object frame)
+
+    def subset(self, index: np.ndarray) -> Refined:
+        return Refined(*(getattr(self, name)[index] for name in self.__dataclass_fields__))
 
 
-def refine_pose(
-    model: ObjectModel, T_world_object: np.ndarray, points_world: np.ndarray, config: RefineConfig
-) -> tuple[np.ndarray, SurfaceFit]:
-    """Joint point-to-plane ICP of the tactile points (world frame) onto the parent cloud.
+def thinned(contacts: list[ContactPoints], count: int) -> list[ContactPoints]:
+    """The contacts with at most `count` points each (an even stride through them)."""
+    return [
+        ContactPoints(
+            c.points_sensor[:: max(1, -(-len(c.points_sensor) // count))], c.T_world_sensor, c.sensor, c.free_sensor
+        )
+        for c in contacts
+    ]
 
-    `yoto.registration.point_to_plane_gauss_newton` on both clouds at once, rotating about the object frame's
-    origin, with the SVD pose as a weak Gaussian prior: where the surface constrains the pose (most places) the
-    data wins; where it does not (rotation about a sphere-like patch's centre) the pose stays. The first
-    iterations correct translation alone. Returns the refined T_world_object and its surface fit; if refinement
-    does not improve the fit, or wanders further than `max_step_m`, the input pose is returned unchanged.
+
+def evaluate_fit(
+    field: SurfaceField,
+    contacts: list[ContactPoints],
+    T_world_object: np.ndarray,
+    corrections: np.ndarray | None,
+    config: RefineConfig,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Truncated RMS residual, inlier fraction and free-space violation (each (K, C)) of every contact under K
+    poses (and sensor corrections, or none)."""
+    T_object_world = invert_transform_batch(T_world_object)
+    rms, inliers, free = [], [], []
+    for contact in contacts:
+        T = np.einsum("kij,jl->kil", T_object_world, contact.T_world_sensor)
+        if corrections is not None:
+            T = T @ se3_exp(corrections[:, contact.sensor])
+        points = np.vstack([contact.points_sensor, contact.free_sensor])
+        q = np.einsum("kij,mj->kmi", T[:, :3, :3], points) + T[:, None, :3, 3]
+        distance, _ = field.distance(q, with_gradient=False)
+        count = len(contact.points_sensor)
+        magnitude = np.abs(distance[:, :count])
+        rms.append(np.sqrt(np.mean(np.minimum(magnitude, config.fit_tau_m) ** 2, axis=1)))
+        inliers.append(np.mean(magnitude < config.inlier_distance_m, axis=1))
+        depth = np.clip(-distance[:, count:], 0.0, config.free_tau_m)
+        free.append(np.sqrt(np.mean(depth**2, axis=1)) if depth.shape[1] else np.zeros(len(T)))
+    return np.stack(rms, axis=1), np.stack(inliers, axis=1), np.stack(free, axis=1)
+
+
+def evaluate_offsets(
+    field: SurfaceField,
+    contacts: list[ContactPoints],
+    T_world_object: np.ndarray,
+    prior: CalibrationPrior,
+    config: RefineConfig,
+) -> np.ndarray:
+    """A cheap score (K,) of K unrefined poses, higher is better.
+
+    Each cloud may sit off the surface by an offset along the normal and a small tilt (what a sensor's calibration
+    error, and a seed's own error, do to it): a plane a + b x + c y (sensor x, y) is fitted to its points' signed
+    distances; what remains is the shape's disagreement, and the offset and tilt are penalised by the calibration
+    prior and `seed_tilt_rad`. Uses `verify_points` points per contact.
     """
-    start_fit = surface_fit(model, T_world_object, points_world, config)
-    solver = GaussNewtonConfig(
-        iterations=config.iterations,
-        max_distance_m=config.max_distance_m,
-        surface_noise_m=config.surface_noise_m,
-        prior_rotation_rad=config.prior_rotation_rad,
-        prior_translation_m=config.prior_translation_m,
-        translation_only_iterations=config.translation_only_iterations,
-        step_tolerance_rad=1e-6,
+    T_object_world = invert_transform_batch(np.asarray(T_world_object, dtype=np.float64).reshape(-1, 4, 4))
+    offset_std = max(prior.translation_m, 1e-5) / _MEAN_NORM_3D
+    tilt_std = np.hypot(max(prior.rotation_rad, 1e-4) * _ANGLE_TO_AXIS_STD, config.seed_tilt_rad)
+    score = np.zeros(len(T_object_world))
+    for contact in thinned(contacts, config.verify_points):
+        points = contact.points_sensor
+        T = np.einsum("kij,jl->kil", T_object_world, contact.T_world_sensor)
+        q = np.einsum("kij,mj->kmi", T[:, :3, :3], points) + T[:, None, :3, 3]
+        distance, _ = field.distance(q, with_gradient=False)
+        centred = points[:, :2] - points[:, :2].mean(axis=0)
+        design = np.column_stack([np.ones(len(points)), centred])
+        plane = distance @ np.linalg.pinv(design).T  # (K, 3): offset, tilt x, tilt y
+        spread = np.sqrt(np.mean(np.minimum(np.abs(distance - plane @ design.T), config.fit_tau_m) ** 2, axis=1))
+        score -= 0.5 * (
+            (spread / config.surface_noise_m) ** 2
+            + (plane[:, 0] / offset_std) ** 2
+            + np.sum(plane[:, 1:] ** 2, axis=1) / tilt_std**2
+        )
+    return score
+
+
+def invert_transform_batch(transforms: np.ndarray) -> np.ndarray:
+    """Inverses of (K, 4, 4) rigid poses."""
+    out = np.zeros_like(transforms)
+    rotation_t = np.transpose(transforms[:, :3, :3], (0, 2, 1))
+    out[:, :3, :3] = rotation_t
+    out[:, :3, 3] = -np.einsum("kij,kj->ki", rotation_t, transforms[:, :3, 3])
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def refine_hypotheses(
+    field: SurfaceField,
+    contacts: list[ContactPoints],
+    T_world_object: np.ndarray,
+    prior: CalibrationPrior,
+    config: RefineConfig,
+) -> Refined:
+    """Refine K object poses (K, 4, 4) jointly with a correction per sensor (see the module docstring)."""
+    poses = np.array(T_world_object, dtype=np.float64).reshape(-1, 4, 4)
+    start_inverse = invert_transform_batch(poses)
+    count = len(poses)
+    corrections = np.tile(np.eye(4), (count, 2, 1, 1))  # E per side
+    information = np.zeros((18, 18))
+    information[:6, :6] = np.diag([1.0 / config.prior_rotation_rad**2] * 3 + [1.0 / config.prior_translation_m**2] * 3)
+    calibration = prior.information()
+    information[6:12, 6:12] = np.diag(calibration)
+    information[12:, 12:] = np.diag(calibration)
+    weight_scale = 1.0 / config.surface_noise_m**2
+    deviation = np.zeros((count, 18))  # twists from the start and of the corrections, accumulated to first order
+    for _ in range(config.iterations):
+        T_object_world = invert_transform_batch(poses)
+        jacobians, residuals, weights = [], [], []
+        for contact in contacts:
+            s = contact.sensor
+            A = np.einsum("kij,jl->kil", T_object_world, contact.T_world_sensor) @ corrections[:, s]  # object<-sensor
+            q = np.einsum("kij,mj->kmi", A[:, :3, :3], contact.points_sensor) + A[:, None, :3, 3]
+            r, n = field.distance(q)
+            assert n is not None
+            magnitude = np.abs(r)
+            use = magnitude < config.max_distance_m
+            scale = np.maximum(config.surface_noise_m, 1.4826 * _masked_median(magnitude, use))
+            w = np.where(use, np.minimum(1.0, scale[:, None] / np.maximum(magnitude, 1e-12)), 0.0)
+            m = np.einsum("kji,kmj->kmi", A[:, :3, :3], n)  # the surface normal in the sensor frame
+            J = np.zeros(q.shape[:2] + (18,))
+            J[..., 0:3] = _cross(n, q)
+            J[..., 3:6] = -n
+            J[..., 6 + 6 * s : 9 + 6 * s] = _cross(contact.points_sensor, m)
+            J[..., 9 + 6 * s : 12 + 6 * s] = m
+            jacobians.append(J)
+            residuals.append(r)
+            weights.append(w)
+        J = np.concatenate(jacobians, axis=1)
+        r = np.concatenate(residuals, axis=1)
+        w = np.concatenate(weights, axis=1) * weight_scale
+        hessian = np.einsum("kmi,km,kmj->kij", J, w, J) + information
+        gradient = np.einsum("kmi,km,km->ki", J, w, r) + deviation @ information
+        step = -np.linalg.solve(hessian, gradient[:, :, None])[:, :, 0]
+        deviation += step
+        updates = se3_exp(step.reshape(count, 3, 6))
+        poses = poses @ updates[:, 0]
+        corrections = corrections @ updates[:, 1:]
+        if np.abs(step).max() < config.step_tolerance:
+            break
+    twists = np.stack([se3_log(corrections[:, 0]), se3_log(corrections[:, 1])], axis=1)
+    rms, inliers, free = evaluate_fit(field, contacts, poses, twists, config)
+    correction_cost = np.einsum("ksi,i,ksi->k", twists, calibration, twists)
+    return Refined(poses, twists, rms, inliers, free, correction_cost, se3_log(start_inverse @ poses))
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b over the last axis, broadcasting (np.cross is slow on many short vectors)."""
+    return np.stack(
+        [
+            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
+        ],
+        axis=-1,
     )
-    T_object_world = point_to_plane_gauss_newton(model, points_world, invert_transform(T_world_object)[None], solver)
-    refined = invert_transform(T_object_world[0])
-    fit = surface_fit(model, refined, points_world, config)
-    moved = np.linalg.norm(refined[:3, 3] - T_world_object[:3, 3])  # the object's centroid, in the world
-    if fit.rms_m >= start_fit.rms_m or moved > config.max_step_m:
-        return T_world_object, start_fit
-    return refined, fit
+
+
+def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Median of each row's masked entries (0 for a row with none)."""
+    ordered = np.sort(np.where(mask, values, np.inf), axis=1)
+    count = mask.sum(axis=1)
+    rows = np.arange(len(values))
+    low = ordered[rows, np.maximum(count - 1, 0) // 2]
+    high = ordered[rows, np.maximum(count, 1) // 2 - (count == 0)]
+    return np.where(count > 0, 0.5 * (low + high), 0.0)

@@ -20,18 +20,10 @@ from yoto.contacts import (
     ContactPair,
     WorldContact,
     contact_in_world,
-    dual_contact_conditioning,
     dual_contact_directions,
 )
 from yoto.errors import DegenerateGeometryError, InputError
-from yoto.geometry import (
-    invert_transform,
-    make_transform,
-    normalize,
-    procrustes_rotation,
-    rotation_angle_rad,
-    transform_points,
-)
+from yoto.geometry import invert_transform, normalize, rotation_angle_rad, transform_points
 from yoto.objects.model import ObjectModel
 
 MIN_CONTACT_SEPARATION_M = 0.002  # closer contacts leave the contact-to-contact direction undefined
@@ -61,8 +53,79 @@ class PoseSolution:
         return notes
 
 
-def _angle(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.arccos(np.clip(normalize(a) @ normalize(b), -1.0, 1.0)))
+@dataclass
+class BatchSolution:
+    """The solver's poses for K object-side contact pairs against one measured pair (arrays over K)."""
+
+    T_world_object: np.ndarray  # (K, 4, 4)
+    q_object: np.ndarray  # (K, 3, 3) unit columns [d, nL, nR] on the object
+    separation_error_m: np.ndarray  # (K,) | |pR_w - pL_w| - |pR_o - pL_o| |
+    direction_angle_errors_rad: np.ndarray  # (K, 3) |world - object| of the angles (d, nL), (d, nR), (nL, nR)
+    alignment_residual_rad: np.ndarray  # (K,) largest angle between R @ Q_object and Q_world columns
+
+    @property
+    def singular_values(self) -> np.ndarray:
+        """(K, 3) singular values of Q_object (computed on demand: an SVD per pose)."""
+        return np.linalg.svd(self.q_object, compute_uv=False)
+
+    @property
+    def conditioning(self) -> np.ndarray:
+        """(K,) sigma_2 / sigma_1 of Q_object: 0 means rotation about one axis is free."""
+        values = self.singular_values
+        return values[:, 1] / np.maximum(values[:, 0], 1e-12)
+
+
+def direction_angles(offset: np.ndarray, n_left: np.ndarray, n_right: np.ndarray) -> np.ndarray:
+    """(..., 3) angles (d, nL), (d, nR), (nL, nR) between the contact-to-contact direction and the normals:
+    with the separation, the key of a pair of oriented contacts (it does not change under a rigid motion)."""
+    d, a, b = normalize(offset), normalize(n_left), normalize(n_right)
+
+    def angle(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return np.arccos(np.clip(np.sum(u * v, axis=-1), -1.0, 1.0))
+
+    return np.stack([angle(d, a), angle(d, b), angle(a, b)], axis=-1)
+
+
+def procrustes_rotations(cross_covariances: np.ndarray) -> np.ndarray:
+    """Proper rotations R maximising trace(R^T H) of (K, 3, 3) matrices H: `geometry.procrustes_rotation` for many
+    at once (R = U diag(1, 1, det(U V^T)) V^T)."""
+    u, _, vt = np.linalg.svd(np.asarray(cross_covariances, dtype=np.float64))
+    fix = np.ones((len(u), 3))
+    fix[:, 2] = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)
+    return np.einsum("kij,kj,kjl->kil", u, fix, vt)
+
+
+def solve_poses(
+    p_left_object: np.ndarray,
+    n_left_object: np.ndarray,
+    p_right_object: np.ndarray,
+    n_right_object: np.ndarray,
+    left_world: WorldContact,
+    right_world: WorldContact,
+) -> BatchSolution:
+    """`solve_pose` for K object-side contact pairs at once ((K, 3) arrays), vectorised; no degeneracy checks."""
+    offset_object = p_right_object - p_left_object
+    offset_world = right_world.p_world - left_world.p_world
+    q_object = np.stack([normalize(offset_object), normalize(n_left_object), normalize(n_right_object)], axis=-1)
+    q_world = dual_contact_directions(offset_world, left_world.n_world, right_world.n_world)
+    rotation = procrustes_rotations(np.einsum("ij,klj->kil", q_world, q_object))
+    translation = 0.5 * (
+        (left_world.p_world - np.einsum("kij,kj->ki", rotation, p_left_object))
+        + (right_world.p_world - np.einsum("kij,kj->ki", rotation, p_right_object))
+    )
+    T = np.tile(np.eye(4), (len(rotation), 1, 1))
+    T[:, :3, :3], T[:, :3, 3] = rotation, translation
+    aligned = np.einsum("kij,kjl->kil", rotation, q_object)
+    alignment = np.arccos(np.clip(np.einsum("kil,il->kl", aligned, q_world), -1.0, 1.0)).max(axis=1)
+    angles_world = direction_angles(offset_world, left_world.n_world, right_world.n_world)
+    angles_object = direction_angles(offset_object, n_left_object, n_right_object)
+    return BatchSolution(
+        T_world_object=T,
+        q_object=q_object,
+        separation_error_m=np.abs(np.linalg.norm(offset_world) - np.linalg.norm(offset_object, axis=1)),
+        direction_angle_errors_rad=np.abs(angles_world - angles_object),
+        alignment_residual_rad=alignment,
+    )
 
 
 def solve_pose(
@@ -81,27 +144,21 @@ def solve_pose(
                 f"the two contacts are {np.linalg.norm(offset) * 1000:.2f} mm apart {frame}: the pose needs two "
                 "distinct contacts"
             )
-    q_object = dual_contact_directions(offset_object, left.n_object, right.n_object)
-    q_world = dual_contact_directions(offset_world, left_world.n_world, right_world.n_world)
-    rotation, _ = procrustes_rotation(q_world, q_object)
-    translation = 0.5 * (
-        (left_world.p_world - rotation @ left.p_object) + (right_world.p_world - rotation @ right.p_object)
+    left_p, left_n, right_p, right_n = (
+        np.asarray(v, dtype=np.float64)[None] for v in (left.p_object, left.n_object, right.p_object, right.n_object)
     )
-    conditioning, singular_values = dual_contact_conditioning(offset_object, left.n_object, right.n_object)
-    aligned = rotation @ q_object
-    pairs = ((0, 1), (0, 2), (1, 2))
-    angle_errors = np.array(
-        [abs(_angle(q_world[:, i], q_world[:, j]) - _angle(q_object[:, i], q_object[:, j])) for i, j in pairs]
-    )
+    batch = solve_poses(left_p, left_n, right_p, right_n, left_world, right_world)
+    singular_values = batch.singular_values[0]
+    conditioning = float(singular_values[1] / max(singular_values[0], 1e-12))
     return PoseSolution(
-        T_world_object=make_transform(rotation, translation),
+        T_world_object=batch.T_world_object[0],
         direction_singular_values=singular_values,
         conditioning=conditioning,
         well_conditioned=conditioning >= WELL_CONDITIONED,
-        separation_error_m=float(abs(np.linalg.norm(offset_world) - np.linalg.norm(offset_object))),
-        normal_angle_error_rad=float(angle_errors[2]),
-        direction_angle_errors_rad=angle_errors,
-        alignment_residual_rad=max(_angle(aligned[:, i], q_world[:, i]) for i in range(3)),
+        separation_error_m=float(batch.separation_error_m[0]),
+        normal_angle_error_rad=float(batch.direction_angle_errors_rad[0, 2]),
+        direction_angle_errors_rad=batch.direction_angle_errors_rad[0],
+        alignment_residual_rad=float(batch.alignment_residual_rad[0]),
     )
 
 

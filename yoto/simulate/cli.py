@@ -1,4 +1,4 @@
-"""`yoto simulate ...`: simulated GelSight contact pairs, single presses, simulated phone scans."""
+"""`yoto simulate ...`: simulated GelSight contact pairs, trajectories after a touch, single presses, phone scans."""
 
 from __future__ import annotations
 
@@ -9,6 +9,8 @@ SIMULATE_EPILOG = """examples:
   yoto simulate pairs --object drill -n 100 --sensor-noise-mm 1 --sensor-noise-deg 1 --out pairs/drill_noisy
   yoto simulate press --object figurine --seed 3 --out press.png
   yoto simulate scan meshes/drill.ply --out drill_scan.ply --seed 0
+  yoto simulate trajectory --object fruit -n 5 --out trajectories/fruit
+  yoto simulate recording --object fruit --gelsight gelsight.npz --out session/
 """
 
 
@@ -56,6 +58,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     press.add_argument("--out", default="simulate_press.png", help="figure file (PNG)")
     press.set_defaults(run=_run_press)
 
+    trajectory = commands.add_parser(
+        "trajectory",
+        help="simulate N trajectories after a dual touch (sensor pose streams, tactile frames, ground truth)",
+        description="After a simulated dual touch (pair i of `yoto simulate pairs --seed SEED`), both sensors carry "
+        "the object along a smooth random SE(3) path while it slips in the gels; writes per trajectory the touch "
+        "(pair file), both sensor pose streams (TUM, with jitter), the tactile frames (<timestamp>.ply folders) "
+        "and the true object poses (TUM), what `yoto track` reads. Existing trajectories are kept unless "
+        "--overwrite.",
+    )
+    _object_arguments(trajectory)
+    trajectory.add_argument("-n", "--count", type=int, required=True, help="number of trajectories (0..N-1)")
+    trajectory.add_argument("--seed", type=int, default=0, help="scenario seed (default 0)")
+    trajectory.add_argument("--out", help="output folder (default: WORKSPACE/trajectories/OBJECT)")
+    trajectory.add_argument("--path-mm", type=float, help="path length of the object's centroid (default 100)")
+    trajectory.add_argument("--slip-mm", type=float, help="plastic slip at the end of the path (default 2)")
+    trajectory.add_argument("--slip-deg", type=float, help="plastic slip rotation at the end (default 1.5)")
+    trajectory.add_argument("--jitter-mm", type=float, help="per-axis jitter of each sensor pose (default 0.2)")
+    trajectory.add_argument("--sensor-noise-mm", type=float, default=0.0, help="sensor calibration error, position")
+    trajectory.add_argument("--sensor-noise-deg", type=float, default=0.0, help="sensor calibration error, rotation")
+    trajectory.add_argument("--overwrite", action="store_true", help="regenerate trajectories that already exist")
+    trajectory.set_defaults(run=_run_trajectory)
+
     scan = commands.add_parser(
         "scan",
         help="degrade a mesh like a consumer phone scan",
@@ -71,6 +95,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     scan.add_argument("--scale-error", type=float, help="relative scale error, e.g. 0.007 (default)")
     scan.add_argument("--holes", type=int, help="number of holes cut and bridged (default 4)")
     scan.set_defaults(run=_run_scan)
+
+    recording = commands.add_parser(
+        "recording",
+        help="a scripted rig session (calibrations, hand-held contacts) as ROS bags and a Motive CSV",
+        description="Simulate a lab session with two hand-held GelSight rigs and OptiTrack on a known mesh: the "
+        "dual-ball and plate calibrations, a bead capture, single and dual contacts with mocap noise and dropouts, "
+        "GelSight frames rendered from a sensor calibration. See docs/rig.md.",
+    )
+    _object_arguments(recording)
+    from yoto.rig.cli import add_recording_arguments
+
+    add_recording_arguments(recording)
 
 
 def _object_arguments(parser: argparse.ArgumentParser) -> None:
@@ -140,6 +176,49 @@ def _run_pairs(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
         progress=not args.quiet,
         check=lambda pair: oracle_pose_errors(model, pair),
+    )
+    print(report.summary())
+    return 0
+
+
+def _run_trajectory(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    import numpy as np
+
+    from yoto.errors import InputError
+    from yoto.simulate.scenarios import ScenarioConfig
+    from yoto.simulate.trajectory import TrajectoryConfig, write_trajectories
+    from yoto.workspace import workspace_dir
+
+    if args.count < 1:
+        raise InputError(f"-n must be at least 1, got {args.count}")
+    for name in ("path_mm", "slip_mm", "slip_deg", "jitter_mm", "sensor_noise_mm", "sensor_noise_deg"):
+        value = getattr(args, name)
+        if value is not None and value < 0:
+            raise InputError(f"--{name.replace('_', '-')} must not be negative, got {value}")
+    if args.path_mm == 0:
+        raise InputError("--path-mm must be positive")
+    model = _load_model(args)
+    config = TrajectoryConfig(
+        scenario=ScenarioConfig(
+            calibration_translation_m=args.sensor_noise_mm * 1e-3,
+            calibration_rotation_rad=float(np.radians(args.sensor_noise_deg)),
+        )
+    )
+    if args.path_mm is not None:
+        config = dataclasses.replace(config, path_length_m=args.path_mm * 1e-3)
+    if args.slip_mm is not None:
+        config = dataclasses.replace(config, slip_translation_per_m=args.slip_mm * 1e-3 / config.path_length_m)
+    if args.slip_deg is not None:
+        config = dataclasses.replace(
+            config, slip_rotation_per_m=float(np.radians(args.slip_deg)) / config.path_length_m
+        )
+    if args.jitter_mm is not None:
+        config = dataclasses.replace(config, jitter_translation_m=args.jitter_mm * 1e-3)
+    out_dir = args.out or workspace_dir(args.workspace) / "trajectories" / model.name
+    report = write_trajectories(
+        model, out_dir, args.count, seed=args.seed, config=config, overwrite=args.overwrite, progress=not args.quiet
     )
     print(report.summary())
     return 0

@@ -24,6 +24,8 @@ from yoto.objects.model import ObjectModel
 from yoto.patches.canonical import canonicalize_patch, prepare_tactile_cloud
 from yoto.patches.generate import generate_patches
 from yoto.patches.virtual import VirtualPatchConfig, VirtualPatchDataset
+from yoto.rig.samples import FORMAT_NAME as LABELLED_CONTACT_FORMAT
+from yoto.rig.samples import is_labelled_contact_file, read_labelled_contact
 from yoto.training.augment import (
     AugmentConfig,
     depth_crop_mask,
@@ -104,6 +106,8 @@ def _looks_like_pair_file(path: Path) -> bool:
         payload = read_json(path)
     except InputError:
         return False
+    if isinstance(payload, dict) and payload.get("format") == LABELLED_CONTACT_FORMAT:  # `yoto rig label`'s contacts
+        return True
     return isinstance(payload, dict) and all(key in payload for key in ("object", *SIDES))
 
 
@@ -148,6 +152,23 @@ def load_labelled_contacts(
     files = find_pair_files_recursive(pair_inputs)
     skipped_objects: set[str] = set()
     for path in files:
+        if is_labelled_contact_file(path):  # a single contact labelled by `yoto rig label` (docs/formats.md)
+            labelled = read_labelled_contact(path)
+            model = models.get(pair_objects.get(labelled.object_name, labelled.object_name))
+            if model is None:
+                skipped_objects.add(labelled.object_name)
+                continue
+            T_object_sensor = (
+                model.T_object_mesh @ invert_transform(labelled.T_world_mesh) @ labelled.contact.T_world_sensor
+            )
+            p_object = transform_points(model.T_object_mesh, labelled.p_mesh)
+            try:
+                samples[model.name].append(
+                    contact_sample(labelled.contact.points_sensor, model, p_object, T_object_sensor, source=path.name)
+                )
+            except DegenerateGeometryError as exc:
+                log.warning("%s: skipped, %s", path, exc)
+            continue
         pair = read_contact_pair(path)
         model = models.get(pair_objects.get(pair.object_name, pair.object_name))
         if model is None:

@@ -1,0 +1,298 @@
+"""The pose stage's building blocks: the surface distance field, the batched solver, the joint two-contact
+search, hypotheses, confidence and next_touch."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+from conftest import TOL
+
+from yoto.contacts import TactileContact, WorldContact, contact_in_world
+from yoto.errors import InputError
+from yoto.geometry import (
+    invert_transform,
+    make_transform,
+    procrustes_rotation,
+    random_rotations,
+    rotate_vectors,
+    rotation_about_axis,
+    rotation_between,
+    transform_points,
+)
+from yoto.objects.model import ObjectModelConfig, build_object_model
+from yoto.pose.confidence import FEATURES, fit_logistic, load_confidence_model, read_confidence_model
+from yoto.pose.field import FieldConfig, build_surface_field
+from yoto.pose.hypotheses import HypothesisConfig, group_hypotheses, is_ambiguous, pose_distances
+from yoto.pose.refine import Refined
+from yoto.pose.search import SearchConfig, contact_shape, search_poses
+from yoto.pose.solver import direction_angles, procrustes_rotations, solve_poses
+from yoto.sensor.spec import GELSIGHT_MINI
+
+SMALL = ObjectModelConfig(num_points=30_000)
+
+
+@pytest.fixture(scope="module")
+def box():
+    return build_object_model(trimesh.creation.box(extents=(0.12, 0.08, 0.05)), "box", SMALL)
+
+
+@pytest.fixture(scope="module")
+def ball():
+    return build_object_model(trimesh.creation.icosphere(subdivisions=5, radius=0.04), "ball", SMALL)
+
+
+def test_distance_field_of_a_ball(ball, rng):
+    field = build_surface_field(ball, FieldConfig(cell_m=0.001))
+    directions = rng.normal(size=(2000, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    offsets = rng.uniform(-0.003, 0.003, size=2000)
+    centre = transform_points(ball.T_object_mesh, np.zeros(3))  # the object frame's origin is the cloud's centroid
+    points = centre + directions * (0.04 + offsets)[:, None]
+    distance, normal = field.distance(points)
+    # The icosphere's facets sit up to ~0.03 mm inside the sphere; the trilinear field adds a few micrometres.
+    assert np.abs(distance - offsets).max() < 6e-5
+    assert np.einsum("ij,ij->i", normal, directions).min() > 0.995
+    far, far_normal = field.distance(np.array([[1.0, 0.0, 0.0]]))
+    assert far[0] == field.band_m and np.allclose(far_normal, 0.0)
+
+
+def test_key_is_invariant_and_batched_solver_agrees(rng):
+    """The pair key does not change under a rigid motion; the batched Procrustes equals the single one."""
+    p = rng.normal(size=(50, 3)) * 0.05
+    n = rng.normal(size=(50, 3))
+    offset, n_left, n_right = p[1:] - p[:-1], n[:-1], n[1:]
+    R = random_rotations(rng, 1)[0]
+    assert np.allclose(
+        direction_angles(offset, n_left, n_right),
+        direction_angles(offset @ R.T, n_left @ R.T, n_right @ R.T),
+        atol=TOL["arccos_rad"],
+    )
+    H = rng.normal(size=(40, 3, 3))
+    batched = procrustes_rotations(H)
+    for k in range(40):
+        single, _ = procrustes_rotation(H[k], np.eye(3))
+        assert np.allclose(batched[k], single, atol=TOL["float"])
+
+
+def _press(model, p_object, n_object, T_world_object, depth=0.001, radius=0.008, whole_pad=False):
+    """A tactile contact of a flat gel pressed at p along -n (points of the parent cloud under the gel, within
+    `radius` of its centre, or on the whole GelSight Mini pad)."""
+    rotation = rotation_between(np.array([0.0, 0.0, 1.0]), -n_object)
+    T_object_sensor = make_transform(rotation, p_object - depth * n_object)
+    points = transform_points(invert_transform(T_object_sensor), model.points_object.astype(float))
+    if whole_pad:
+        under = np.all(np.abs(points[:, :2]) < np.array(GELSIGHT_MINI.pad_size_m) / 2, axis=1)
+    else:
+        under = np.linalg.norm(points[:, :2], axis=1) < radius
+    keep = (points[:, 2] <= 0) & under
+    return TactileContact(points[keep], T_world_object @ T_object_sensor), T_object_sensor
+
+
+def test_search_finds_the_truth_where_the_candidates_are_wrong(box, rng):
+    """Two contacts on two faces of a box: the localizers' (wrong) candidates do not fit, the search's matches
+    cover the true pose and the whole slide the two faces leave free."""
+    T_world_object = make_transform(random_rotations(rng, 1)[0], [0.5, 0.0, 0.2])
+    contacts = {}
+    for side, p, n in (("left", [0.02, 0.01, 0.025], [0, 0, 1.0]), ("right", [0.06, -0.01, 0.0], [1.0, 0, 0])):
+        contacts[side], _ = _press(box, np.array(p), np.array(n), T_world_object)
+    world = {side: contact_in_world(contact) for side, contact in contacts.items()}
+    shapes = {
+        side: contact_shape(
+            contacts[side].points_sensor, world[side].p_sensor, world[side].n_sensor, SearchConfig().samples
+        )
+        for side in contacts
+    }
+    assert np.abs(shapes["left"].curvatures).max() < 5.0  # a flat patch
+    from yoto.contacts import ContactEstimate
+
+    wrong = {
+        side: [ContactEstimate(np.array([-0.06, 0.0, 0.0]), np.array([-1.0, 0, 0]), probability=0.9)] for side in world
+    }
+    matches = search_poses(box, world, shapes, wrong)
+    T = matches.solution.T_world_object
+    translation = np.linalg.norm(T[:, :3, 3] - T_world_object[:3, 3], axis=1)
+    cos_angle = (np.einsum("kij,ij->k", T[:, :3, :3], T_world_object[:3, :3]) - 1) / 2
+    near = (translation < 0.004) & (cos_angle > np.cos(np.radians(4.0)))
+    assert near.any()
+    # The free slide (along the edge the two faces share, y) shows up as many translations along it.
+    along = (T[near, :3, 3] - T_world_object[:3, 3]) @ T_world_object[:3, 1]
+    slide = (T[:, :3, 3] - T_world_object[:3, 3]) @ T_world_object[:3, 1]
+    aligned = cos_angle > np.cos(np.radians(4.0))
+    assert np.ptp(slide[aligned]) > 0.02 and np.abs(along).min() < 0.004
+
+
+def _refined(poses: np.ndarray, rms: np.ndarray) -> Refined:
+    count = len(poses)
+    return Refined(
+        poses,
+        np.zeros((count, 2, 6)),
+        rms,
+        np.ones((count, 2)),
+        np.zeros((count, 2)),
+        np.zeros(count),
+        np.zeros((count, 6)),
+    )
+
+
+def test_hypotheses_are_grouped_modulo_symmetry(box, rng):
+    symmetry = box.symmetry
+    T = make_transform(random_rotations(rng, 1)[0], [0.5, 0.0, 0.2])
+    flipped = T @ make_transform(symmetry.rotations[1], np.zeros(3))
+    turned = T @ make_transform(rotation_about_axis(np.array([0, 0, 1.0]), np.radians(20)), np.zeros(3))
+    poses = np.array([T, flipped, turned])
+    grouped = group_hypotheses(_refined(poses, np.full((3, 2), 3e-5)), symmetry, HypothesisConfig())
+    assert len(grouped) == 2  # the flip is the same pose of a box; the 20 deg turn is not
+    assert grouped.probability.sum() == pytest.approx(1.0)
+    assert is_ambiguous(grouped, HypothesisConfig())  # equal fits share the probability
+    worse = group_hypotheses(
+        _refined(poses, np.array([[3e-5] * 2, [3e-5] * 2, [2e-4] * 2])), symmetry, HypothesisConfig()
+    )
+    assert worse.probability[0] > 0.999 and not is_ambiguous(worse, HypothesisConfig())
+
+
+def test_logistic_confidence_fit_and_files(tmp_path, rng):
+    x = rng.normal(size=(4000, len(FEATURES)))
+    true_weights = np.zeros(len(FEATURES))
+    true_weights[:3] = [2.0, -1.0, 0.5]
+    y = rng.random(4000) < 1.0 / (1.0 + np.exp(-(0.3 + x @ true_weights)))
+    model = fit_logistic(x, y, l2=1e-4)
+    assert np.allclose(model.weights[:3] * (1.0 / model.scale[:3]), true_weights[:3], atol=0.2)
+    path = model.save(tmp_path / "confidence.json")
+    again = read_confidence_model(path)
+    assert np.allclose(again.predict_many(x[:10]), model.predict_many(x[:10]), atol=TOL["float"])
+    shipped = load_confidence_model(None)  # the parameters shipped with YOTO
+    assert shipped.features == FEATURES and 0.0 < shipped.predict(dict(zip(FEATURES, x[0]))) < 1.0
+    (tmp_path / "bad.json").write_text(json.dumps({"format": "something else"}))
+    with pytest.raises(InputError, match="refit it"):
+        read_confidence_model(tmp_path / "bad.json")
+
+
+def test_next_touch_separates_two_slid_hypotheses(box, rng):
+    """Two hypotheses 15 mm apart along the box's long axis: the suggested touch is where they disagree (an end
+    face or an edge), reachable, and None is returned when only one hypothesis remains."""
+    from yoto.pose.hypotheses import Hypotheses
+    from yoto.pose.next_touch import suggest_next_touch
+
+    T = make_transform(random_rotations(rng, 1)[0], [0.5, 0.0, 0.2])
+    slid = T @ make_transform(np.eye(3), [0.015, 0.0, 0.0])
+    contacts = {}
+    for side, p, n in (("left", [0.0, 0.0, 0.025], [0, 0, 1.0]), ("right", [0.0, 0.0, -0.025], [0, 0, -1.0])):
+        contacts[side], _ = _press(box, np.array(p), np.array(n), T)
+    from yoto.contacts import ContactPair
+
+    pair = ContactPair("box", contacts["left"], contacts["right"])
+    two = Hypotheses(np.array([T, slid]), np.array([0.5, 0.5]), np.zeros(2), np.arange(2), np.ones(2, dtype=np.int64))
+    touch = suggest_next_touch(box, two, pair)
+    assert touch is not None and touch.disagreement_m > 0.001
+    assert abs(touch.p_object[0]) > 0.045  # near an end of the 120 mm long axis, where the slide shows
+    assert np.linalg.norm(box.nearest_surface_point(touch.p_object) - touch.p_object) < 1e-3
+    one = Hypotheses(T[None], np.ones(1), np.zeros(1), np.zeros(1, np.int64), np.ones(1, np.int64))
+    assert suggest_next_touch(box, one, pair) is None
+    assert touch.to_json(box)["sensor"] in ("left", "right")
+    assert np.allclose(
+        touch.to_json(box)["n_object"], rotate_vectors(box.T_mesh_object, touch.n_object), atol=TOL["float"]
+    )
+
+
+def test_solve_poses_recovers_exact_poses(rng):
+    T = make_transform(random_rotations(rng, 1)[0], [0.4, 0.1, 0.3])
+    p = rng.normal(size=(2, 3)) * 0.05
+    n = rng.normal(size=(2, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    worlds = [
+        WorldContact(np.zeros(3), np.zeros(3), transform_points(T, p[i]), rotate_vectors(T, n[i])) for i in (0, 1)
+    ]
+    batch = solve_poses(p[:1], n[:1], p[1:], n[1:], worlds[0], worlds[1])
+    assert np.allclose(batch.T_world_object[0], T, atol=TOL["pose_exact_m"])
+    assert batch.separation_error_m[0] < TOL["pose_exact_m"]
+
+
+def _box_with_a_third_touch(box, rng, slides_m):
+    """Two contacts on opposite faces of the box (free to slide), an estimate whose hypotheses are the true pose
+    slid along x by each of `slides_m`, and a third touch on an end face by the left sensor."""
+    from yoto.contacts import ContactEstimate, ContactPair
+    from yoto.pose.hypotheses import Hypotheses
+    from yoto.pose.pipeline import PoseEstimate
+    from yoto.pose.solver import solve_pose
+
+    T = make_transform(random_rotations(rng, 1)[0], [0.5, 0.0, 0.2])
+    hypotheses = np.array([T @ make_transform(np.eye(3), [slide, 0.0, 0.0]) for slide in slides_m])
+    contacts, truth = {}, {}
+    for side, p, n in (("left", [0.01, 0.0, 0.025], [0, 0, 1.0]), ("right", [-0.01, 0.01, -0.025], [0, 0, -1.0])):
+        contacts[side], _ = _press(box, np.array(p), np.array(n), T, whole_pad=True)
+        truth[id(contacts[side].points_sensor)] = (np.array(p), np.array(n))
+    pair = ContactPair("box", contacts["left"], contacts["right"])
+    touch, _ = _press(box, np.array([0.06, 0.0, 0.0]), np.array([1.0, 0, 0]), T, whole_pad=True)
+    truth[id(touch.points_sensor)] = (np.array([0.06, 0.0, 0.0]), np.array([1.0, 0, 0]))
+    world = {side: contact_in_world(contacts[side]) for side in contacts}
+    located = {side: ContactEstimate(np.zeros(3), np.array([0, 0, 1.0])) for side in contacts}
+    located["right"] = ContactEstimate(np.array([0.0, 0.0, -0.025]), np.array([0, 0, -1.0]))
+    count = len(slides_m)
+    estimate = PoseEstimate(
+        object_name="box",
+        method="test",
+        T_world_object=hypotheses[0],
+        T_world_mesh=hypotheses[0] @ box.T_object_mesh,
+        contacts=located,
+        candidates={side: [located[side]] for side in contacts},
+        world=world,
+        solution=solve_pose(located["left"], located["right"], world["left"], world["right"]),
+        hypotheses=Hypotheses(
+            hypotheses, np.full(count, 1.0 / count), np.zeros(count), np.arange(count), np.ones(count, np.int64)
+        ),
+        ambiguous=True,
+        confidence=0.5,
+    )
+    return pair, touch, estimate, T, truth
+
+
+class _KnownLocations:
+    """A test localizer that knows where each of the test's clouds was pressed."""
+
+    name = "known"
+    needs_ground_truth = False
+
+    def __init__(self, truth):
+        self.truth = truth
+
+    def localize(self, points_sensor, model, truth_p_object=None):
+        from yoto.contacts import ContactEstimate
+
+        p, n = self.truth[id(points_sensor)]
+        return [ContactEstimate(p, n)]
+
+
+def test_fusing_the_next_touch_picks_the_true_hypothesis(box, rng):
+    """Two contacts on opposite faces leave the box free to slide; a third touch on an end face, by the left
+    sensor, tells the true pose from a slid one (the estimate's hypotheses are refined with all three clouds)."""
+    from yoto.pose.pipeline import PoseConfig, fuse_next_touch
+
+    pair, touch, estimate, T, _ = _box_with_a_third_touch(box, rng, [0.012, 0.0])
+    fused = fuse_next_touch(pair, box, estimate, touch, "left", PoseConfig())
+    assert np.linalg.norm(fused.T_world_object[:3, 3] - T[:3, 3]) < 0.002
+    assert not fused.ambiguous and fused.hypotheses.probability[0] > 0.99
+
+
+def test_fusing_the_next_touch_finds_a_truth_the_first_pair_missed(box, rng):
+    """When no hypothesis of the first pair is right (both slid along x, which the top and bottom faces leave
+    free), the new touch on the end face and the contact that stayed are localized as a pair of their own, and the
+    seeds of its search are verified with all three clouds. Three faces of a box still leave the slide along y
+    free, so only x, z and the rotation are checked."""
+    from yoto.pose.pipeline import PoseConfig, fuse_next_touch
+
+    pair, touch, estimate, T, truth = _box_with_a_third_touch(box, rng, [0.03, -0.03])
+
+    def offset(fused):
+        """Translation off the truth along x and z (object frame), rotation off it modulo the box's symmetry."""
+        relative = invert_transform(T) @ fused.T_world_object
+        _, rotation = pose_distances(fused.T_world_object[None], T, box.symmetry)
+        return np.abs(relative[[0, 2], 3]).max(), float(rotation[0])
+
+    alone = fuse_next_touch(pair, box, estimate, touch, "left", PoseConfig())
+    assert offset(alone)[0] > 0.02  # refining the slid poses cannot get there
+    fused = fuse_next_touch(pair, box, estimate, touch, "left", PoseConfig(), localizer=_KnownLocations(truth))
+    translation, rotation = offset(fused)
+    assert translation < 0.002 and rotation < np.radians(1.0)  # as refining a right hypothesis gives

@@ -1,0 +1,226 @@
+"""Open-loop tracking from two sensor streams: exactness, jitter averaging, glitches, dropouts, arm lag, touch time."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import TOL
+
+from yoto.contacts import ContactPair, TactileContact
+from yoto.geometry import invert_transform, make_transform, random_perturbation, random_rotations, so3_exp
+from yoto.tracking.fusion import FusionConfig, stream_jitter
+from yoto.tracking.track import Touch, TrackConfig, find_touch_time, touch_from_pair, track
+from yoto.trajectory import PoseStream
+
+START = 1_700_000_000.0
+RAW = TrackConfig(fusion=FusionConfig(smoothing_s=0.0))  # streams used as sampled: exact where they are exact
+
+
+def object_motion(times: np.ndarray) -> np.ndarray:
+    """A smooth motion of the object (canonical frame): a turn about a tilted axis and a curved translation."""
+    s = times - START
+    poses = np.zeros((len(s), 4, 4))
+    poses[:, :3, :3] = so3_exp(np.outer(0.15 * np.sin(s), [0.3, 0.5, 0.8]))
+    poses[:, :3, 3] = np.stack([0.5 + 0.03 * s, 0.02 * np.sin(2 * s), 0.1 + 0.01 * s**2], axis=1)
+    poses[:, 3, 3] = 1.0
+    return poses
+
+
+def sensor_stream(times: np.ndarray, grasp: np.ndarray, rng=None, jitter_m=0.0, jitter_rad=0.0) -> PoseStream:
+    """T_world_sensor = T_world_object @ T_object_sensor, with optional jitter on every sample."""
+    poses = object_motion(times) @ invert_transform(grasp)
+    if rng is not None:
+        poses = np.array([pose @ random_perturbation(rng, jitter_m, jitter_rad) for pose in poses])
+    return PoseStream(times, poses)
+
+
+@pytest.fixture
+def grasps(rng):
+    """Each sensor's pose in the object's frame inverted: T_sensor_object, sensors ~4 cm from the centroid."""
+    rotations = random_rotations(rng, 2)
+    return {
+        "left": invert_transform(make_transform(rotations[0], [0.04, 0.0, 0.01])),
+        "right": invert_transform(make_transform(rotations[1], [-0.03, 0.02, -0.01])),
+    }
+
+
+def touch_at(grasps, time_s=START) -> Touch:
+    return Touch(time_s, object_motion(np.array([time_s]))[0], grasps)
+
+
+def errors(result) -> tuple[np.ndarray, np.ndarray]:
+    return pose_errors(result.timestamps_s, result.T_world_object)
+
+
+def pose_errors(times: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    truth = object_motion(times)
+    translation = np.linalg.norm(poses[:, :3, 3] - truth[:, :3, 3], axis=1)
+    relative = np.einsum("nji,njk->nik", truth[:, :3, :3], poses[:, :3, :3])
+    rotation = np.arccos(np.clip((np.trace(relative, axis1=1, axis2=2) - 1) / 2, -1, 1))
+    return translation, rotation
+
+
+def test_rigid_grasp_is_tracked_exactly_at_shared_timestamps(grasps):
+    times = START + np.arange(0, 2.0, 0.01)
+    streams = {side: sensor_stream(times, grasp) for side, grasp in grasps.items()}
+    result = track(touch_at(grasps), streams, config=RAW)
+    translation, rotation = errors(result)
+    assert len(result.timestamps_s) == len(times)
+    assert translation.max() < TOL["pose_exact_m"] and rotation.max() < TOL["arccos_rad"]
+    assert not result.closed_loop and result.skipped_times == 0
+
+
+def test_streams_at_different_rates_are_interpolated(grasps):
+    """120 Hz and 100 Hz with a phase offset: outputs at the union of timestamps, errors far below jitter."""
+    streams = {
+        "left": sensor_stream(START + np.arange(0, 2.0, 1 / 120), grasps["left"]),
+        "right": sensor_stream(START + 0.0037 + np.arange(0, 2.0, 1 / 100), grasps["right"]),
+    }
+    result = track(touch_at(grasps), streams)
+    assert len(result.timestamps_s) == len(np.union1d(streams["left"].timestamps_s, streams["right"].timestamps_s))
+    translation, rotation = errors(result)
+    assert translation.max() < 2e-5 and rotation.max() < np.radians(0.01)
+
+
+def test_jitter_of_one_sensor_is_averaged_not_followed(grasps, rng):
+    times = START + np.arange(0, 3.0, 0.01)
+    clean = {side: sensor_stream(times, grasp) for side, grasp in grasps.items()}
+    noisy_left = sensor_stream(times, grasps["left"], rng, 0.001, np.radians(0.5))
+    result = track(touch_at(grasps), {"left": noisy_left, "right": clean["right"]})
+    translation, _ = errors(result)
+    followed, _ = pose_errors(times, noisy_left.T_world_frame @ grasps["left"])  # the left sensor alone
+    # The jitter estimate says which stream to trust: the fused pose stays with the clean sensor.
+    assert np.sqrt(np.mean(translation**2)) < 0.05 * np.sqrt(np.mean(followed**2))
+    assert result.sensor_weights[:, 0].max() < 0.01
+
+    # Both sensors equally noisy: the fused pose is better than either, about 1/sqrt(2) ...
+    right_noisy = sensor_stream(times, grasps["right"], rng, 0.001, np.radians(0.5))
+    both = track(touch_at(grasps), {"left": noisy_left, "right": right_noisy}, config=RAW)
+    alone, _ = pose_errors(times, right_noisy.T_world_frame @ grasps["right"])
+    ratio = np.sqrt(np.mean(errors(both)[0] ** 2) / np.mean(alone**2))
+    assert 0.55 < ratio < 0.85
+    # ... and smoothing each stream in time (+- 50 ms of samples) halves it again.
+    smoothed = track(touch_at(grasps), {"left": noisy_left, "right": right_noisy})
+    assert np.sqrt(np.mean(errors(smoothed)[0] ** 2) / np.mean(errors(both)[0] ** 2)) < 0.5
+
+
+def test_smoothing_keeps_smooth_motion(grasps):
+    """A quadratic over +- 50 ms follows the motion: noise-free streams move by micrometres at most."""
+    times = START + np.arange(0, 2.0, 0.01)
+    streams = {side: sensor_stream(times, grasp) for side, grasp in grasps.items()}
+    translation, rotation = errors(track(touch_at(grasps), streams))
+    assert translation.max() < 5e-6 and rotation.max() < np.radians(0.001)
+
+
+def test_jitter_estimate_and_glitches(grasps, rng):
+    times = START + np.arange(0, 3.0, 1 / 120)
+    stream = sensor_stream(times, grasps["left"])
+    noise = rng.normal(size=(len(times), 3)) * 3e-4
+    stream.T_world_frame[:, :3, 3] += noise
+    stream.T_world_frame[200, :3, 3] += [0.01, 0.0, 0.0]  # one 10 mm glitch
+    jitter = stream_jitter(stream, FusionConfig())
+    assert jitter.translation_m == pytest.approx(3e-4, rel=0.15)
+    assert jitter.glitch[200] and jitter.glitch.sum() <= 3  # the glitch, at most its two neighbours
+    # A smooth stream is not trusted beyond the floor.
+    assert stream_jitter(sensor_stream(times, grasps["left"])).translation_m == FusionConfig().min_jitter_translation_m
+
+
+def test_a_glitch_in_one_stream_does_not_reach_the_output(grasps):
+    times = START + np.arange(0, 2.0, 0.01)
+    streams = {side: sensor_stream(times, grasp) for side, grasp in grasps.items()}
+    streams["left"].T_world_frame[100, :3, 3] += [0.0, 0.02, 0.0]
+    translation, _ = errors(track(touch_at(grasps), streams))
+    assert translation.max() < 1e-4
+
+
+def test_dropouts_use_the_other_sensor(grasps):
+    times = START + np.arange(0, 2.0, 0.01)
+    streams = {side: sensor_stream(times, grasp) for side, grasp in grasps.items()}
+    keep = (times < START + 0.8) | (times > START + 1.3)  # half a second occluded
+    streams["left"] = PoseStream(times[keep], streams["left"].T_world_frame[keep])
+    result = track(touch_at(grasps), streams, config=RAW)
+    inside = (result.timestamps_s > START + 0.85) & (result.timestamps_s < START + 1.25)
+    assert np.all(result.sensor_weights[inside, 0] == 0.0)
+    translation, _ = errors(result)
+    assert translation.max() < TOL["pose_exact_m"] * 10
+
+
+def test_arm_lag_is_averaged(grasps):
+    """The right arm 20 ms late: the fused pose sits between the two arms, halving the error of either alone."""
+    times = START + np.arange(0, 2.0, 0.01)
+    left = sensor_stream(times, grasps["left"])
+    right = PoseStream(times, object_motion(times - 0.02) @ invert_transform(grasps["right"]))
+    fused, _ = errors(track(touch_at(grasps), {"left": left, "right": right}))
+    right_only, _ = pose_errors(times, right.T_world_frame @ grasps["right"])
+    assert np.mean(fused) == pytest.approx(0.5 * np.mean(right_only), rel=0.1)
+
+
+def test_the_touch_fixes_the_grasps_and_its_time(grasps):
+    times = START + np.arange(0, 2.0, 0.01)
+    streams = {side: sensor_stream(times, grasp) for side, grasp in grasps.items()}
+    k = 37
+    T_world_object = object_motion(times[k : k + 1])[0]
+    contacts = {side: TactileContact(np.zeros((30, 3)), streams[side].T_world_frame[k]) for side in ("left", "right")}
+    pair = ContactPair("thing", contacts["left"], contacts["right"])
+    found, mismatch = find_touch_time(pair, streams)
+    assert found == times[k] and mismatch < TOL["float"]
+    touch = touch_from_pair(pair, T_world_object, found)
+    for side in ("left", "right"):
+        assert np.abs(touch.T_sensor_object[side] - grasps[side]).max() < TOL["float"]
+    result = track(touch, streams)
+    assert result.timestamps_s[0] == times[k]  # poses from the touch on
+
+
+def test_batched_inverse_matches_the_single_one(rng):
+    poses = np.array([make_transform(r, rng.normal(size=3)) for r in random_rotations(rng, 5)])
+    batched = invert_transform(poses.reshape(5, 1, 4, 4))
+    for pose, inverse in zip(poses, batched[:, 0], strict=True):
+        assert np.abs(inverse - invert_transform(pose)).max() < TOL["float"]
+        assert np.abs(inverse @ pose - np.eye(4)).max() < TOL["float"]
+
+
+def test_tactile_frames_of_both_sensors_are_paired_in_time():
+    from yoto.tracking.streams import TactileStream
+    from yoto.tracking.track import group_frames
+
+    left = TactileStream.in_memory(np.array([0.9, 1.00, 1.04, 1.08, 1.20]), [np.zeros((1, 3))] * 5)
+    right = TactileStream.in_memory(np.array([1.01, 1.05, 1.055, 1.30]), [np.zeros((1, 3))] * 4)
+    instants = group_frames({"left": left, "right": right}, start_s=1.0, tolerance_s=0.02)
+    assert instants == [
+        (1.01, [("left", 1), ("right", 0)]),
+        (1.05, [("left", 2), ("right", 1)]),
+        (1.055, [("right", 2)]),
+        (1.08, [("left", 3)]),
+        (1.20, [("left", 4)]),
+        (1.30, [("right", 3)]),
+    ]
+
+
+def _bench_record(touch_mm: float, drift_mm: float, right: bool) -> dict:
+    figures = {figure: {"mm": drift_mm, "deg": 0.1} for figure in ("motion_mean", "motion_peak", "settled")}
+    loop = {**figures, "settled_drift": {"mm": drift_mm, "deg": 0.1}, "touch": {"mm": touch_mm, "deg": 0.2}}
+    speed = {"latency_median_ms": 10.0, "latency_p90_ms": 20.0, "instants_per_s": 100.0, "frames_per_s": 150.0}
+    return {
+        "open_loop": loop,
+        "closed_loop": loop,
+        "slip": {"slip_final_mm": 2.0, "slip_final_deg": 1.5},
+        "closed_loop_speed": {**speed, "frames_used": 3, "frames": 4},
+        "right_touch": right,
+    }
+
+
+def test_benchmark_report_separates_right_touches():
+    from yoto.tracking.bench import TrackBenchConfig, build_report, format_markdown
+
+    records = {"thing": {"100mm": [_bench_record(0.1, 0.2, True), _bench_record(30.0, 0.9, False)]}}
+    report = build_report(records, TrackBenchConfig(trajectories=2))
+    entry = report["results"]["thing"]["100mm"]
+    assert entry["right_touches"] == 1
+    assert entry["right_touch"]["touch"]["mm"]["mean"] == pytest.approx(0.1)
+    assert entry["all"]["touch"]["mm"]["mean"] == pytest.approx(15.05)
+    assert entry["right_touch"]["closed_loop_drift_met"] == 1
+    assert entry["all"]["closed_loop_drift_met"] == 1
+    assert entry["speed"]["frames_per_s"]["mean"] == pytest.approx(150.0)
+    text = format_markdown(report)
+    assert "| closed loop: drift under the target, right touches | 1 of 1 |" in text
+    assert "| closed loop: drift under the target, all trajectories | 1 of 2 |" in text

@@ -1,0 +1,182 @@
+"""Simulated trajectories after a touch, the closed loop on them, and `yoto track` on their files."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from yoto.cli import main
+from yoto.contacts import SIDES, read_contact_pair
+from yoto.geometry import invert_transform, rotation_angle_rad, transform_points
+from yoto.io import write_ply_points
+from yoto.simulate.trajectory import TrajectoryConfig, TrajectorySimulator, write_trajectories, write_trajectory
+from yoto.tracking.bench import tactile_streams
+from yoto.tracking.evaluate import motion_interval, summarize_errors, tracking_errors
+from yoto.tracking.track import TrackConfig, touch_from_pair, track
+from yoto.trajectory import read_tum, tactile_frame_name
+
+pytest.importorskip("open3d")
+
+# A short version of the issue's scenario (same slip, half the path, fewer frames) so that tests take seconds.
+SHORT = TrajectoryConfig(
+    path_length_m=0.05,
+    rotation_range_rad=(float(np.radians(5.0)), float(np.radians(7.0))),
+    before_touch_s=0.1,
+    hold_s=0.2,
+    motion_s=1.0,
+    settle_s=0.4,
+    left_rate_hz=60.0,
+    right_rate_hz=50.0,
+    tactile_rate_hz=12.5,
+    slip_translation_per_m=0.04,  # 2 mm over the 50 mm path
+    slip_rotation_per_m=float(np.radians(30.0)),  # 1.5 deg
+)
+
+
+@pytest.fixture(scope="module")
+def fruit_trajectory(builtin_models):
+    return TrajectorySimulator(builtin_models["fruit"], SHORT).trajectory(3, 1)
+
+
+def settled(trajectory, result, poses) -> dict:
+    truth, _ = trajectory.truth.interpolate(result.timestamps_s)
+    errors = tracking_errors(
+        result.timestamps_s, poses, truth, result.touch.T_world_object, trajectory.touch.T_world_object
+    )
+    return summarize_errors(errors, motion_interval(trajectory.streams, result.timestamps_s))
+
+
+def test_simulated_trajectory_is_consistent(builtin_models, fruit_trajectory):
+    trajectory, model = fruit_trajectory, builtin_models["fruit"]
+    summary = trajectory.summary
+    assert summary["slip_final_mm"] == pytest.approx(2.0, abs=1e-9)
+    assert summary["slip_final_deg"] == pytest.approx(1.5, abs=1e-9)
+    assert summary["path_length_mm"] == pytest.approx(50.0, rel=1e-6)
+    for side in SIDES:
+        frames = trajectory.tactile[side]
+        assert len(frames) >= 20 and all(len(frame.points_sensor) > 100 for frame in frames)
+        stamps = np.array([frame.timestamp_s for frame in frames])
+        objects, _ = trajectory.truth.interpolate(stamps)
+        sensors, _ = trajectory.sensors_true[side].interpolate(stamps)
+        for frame, T_world_object, T_world_sensor in zip(frames, objects, sensors, strict=True):
+            # The truth chain: object pose @ sensor-on-object pose = sensor pose (up to stream interpolation).
+            offset = invert_transform(T_world_sensor) @ T_world_object @ frame.T_object_sensor_true
+            assert np.linalg.norm(offset[:3, 3]) < 1e-4  # 50-60 Hz streams interpolated at the frame times
+            # The tactile cloud lies on the object where the sensor really was.
+            gaps, _ = model.kdtree.query(transform_points(frame.T_object_sensor_true, frame.points_sensor[::50]))
+            assert np.median(gaps) < 4e-4
+        # Slip is tangential: the sensor moved over the surface, not into it or off it.
+        start, end = frames[0].T_object_sensor_true, frames[-1].T_object_sensor_true
+        along_axis = (invert_transform(start) @ end)[2, 3]
+        assert abs(along_axis) < 5e-4 and np.linalg.norm(end[:3, 3] - start[:3, 3]) > 5e-4
+    # The touch's clouds are the sensors' first frames' kind: reported poses and ground truth in the pair.
+    assert trajectory.touch.pair.extra["timestamp"] == trajectory.touch_time_s
+    again = TrajectorySimulator(model, SHORT).trajectory(3, 1)
+    assert np.array_equal(again.streams["left"].T_world_frame, trajectory.streams["left"].T_world_frame)
+
+
+def test_closed_loop_corrects_the_slip_the_open_loop_keeps(builtin_models, fruit_trajectory):
+    trajectory, model = fruit_trajectory, builtin_models["fruit"]
+    touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
+    result = track(touch, trajectory.streams, model, tactile_streams(trajectory))
+    open_loop = settled(trajectory, result, result.T_world_object_open_loop)
+    closed_loop = settled(trajectory, result, result.T_world_object)
+    assert open_loop["settled"]["mm"] > 1.5  # the slip stays in the open loop
+    assert closed_loop["settled"]["mm"] < 0.5
+    assert closed_loop["settled"]["deg"] < open_loop["settled"]["deg"]
+    speed = result.correction_summary()
+    assert speed["frames_used"] >= 0.9 * speed["frames"]
+    assert result.corrections[-1].slip_m * 1e3 == pytest.approx(2.0, abs=0.6)  # the slip it detected
+
+
+def test_unusable_frames_fall_back_to_the_open_loop(builtin_models, fruit_trajectory):
+    trajectory, model = fruit_trajectory, builtin_models["fruit"]
+    broken = dataclasses.replace(
+        trajectory, tactile={side: list(frames) for side, frames in trajectory.tactile.items()}
+    )
+    for i in range(0, 20, 2):  # every other left frame lost its contact
+        broken.tactile["left"][i] = dataclasses.replace(broken.tactile["left"][i], points_sensor=np.empty((0, 3)))
+    for i in (5, 9):  # two right frames are garbage: the cloud floats a centimetre off the gel
+        frame = broken.tactile["right"][i]
+        broken.tactile["right"][i] = dataclasses.replace(frame, points_sensor=frame.points_sensor - [0, 0, 0.01])
+    touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
+    result = track(touch, trajectory.streams, model, tactile_streams(broken))
+    reasons = result.correction_summary()["unusable"]
+    assert reasons.get("too few points") == 10
+    assert reasons.get("bad fit") == 2
+    assert settled(trajectory, result, result.T_world_object)["settled"]["mm"] < 0.6
+
+
+def test_track_command_on_written_files(builtin_models, fruit_trajectory, tmp_path, capsys):
+    model = builtin_models["fruit"]
+    model_path = model.save(tmp_path / "fruit.npz")
+    folder = write_trajectory(fruit_trajectory, model, tmp_path / "traj")
+    assert read_contact_pair(folder / "touch.json").extra["timestamp"] == fruit_trajectory.touch_time_s
+    truth = read_tum(folder / "object_true.tum")
+    assert np.abs(truth.T_world_frame - fruit_trajectory.truth_mesh(model).T_world_frame).max() < 1e-8
+    args = ["track", str(folder / "touch.json"), "--left", str(folder / "left.tum"), "--right"]
+    args += [str(folder / "right.tum"), "--model", str(model_path), "--method", "oracle"]
+    args += ["--left-tactile", str(folder / "left_tactile"), "--right-tactile", str(folder / "right_tactile")]
+    args += ["--truth", str(folder / "object_true.tum"), "--report", str(tmp_path / "report.json")]
+    args += ["--figure", str(tmp_path / "error.png"), "--out", str(tmp_path / "object.tum")]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "closed loop vs truth" in out and "open loop vs truth" in out
+    tracked = read_tum(tmp_path / "object.tum")
+    stamps = np.union1d(fruit_trajectory.streams["left"].timestamps_s, fruit_trajectory.streams["right"].timestamps_s)
+    assert np.array_equal(tracked.timestamps_s, stamps[stamps >= fruit_trajectory.touch_time_s])
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["mode"] == "closed loop" and report["errors"]["closed_loop"]["settled"]["mm"] < 0.5
+    assert (tmp_path / "error.png").stat().st_size > 10_000
+    # The tracked poses are in the mesh file's frame, as the truth file's (a frame mix-up would be centimetres off).
+    assert rotation_angle_rad(tracked.T_world_frame[-1], truth.T_world_frame[-1]) < np.radians(3.0)
+    assert np.linalg.norm(tracked.T_world_frame[-1][:3, 3] - truth.T_world_frame[-1][:3, 3]) < 0.002
+
+    # A misnamed tactile frame is an error naming the file; nothing is written.
+    write_ply_points(folder / "left_tactile" / "first.ply", np.zeros((40, 3)))
+    args[-1] = str(tmp_path / "again.tum")
+    assert main(args) == 2
+    assert "first.ply" in capsys.readouterr().err
+    assert not (tmp_path / "again.tum").exists()
+
+
+def test_trajectory_folders_resume_and_refuse_mixed_settings(builtin_models, tmp_path):
+    from yoto.errors import InputError
+
+    model = builtin_models["figurine"]
+    config = dataclasses.replace(SHORT, motion_s=0.4, settle_s=0.1, hold_s=0.1, tactile_rate_hz=5.0)
+    report = write_trajectories(model, tmp_path, 1, seed=2, config=config)
+    assert len(report.written) == 1
+    folder = tmp_path / "traj_0000"
+    frames = sorted(p.name for p in (folder / "left_tactile").iterdir())
+    assert frames[0] == tactile_frame_name(json.loads((folder / "trajectory.json").read_text())["touch_time_s"])
+    again = write_trajectories(model, tmp_path, 1, seed=2, config=config)
+    assert again.kept == [folder] and not again.written
+    with pytest.raises(InputError, match="other settings"):
+        write_trajectories(model, tmp_path, 1, seed=3, config=config)
+
+
+def test_a_registration_the_filter_does_not_expect_counts_less(builtin_models, fruit_trajectory):
+    """One mid-motion instant whose clouds contradict the prediction (each shifted 1 mm along its sensor's axis,
+    under the 3 mm a frame may correct): the robust update follows it less than a plain Kalman update."""
+    trajectory, model = fruit_trajectory, builtin_models["fruit"]
+    shifted = dataclasses.replace(
+        trajectory, tactile={side: list(frames) for side, frames in trajectory.tactile.items()}
+    )
+    index = len(shifted.tactile["left"]) // 2
+    for side, offset in (("left", [0.0, 0.0, 0.001]), ("right", [0.0, 0.0, -0.001])):
+        frame = shifted.tactile[side][index]
+        shifted.tactile[side][index] = dataclasses.replace(frame, points_sensor=frame.points_sensor + offset)
+    touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
+    moved = {}
+    for label, bound in (("robust", TrackConfig().correction.innovation_bound), ("plain", np.inf)):
+        config = TrackConfig(correction=dataclasses.replace(TrackConfig().correction, innovation_bound=bound))
+        result = track(touch, trajectory.streams, model, tactile_streams(shifted), config)
+        stamp = shifted.tactile["left"][index].timestamp_s
+        (instant,) = [c for c in result.corrections if abs(c.timestamp_s - stamp) < 0.03]
+        moved[label] = instant.correction_m
+    assert 2e-4 < moved["plain"] < 3e-3
+    assert moved["robust"] < 0.85 * moved["plain"]

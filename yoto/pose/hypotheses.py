@@ -1,0 +1,107 @@
+"""Pose hypotheses: verified poses grouped into distinct ones, with probabilities (SPEC "Pose result").
+
+A refined pose is scored by how well it explains both contacts: each tactile cloud's residual after its sensor
+correction, and how large those corrections had to be under the calibration prior. The score is a
+log-likelihood,
+
+    log L = -1/2 [ sum over contacts of n_eff (rms / fit_noise)^2 + n_free (free / free_noise)^2
+                   + correction Mahalanobis^2 ],
+
+with `n_eff` the number of effectively independent points per contact (neighbouring tactile points share their
+errors), `fit_noise` the residual of a right pose, and `free` how deep the object would reach into the gel where
+the sensor felt nothing, or into its housing (a pose that puts the object there is impossible).
+
+Poses closer than `distinct_translation_m` (at the object's centroid) and `distinct_rotation_rad`, modulo the
+object's symmetries, are one hypothesis; each keeps its best pose. Probabilities are the normalised likelihoods,
+so hypotheses that explain the contacts equally well (a flat face that lets the object slide, a body of
+revolution) share the probability, and the pose is `ambiguous` when more than one keeps at least
+`ambiguous_probability`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from yoto.objects.symmetry import Symmetry
+from yoto.pose.refine import Refined
+
+
+@dataclass(frozen=True)
+class HypothesisConfig:
+    """How refined poses become distinct hypotheses with probabilities."""
+
+    distinct_translation_m: float = 0.005  # poses further apart than this (object centroid) ...
+    distinct_rotation_rad: float = float(np.radians(5.0))  # ... or this (modulo symmetry) are distinct hypotheses
+    fit_noise_m: float = 3e-5  # residual RMS of a right pose (sensor noise, mesh error)
+    effective_points: float = 4.0  # effectively independent points per contact (scales the fit's evidence)
+    free_noise_m: float = 1e-4  # free space: RMS depth of the object inside the gel or housing that costs as much
+    free_effective_points: float = 4.0  # ... and its effectively independent points per contact
+    min_probability: float = 1e-3  # hypotheses below this probability are not reported
+    max_hypotheses: int = 40  # reported hypotheses at most (the most probable)
+    ambiguous_probability: float = 0.05  # ambiguous when a second hypothesis keeps at least this probability
+
+
+@dataclass
+class Hypotheses:
+    """Distinct poses, most probable first (arrays over H)."""
+
+    T_world_object: np.ndarray  # (H, 4, 4)
+    probability: np.ndarray  # (H,) normalised over the hypotheses found (before `min_probability` is applied)
+    log_likelihood: np.ndarray  # (H,)
+    member: np.ndarray  # (H,) index of each hypothesis's pose in the refined set
+    support: np.ndarray  # (H,) how many refined poses fell into each hypothesis
+
+    def __len__(self) -> int:
+        return len(self.probability)
+
+
+def log_likelihoods(refined: Refined, config: HypothesisConfig) -> np.ndarray:
+    """(K,) log-likelihood of each refined pose (see the module docstring)."""
+    fit = config.effective_points * np.sum((refined.fit_rms_m / config.fit_noise_m) ** 2, axis=1)
+    free = config.free_effective_points * np.sum((refined.free_rms_m / config.free_noise_m) ** 2, axis=1)
+    return -0.5 * (fit + free + refined.correction_cost)
+
+
+def pose_distances(T_a: np.ndarray, T_b: np.ndarray, symmetry: Symmetry) -> tuple[np.ndarray, np.ndarray]:
+    """Translation (of the object's centroid, the canonical frame's origin; metres) and rotation (radians, modulo
+    symmetry) between each of the (K, 4, 4) poses `T_a` and the single pose or (K, 4, 4) poses `T_b`."""
+    T_b = np.broadcast_to(T_b, T_a.shape)
+    return np.linalg.norm(T_a[:, :3, 3] - T_b[:, :3, 3], axis=1), symmetry.rotation_errors_rad(T_a, T_b)
+
+
+def group_hypotheses(refined: Refined, symmetry: Symmetry, config: HypothesisConfig) -> Hypotheses:
+    """Group refined poses into distinct hypotheses (best first) with probabilities."""
+    score = log_likelihoods(refined, config)
+    order = np.argsort(-score, kind="stable")
+    poses = refined.T_world_object
+    unassigned = np.ones(len(order), dtype=bool)
+    members, support = [], []
+    for k in order:
+        if not unassigned[k]:
+            continue
+        translation, rotation = pose_distances(poses, poses[k], symmetry)
+        close = unassigned & (translation <= config.distinct_translation_m) & (rotation <= config.distinct_rotation_rad)
+        close[k] = True
+        unassigned &= ~close
+        members.append(k)
+        support.append(int(close.sum()))
+    best = np.array(members, dtype=np.int64)
+    log_l = score[best]
+    weights = np.exp(log_l - log_l.max()) if len(best) else np.empty(0)
+    probability = weights / weights.sum() if len(best) else weights
+    return Hypotheses(poses[best], probability, log_l, best, np.array(support, dtype=np.int64))
+
+
+def reported(hypotheses: Hypotheses, config: HypothesisConfig) -> Hypotheses:
+    """The hypotheses worth reporting: at least `min_probability`, at most `max_hypotheses` (the first is kept)."""
+    keep = np.flatnonzero(hypotheses.probability >= config.min_probability)[: config.max_hypotheses]
+    if len(keep) == 0 and len(hypotheses):
+        keep = np.array([0])
+    return Hypotheses(*(getattr(hypotheses, name)[keep] for name in hypotheses.__dataclass_fields__))
+
+
+def is_ambiguous(hypotheses: Hypotheses, config: HypothesisConfig) -> bool:
+    """More than one hypothesis keeps a meaningful share of the probability."""
+    return bool(len(hypotheses) > 1 and hypotheses.probability[1] >= config.ambiguous_probability)

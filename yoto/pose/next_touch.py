@@ -1,0 +1,206 @@
+"""Where to touch next: a reachable contact whose expected patch differs most between the pose hypotheses.
+
+When the two contacts leave several poses (the pose is `ambiguous`), one more touch can tell them apart. Each
+candidate touch is a surface location of the object under the most probable hypothesis, pressed along its
+inward normal by one sensor while the other stays. Under hypothesis k the same press in the world meets the
+object's surface elsewhere, or not at all: its expected patch is the object's height over the pad under that
+hypothesis, read off the surface distance field at points of the pad's disc. The candidate's value is the
+expected disagreement between hypotheses, over the pad's points,
+
+    mean_pad sqrt( sum over k, l of p_k p_l (h_k - h_l)^2 )     (heights clipped at `clip_m`),
+
+and the chosen touch is the most valuable one that the sensor can make: approaching along its axis under any
+hypothesis, its gel meets the object before its body does (housing and probe, as the contact simulator models a
+GelSight Mini), and it clears the sensor that stays. The result is {p_object, n_object} in the mesh file's frame
+(SPEC), plus the sensor to move and the world pose to press from.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from yoto.contacts import SIDES, ContactPair
+from yoto.geometry import make_transform, rotate_vectors, rotation_between, tangent_basis, transform_points
+from yoto.objects.model import ObjectModel
+from yoto.pose.field import SurfaceField, surface_field
+from yoto.pose.hypotheses import Hypotheses
+from yoto.pose.refine import invert_transform_batch
+from yoto.pose.search import surface_samples
+from yoto.sensor.spec import GELSIGHT_MINI
+from yoto.simulate.body import SensorBody
+from yoto.simulate.scenarios import boxes_overlap
+
+Z_AXIS = np.array([0.0, 0.0, 1.0])
+
+
+@dataclass(frozen=True)
+class NextTouchConfig:
+    """How the next touch is chosen."""
+
+    candidates: int = 1500  # surface locations considered (a deterministic stride through the search samples),
+    # those a sensor can press kept (once per model)
+    pad_radius_m: float = 0.006  # the expected patch is compared within this radius of the touch
+    pad_rings: int = 2  # rings of comparison points on the pad disc (plus its centre)
+    clip_m: float = 0.003  # heights further off than this count as this (no contact at all reads the same)
+    min_probability: float = 0.0  # hypotheses below this are ignored for reachability (0: the sensor must clear the
+    # object under every reported hypothesis: any of them may be the truth)
+    press_depth_m: float = 0.0015  # the deepest press (the contact simulator's, and SPEC's, range ends here)
+    clearance_m: float = 0.0002  # ... after which the sensor body must stay this far outside the object
+    body_spacing_m: float = 0.003  # spacing of the points checked on the sensor body's boxes
+    checked: int = 300  # most valuable candidates checked for reachability under every hypothesis (best first)
+
+
+@dataclass
+class NextTouch:
+    """A suggested touch: where (object frame, under the first hypothesis), which sensor, and its value."""
+
+    p_object: np.ndarray  # (3,) canonical object frame
+    n_object: np.ndarray  # (3,) outward normal there (press along -n)
+    sensor: str  # "left" or "right": the sensor to move (the other stays)
+    T_world_sensor: np.ndarray  # (4, 4) where the moving sensor should be when the gel meets the surface
+    disagreement_m: float  # expected height difference between hypotheses at the touch (RMS over their pairs)
+
+    def to_json(self, model: ObjectModel) -> dict[str, Any]:
+        return {
+            "p_object": transform_points(model.T_mesh_object, self.p_object).tolist(),
+            "n_object": rotate_vectors(model.T_mesh_object, self.n_object).tolist(),
+            "sensor": self.sensor,
+            "T_world_sensor": self.T_world_sensor.tolist(),
+            "expected_disagreement_mm": 1000.0 * self.disagreement_m,
+        }
+
+
+def _pad_points(config: NextTouchConfig) -> np.ndarray:
+    """(P, 2) comparison points on the pad disc: its centre and `pad_rings` rings of six."""
+    points = [np.zeros(2)]
+    for ring in range(1, config.pad_rings + 1):
+        radius = config.pad_radius_m * ring / config.pad_rings
+        angles = np.arange(6) * np.pi / 3 + (ring % 2) * np.pi / 6
+        points += list(radius * np.stack([np.cos(angles), np.sin(angles)], axis=1))
+    return np.array(points)
+
+
+def sensor_pose_at(p_object: np.ndarray, n_object: np.ndarray) -> np.ndarray:
+    """T_object_sensor of a sensor whose gel centre touches `p_object`, pressing along -n (SPEC sensor frame)."""
+    rotation = rotation_between(Z_AXIS, -np.asarray(n_object, dtype=np.float64))
+    return make_transform(rotation, np.asarray(p_object, dtype=np.float64))
+
+
+def _body_points(config: NextTouchConfig, body: SensorBody) -> np.ndarray:
+    """Points on the surfaces of the sensor body's boxes (housing, probe), sensor frame."""
+    points = []
+    for centre, half in body.boxes(GELSIGHT_MINI, with_gel=False):
+        axes = [np.linspace(-h, h, max(2, int(np.ceil(2 * h / config.body_spacing_m)) + 1)) for h in half]
+        grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        on_face = np.any(np.isclose(np.abs(grid), half, rtol=0, atol=1e-9), axis=1)
+        points.append(grid[on_face] + centre)
+    return np.vstack(points)
+
+
+@dataclass
+class TouchSites:
+    """The surface locations a sensor can press on the object (pose-independent: the object alone in the way)."""
+
+    p_object: np.ndarray  # (C, 3)
+    n_object: np.ndarray  # (C, 3) outward normals (press along -n)
+    T_object_sensor: np.ndarray  # (C, 4, 4) the sensor whose gel centre touches there
+
+
+_SITES: dict[tuple[str, NextTouchConfig], TouchSites] = {}
+_SITES_LOCK = threading.Lock()
+
+
+def touch_sites(model: ObjectModel, config: NextTouchConfig = NextTouchConfig()) -> TouchSites:
+    """The cached reachable sites of a model: a deterministic stride through the search samples, kept where a
+    sensor pressing along the inward normal meets the object with its gel before its body does."""
+    key = (model.fingerprint, config)
+    with _SITES_LOCK:
+        cached = _SITES.get(key)
+    if cached is None:
+        samples = surface_samples(model)
+        stride = max(1, len(samples.points_object) // config.candidates)
+        p, n = samples.points_object[::stride], samples.normals_object[::stride]
+        T_object_sensor = np.stack([sensor_pose_at(point, normal) for point, normal in zip(p, n)])
+        clear = presses_clear(surface_field(model), T_object_sensor, config)
+        cached = TouchSites(p[clear], n[clear], T_object_sensor[clear])
+        with _SITES_LOCK:
+            _SITES[key] = cached
+    return cached
+
+
+def suggest_next_touch(
+    model: ObjectModel, hypotheses: Hypotheses, pair: ContactPair, config: NextTouchConfig = NextTouchConfig()
+) -> NextTouch | None:
+    """The most informative reachable touch (see the module docstring), or None when no candidate tells the
+    hypotheses apart or none can be reached."""
+    if len(hypotheses) < 2:
+        return None
+    field = surface_field(model)
+    sites = touch_sites(model, config)
+    p, n = sites.p_object, sites.n_object
+    u, v = tangent_basis(n)
+    pad = _pad_points(config)
+    # World positions of the pad's comparison points for a press at each candidate, under the first hypothesis.
+    pad_object = p[:, None, :] + pad[None, :, 0, None] * u[:, None, :] + pad[None, :, 1, None] * v[:, None, :]
+    T0 = hypotheses.T_world_object[0]
+    pad_world = transform_points(T0, pad_object)
+    probability = hypotheses.probability / hypotheses.probability.sum()
+    inverse = invert_transform_batch(hypotheses.T_world_object)
+    heights = []
+    for T_object_world in inverse:
+        local = transform_points(T_object_world, pad_world)
+        distance, _ = field.distance(local, with_gradient=False)
+        heights.append(np.clip(distance, -config.clip_m, config.clip_m))
+    h = np.stack(heights)  # (H, C, P)
+    # sum over k, l of p_k p_l (h_k - h_l)^2 = 2 Var_p(h): the spread of the expected patch between hypotheses.
+    mean = np.einsum("k,kcp->cp", probability, h)
+    variance = np.einsum("k,kcp->cp", probability, h**2) - mean**2
+    disagreement = np.sqrt(2.0 * np.maximum(variance, 0.0)).mean(axis=1)
+    order = np.argsort(-disagreement, kind="stable")[: config.checked]
+    order = order[disagreement[order] > 1e-6]
+    # The press planned under the first hypothesis must clear the object under every other one too.
+    T_world_new = T0 @ sites.T_object_sensor[order]
+    clear = np.ones(len(order), dtype=bool)
+    for T_object_world in inverse[1:][probability[1:] >= config.min_probability]:
+        clear[clear] = presses_clear(field, T_object_world @ T_world_new[clear], config)
+    T_world_sensor = {side: pair.contact(side).T_world_sensor for side in SIDES}
+    boxes = SensorBody().boxes(GELSIGHT_MINI, with_gel=True)
+    for index, T_new in zip(order[clear], T_world_new[clear]):
+        for side, other in (("left", "right"), ("right", "left")):
+            if not any(
+                boxes_overlap(T_new, ca, ha, T_world_sensor[other], cb, hb) for ca, ha in boxes for cb, hb in boxes
+            ):
+                return NextTouch(p[index], n[index], side, T_new, float(disagreement[index]))
+    return None
+
+
+def _gel_points(config: NextTouchConfig) -> np.ndarray:
+    """Points on the undeformed gel surface (z = 0) over the pad, sensor frame."""
+    width, height = GELSIGHT_MINI.pad_size_m
+    x, y = np.meshgrid(
+        np.linspace(-width / 2, width / 2, int(width / config.body_spacing_m) + 1),
+        np.linspace(-height / 2, height / 2, int(height / config.body_spacing_m) + 1),
+    )
+    return np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+
+
+def presses_clear(field: SurfaceField, T_object_sensor: np.ndarray, config: NextTouchConfig) -> np.ndarray:
+    """(C,) whether sensors approaching along their z toward these poses (object frame, (C, 4, 4)) press the
+    object with their gel before any part of their body meets it: each sensor stops where its gel first touches,
+    presses `press_depth_m` further, and its body must then stay `clearance_m` outside the object. An approach
+    that meets nothing within the field's band cannot collide there either."""
+    if not len(T_object_sensor):
+        return np.zeros(0, dtype=bool)
+    gel, body = _gel_points(config), _body_points(config, SensorBody())
+    gel_object = np.einsum("cij,gj->cgi", T_object_sensor[:, :3, :3], gel) + T_object_sensor[:, None, :3, 3]
+    gel_distance, _ = field.distance(gel_object, with_gradient=False)
+    first_touch = gel_distance.min(axis=1)  # how far each sensor still moves (negative: back) until the gel touches
+    shift = first_touch + config.press_depth_m
+    origin = T_object_sensor[:, :3, 3] + shift[:, None] * T_object_sensor[:, :3, 2]
+    body_object = np.einsum("cij,bj->cbi", T_object_sensor[:, :3, :3], body) + origin[:, None, :]
+    body_distance, _ = field.distance(body_object, with_gradient=False)
+    return (first_touch >= field.band_m) | (body_distance.min(axis=1) >= config.clearance_m)

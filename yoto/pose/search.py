@@ -1,0 +1,320 @@
+"""The joint two-contact search: every pair of surface locations whose geometry fits the measured pair.
+
+Two contacts measured in the world give a key that no rigid motion changes: their separation and the three
+angles between the contact-to-contact direction d and the two outward normals (d, nL), (d, nR), (nL, nR)
+(Drost et al.'s oriented point-pair feature, which the paper's solver is built on). A localizer returns the few
+places each contact looks most like; on a flat face, a cylinder or a rounded edge a contact looks like every
+place of that kind, and the true one is often not among them. The search covers them all:
+
+1. Once per object model (`surface_samples`, cached): the surface sampled every ~2 mm, each sample with its
+   outward normal and its local shape (the principal curvatures of a quadric fitted to what a gel pressed there
+   would touch).
+2. Per contact (`contact_locations`): the samples whose local shape matches the contact's own (curvatures
+   within a tolerance that grows with how badly the quadric fits the contact: flat faces admit only flat
+   samples, an edge only edges), plus the localizer's candidates.
+3. Per pair (`search_poses`): every left x right location pair whose key fits the measured key within the
+   tolerances (the sensors' calibration error, the localizers' error, and the blur of the sampling, which is
+   larger where the normal turns quickly), solved in closed form (`solver.solve_poses`, vectorised). Large
+   location sets are thinned on a coarser grid first (smooth regions first: there a coarser sampling blurs
+   only the separation), so a query costs at most `pair_budget` key evaluations.
+
+The pose stage verifies the matches with both tactile clouds.
+
+Unlike Drost et al. there is no precomputed table of all sample pairs: it grows as the square of the samples
+(a 2 mm sampling of a cereal box holds 10^8 pairs), and the coarse sampling that keeps it small cannot follow a
+rounded edge, where the normal turns by tens of degrees between samples. The local-shape filter makes the
+per-query pair sets small instead.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from yoto.contacts import SIDES, ContactEstimate, WorldContact
+from yoto.geometry import tangent_basis
+from yoto.objects.model import ObjectModel
+from yoto.pointcloud import voxel_downsample
+from yoto.pose.solver import MIN_CONTACT_SEPARATION_M, BatchSolution, direction_angles, solve_poses
+
+
+@dataclass(frozen=True)
+class SampleConfig:
+    """How the surface is sampled for the search (once per object model; the cache is keyed on it)."""
+
+    spacing_m: float = 0.002  # sample spacing (grows for large objects, see max_samples)
+    max_samples: int = 30_000  # samples at most
+    normal_neighbours: int = 20  # k of each sample's aggregated normal (as the localizers report them)
+    shape_radius_m: float = 0.004  # local shape (principal curvatures) fitted within this radius of a location ...
+    shape_depth_m: float = 0.002  # ... to the surface at most this far below its tangent plane: what a gel pressed
+    # there can touch (not the other side of an edge or of a thin wall)
+
+
+@dataclass(frozen=True)
+class SearchConfig:
+    """How a measured pair is looked up (per query)."""
+
+    samples: SampleConfig = SampleConfig()
+    distance_tolerance_m: float = 0.003  # key tolerance besides the sampling's own blur: separation ...
+    angle_tolerance_rad: float = float(np.radians(8.0))  # ... and angles (calibration error, normal noise)
+    candidate_angle_tolerance_rad: float = float(np.radians(20.0))  # angles of a localizer's candidate (its normal
+    # is read at a point, the sensor's over a 2 mm disc: on edges and ridges they differ)
+    curvature_floor: float = 12.0  # 1/m: a sample matches a contact's shape when both curvatures agree within
+    # (floor + the contact's larger |curvature|) x (share + residual / residual_scale): a quadric fits a flat face
+    # or a cylinder well and its curvatures are then sharp; on an edge or a bump they are only a rough guide
+    curvature_share: float = 0.35
+    curvature_residual_scale_m: float = 0.00015
+    pair_budget: int = 1_000_000  # location pairs evaluated at most per query (large sets are thinned)
+    max_matches: int = 8000  # matches kept (the best keys first)
+
+
+@dataclass
+class LocalShape:
+    """The shape of a surface around locations: principal curvatures of a quadric fitted there, and its fit."""
+
+    curvatures: np.ndarray  # (K, 2) 1/m, larger first; positive where the surface curves away from its normal
+    rms_m: np.ndarray  # (K,) RMS residual of the quadric fit: small on featureless (flat, cylindrical...) surface
+
+
+def fit_local_shapes(
+    points: np.ndarray, centres: np.ndarray, normals: np.ndarray, neighbours: np.ndarray, valid: np.ndarray
+) -> LocalShape:
+    """Quadric fits h = (a x^2 + 2 b xy + c y^2) / 2 + d x + e y + f in each centre's tangent frame.
+
+    `neighbours` (K, N) indexes `points` for each of K centres (with outward `normals`); `valid` (K, N) says
+    which entries count. Fewer than 10 valid points give an infinite residual.
+    """
+    u, v = tangent_basis(normals)
+    offset = points[neighbours] - centres[:, None, :]
+    x, y = np.einsum("knj,kj->kn", offset, u), np.einsum("knj,kj->kn", offset, v)
+    h = np.einsum("knj,kj->kn", offset, normals)
+    design = np.stack([x * x / 2, x * y, y * y / 2, x, y, np.ones_like(x)], axis=-1) * valid[..., None]
+    gram = np.einsum("kni,knj->kij", design, design) + 1e-15 * np.eye(6)
+    coefficients = np.linalg.solve(gram, np.einsum("kni,kn->ki", design, h * valid)[..., None])[..., 0]
+    residual = np.sum((np.einsum("kni,ki->kn", design, coefficients) - h * valid) ** 2, axis=1)
+    count = valid.sum(axis=1)
+    hessian = -np.stack(
+        [
+            np.stack([coefficients[:, 0], coefficients[:, 1]], -1),
+            np.stack([coefficients[:, 1], coefficients[:, 2]], -1),
+        ],
+        axis=-2,
+    )
+    curvatures = np.linalg.eigvalsh(hessian)[:, ::-1]
+    rms = np.sqrt(residual / np.maximum(count, 1))
+    return LocalShape(curvatures, np.where(count >= 10, rms, np.inf))
+
+
+def contact_shape(points_sensor: np.ndarray, p_sensor: np.ndarray, n_sensor: np.ndarray, config: SampleConfig):
+    """The local shape (one row) of a tactile contact around its measured centre and outward normal."""
+    points_sensor = points_sensor[:: max(1, len(points_sensor) // 4000)]
+    offset = points_sensor - p_sensor
+    along = offset @ n_sensor
+    keep = np.flatnonzero(np.sum(offset**2, axis=1) - along**2 <= config.shape_radius_m**2)
+    if len(keep) > 2000:
+        keep = keep[np.linspace(0, len(keep) - 1, 2000).astype(np.int64)]
+    valid = np.ones((1, len(keep)), dtype=bool)
+    return fit_local_shapes(points_sensor, p_sensor[None], n_sensor[None], keep[None], valid)
+
+
+@dataclass
+class SurfaceSamples:
+    """The object's surface sampled for the search: locations, outward normals, local shapes (object frame)."""
+
+    points_object: np.ndarray  # (M, 3)
+    normals_object: np.ndarray  # (M, 3)
+    shapes: LocalShape  # (M,)
+    spacing_m: float
+    seconds: float  # time to build
+
+
+def build_surface_samples(model: ObjectModel, config: SampleConfig = SampleConfig()) -> SurfaceSamples:
+    """Sample the model's surface and fit each sample's local shape (see SampleConfig)."""
+    start = time.perf_counter()
+    spacing = max(config.spacing_m, float(np.sqrt(model.meta["surface_area_m2"] / config.max_samples)))
+    points = model.points_object.astype(np.float64)
+    while True:
+        (centres,) = voxel_downsample(points, spacing)
+        if len(centres) <= config.max_samples:
+            break
+        spacing *= 1.05
+    samples = model.nearest_surface_point(centres)
+    normals = model.aggregated_normal(samples, config.normal_neighbours)
+    k = int(min(len(points), np.ceil(2.5 * np.pi * (config.shape_radius_m / model.point_spacing_m) ** 2)))
+    parts = []
+    for first in range(0, len(samples), 256):
+        centre, axis = samples[first : first + 256], normals[first : first + 256]
+        _, neighbours = model.kdtree.query(centre, k=k)
+        offset = model.points_object[neighbours] - centre[:, None, :]
+        height = np.einsum("knj,kj->kn", offset, axis)
+        lateral = np.sum(offset**2, axis=-1) - height**2
+        facing = np.einsum("knj,kj->kn", model.normals_object[neighbours], axis) > 0.7
+        valid = facing & (height > -config.shape_depth_m) & (lateral <= config.shape_radius_m**2)
+        parts.append(fit_local_shapes(model.points_object, centre, axis, neighbours, valid))
+    shapes = LocalShape(np.concatenate([p.curvatures for p in parts]), np.concatenate([p.rms_m for p in parts]))
+    return SurfaceSamples(samples, normals, shapes, spacing, time.perf_counter() - start)
+
+
+_CACHE: dict[tuple[str, SampleConfig], SurfaceSamples] = {}
+_CACHE_LOCK = threading.Lock()
+_CACHE_SIZE = 4
+
+
+def surface_samples(model: ObjectModel, config: SampleConfig = SampleConfig()) -> SurfaceSamples:
+    """The cached search samples of a model (built on first use)."""
+    key = (model.fingerprint, config)
+    with _CACHE_LOCK:
+        cached = _CACHE.get(key)
+    if cached is None:
+        cached = build_surface_samples(model, config)
+        with _CACHE_LOCK:
+            if len(_CACHE) >= _CACHE_SIZE:
+                _CACHE.pop(next(iter(_CACHE)))
+            _CACHE[key] = cached
+    return cached
+
+
+@dataclass
+class Locations:
+    """Where one contact may be: oriented surface locations (object frame), with how blurred each is."""
+
+    p_object: np.ndarray  # (L, 3)
+    n_object: np.ndarray  # (L, 3)
+    blur_m: np.ndarray  # (L,) how far the contact may lie from the location (0 for a candidate; for a sample, the
+    # distance to the next sample: spacing / sqrt(2))
+    curvature: np.ndarray  # (L,) 1/m, the larger principal curvature's magnitude (0 for a candidate)
+    candidate: np.ndarray  # (L,) bool: a localizer's candidate (else a surface sample)
+
+    def normal_blur_rad(self, config: SearchConfig) -> np.ndarray:
+        """How far the contact's normal may turn from the location's: the curvature times the blur for a sample."""
+        return np.where(
+            self.candidate, config.candidate_angle_tolerance_rad, np.minimum(self.curvature * self.blur_m, np.pi)
+        )
+
+    def subset(self, index: np.ndarray) -> Locations:
+        return Locations(*(getattr(self, name)[index] for name in self.__dataclass_fields__))
+
+
+def contact_locations(
+    samples: SurfaceSamples,
+    shape: LocalShape,
+    candidates: list[ContactEstimate],
+    config: SearchConfig,
+    with_samples: bool = True,
+) -> Locations:
+    """The localizer's candidates and (`with_samples`) every surface sample whose local shape matches the contact's."""
+    fits = np.empty(0, dtype=np.int64)
+    if with_samples:
+        difference = np.abs(samples.shapes.curvatures - shape.curvatures[0]).max(axis=1)
+        tolerance = (config.curvature_floor + np.abs(shape.curvatures[0]).max()) * (
+            config.curvature_share + min(float(shape.rms_m[0]), 1e-3) / config.curvature_residual_scale_m
+        )
+        fits = np.flatnonzero(difference <= tolerance)
+    count = len(candidates)
+    return Locations(
+        np.vstack([np.array([c.p_object for c in candidates]).reshape(-1, 3), samples.points_object[fits]]),
+        np.vstack([np.array([c.n_object for c in candidates]).reshape(-1, 3), samples.normals_object[fits]]),
+        np.concatenate([np.zeros(count), np.full(len(fits), samples.spacing_m / np.sqrt(2.0))]),
+        np.concatenate([np.zeros(count), np.abs(samples.shapes.curvatures[fits]).max(axis=1)]),
+        np.concatenate([np.ones(count, dtype=bool), np.zeros(len(fits), dtype=bool)]),
+    )
+
+
+def thin(locations: Locations, spacing_m: float) -> Locations:
+    """Keep one sample per voxel of `spacing_m` (and every candidate): a coarser sampling, blurred accordingly."""
+    samples = np.flatnonzero(~locations.candidate)
+    cells = np.floor(locations.p_object[samples] / spacing_m).astype(np.int64)
+    cells -= cells.min(axis=0, initial=0)
+    span = cells.max(axis=0, initial=0) + 1
+    _, first = np.unique((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2], return_index=True)
+    thinned = locations.subset(np.concatenate([np.flatnonzero(locations.candidate), samples[np.sort(first)]]))
+    thinned.blur_m = np.where(thinned.candidate, 0.0, np.maximum(thinned.blur_m, spacing_m / np.sqrt(2.0)))
+    return thinned
+
+
+@dataclass
+class PairMatches:
+    """Pairs of locations that fit a measured pair, and the closed-form pose of each (arrays over K)."""
+
+    mismatch: np.ndarray  # (K,) key mismatch in tolerances (0: exact; at most 1)
+    solution: BatchSolution  # (K,) poses
+
+    def __len__(self) -> int:
+        return len(self.mismatch)
+
+
+def search_poses(
+    model: ObjectModel,
+    world: dict[str, WorldContact],
+    shapes: dict[str, LocalShape],
+    candidates: dict[str, list[ContactEstimate]],
+    config: SearchConfig = SearchConfig(),
+    samples: bool = True,
+) -> PairMatches:
+    """Every pair of locations (localizers' candidates and, with `samples`, matching surface samples) whose key fits
+    the measured pair, with its closed-form pose; at most `max_matches`, the best fitting keys first."""
+    surface = surface_samples(model, config.samples)
+    left, right = (contact_locations(surface, shapes[side], candidates[side], config, samples) for side in SIDES)
+    spacing = surface.spacing_m
+    while len(left.p_object) * len(right.p_object) > config.pair_budget:
+        spacing *= 1.5
+        if len(left.p_object) >= len(right.p_object):
+            left = thin(left, spacing)
+        else:
+            right = thin(right, spacing)
+    left_turn, right_turn = left.normal_blur_rad(config), right.normal_blur_rad(config)
+    offset = world["right"].p_world - world["left"].p_world
+    separation = float(np.linalg.norm(offset))
+    angles = direction_angles(offset, world["left"].n_world, world["right"].n_world)
+    # Squared distances of all left x right pairs by one matrix product per chunk; the shell of the widest
+    # tolerance first, the exact per-pair tolerances on what falls in it.
+    widest = float(np.hypot(config.distance_tolerance_m, left.blur_m.max(initial=0) + right.blur_m.max(initial=0)))
+    low2, high2 = max(separation - widest, 0.0) ** 2, (separation + widest) ** 2
+    squared_left, squared_right = np.sum(left.p_object**2, axis=1), np.sum(right.p_object**2, axis=1)
+    found = []
+    chunk = max(1, 400_000 // max(len(right.p_object), 1))
+    for first in range(0, len(left.p_object), chunk):
+        rows = slice(first, first + chunk)
+        squared = squared_left[rows, None] + squared_right[None, :] - 2.0 * left.p_object[rows] @ right.p_object.T
+        shell = (squared >= low2) & (squared <= high2)
+        i, j = np.nonzero(shell)
+        if not len(i):
+            continue
+        within = np.abs(np.sqrt(np.maximum(squared[i, j], 0.0)) - separation) <= np.hypot(
+            config.distance_tolerance_m, left.blur_m[i + first] + right.blur_m[j]
+        )
+        i, j = i[within], j[within]
+        i = i + first
+        offsets = right.p_object[j] - left.p_object[i]
+        distance = np.linalg.norm(offsets, axis=1)
+        blur = left.blur_m[i] + right.blur_m[j]
+        tolerance_m = np.hypot(config.distance_tolerance_m, blur)
+        turn = blur / max(separation, 1e-3)  # the direction d turns as the locations move within their blur
+        tolerance_rad = np.stack(
+            [
+                np.sqrt(config.angle_tolerance_rad**2 + left_turn[i] ** 2 + turn**2),
+                np.sqrt(config.angle_tolerance_rad**2 + right_turn[j] ** 2 + turn**2),
+                np.sqrt(config.angle_tolerance_rad**2 + left_turn[i] ** 2 + right_turn[j] ** 2),
+            ],
+            axis=1,
+        )
+        key = direction_angles(offsets, left.n_object[i], right.n_object[j])
+        mismatch = np.maximum(
+            np.abs(distance - separation) / tolerance_m, (np.abs(key - angles) / tolerance_rad).max(axis=1)
+        )
+        keep = (mismatch <= 1.0) & (distance >= MIN_CONTACT_SEPARATION_M)
+        found.append((i[keep], j[keep], mismatch[keep]))
+    if found:
+        a, b, mismatch = (np.concatenate(parts) for parts in zip(*found))
+    else:
+        a, b, mismatch = np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0)
+    if len(mismatch) > config.max_matches:
+        best = np.argpartition(mismatch, config.max_matches - 1)[: config.max_matches]
+        a, b, mismatch = a[best], b[best], mismatch[best]
+    solution = solve_poses(
+        left.p_object[a], left.n_object[a], right.p_object[b], right.n_object[b], world["left"], world["right"]
+    )
+    return PairMatches(mismatch, solution)

@@ -1,0 +1,352 @@
+"""Recordings in, time-stamped streams out: the one entry point to bags, Motive CSV takes and GelSight PNG folders.
+
+    read_pose_stream(path, topic_or_body) -> PoseStream     (unpacks as timestamps_s, T_world_body (N, 4, 4))
+    read_point_stream(path, topic_or_marker) -> PointStream (unpacks as timestamps_s, p_world (N, 3))
+    read_image_stream(path, topic_or_folder) -> ImageStream (timestamps and frames loaded on demand)
+    open_recording(path) -> Recording                       (the same, for several streams of one recording)
+
+`path` is a ROS1 `.bag`, a ROS2 bag (folder, `.db3` or `.mcap`) or a Motive `.csv`. A rigid body is named by its
+topic (`/vrpn_client_node/RigLeft/pose`), by its name (the one pose topic whose path holds it, else its TF child
+frame) or, in a Motive take, by its rigid-body name. GelSight frames come from an image topic of a bag, or from
+a folder of PNGs named by their timestamp in seconds (`1712.345678.png`), beside a Motive take: PNG stamps on
+the take's clock (seconds since it started) or on the wall clock (POSIX seconds; matched through the take's
+`Capture Start Time`, read as local time); `time_offset_s` overrides.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from yoto.errors import InputError
+from yoto.rig import bags
+from yoto.rig.motive import MotiveTake, is_motive_csv, read_motive_csv
+from yoto.rig.timeline import PointStream, PoseStream, Stream, clean_timeline, make_point_stream, make_pose_stream
+from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
+
+IMAGE_SUFFIXES = (".png",)
+
+
+@dataclass
+class ImageStream(Stream):
+    """Time-stamped GelSight frames; `frames(indices)` loads (H, W, 3) uint8 RGB frames on demand."""
+
+    loader: Callable[[np.ndarray], Iterator[tuple[int, np.ndarray]]] | None = None
+    details: dict[str, Any] = field(default_factory=dict)
+
+    def frames(self, indices: np.ndarray | list[int]) -> Iterator[tuple[int, np.ndarray]]:
+        """(index, frame) for the requested indices, in time order."""
+        assert self.loader is not None
+        yield from self.loader(np.unique(np.asarray(indices, dtype=int)))
+
+    def frame(self, index: int) -> np.ndarray:
+        return next(self.frames([index]))[1]
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Image decoding and checks
+
+
+def check_frame_shape(frame: np.ndarray, spec: GelSightSpec, where: str, path: Path) -> np.ndarray:
+    if frame.shape != (spec.height_px, spec.width_px, 3):
+        raise InputError(
+            f"{where}: GelSight frames are {frame.shape[1]}x{frame.shape[0]} px, but the {spec.name} gives "
+            f"{spec.width_px}x{spec.height_px} (RGB): is this the GelSight topic, and is the camera at full size?",
+            path,
+        )
+    return frame
+
+
+def decode_image_message(message: Any, msgtype: str, spec: GelSightSpec, where: str, path: Path) -> np.ndarray:
+    """An (H, W, 3) uint8 RGB frame from a sensor_msgs/Image (rgb8, bgr8) or CompressedImage (PNG, JPEG)."""
+    if msgtype == "sensor_msgs/msg/CompressedImage":
+        from PIL import Image, UnidentifiedImageError
+
+        try:
+            with Image.open(io.BytesIO(bytes(message.data))) as image:
+                frame = np.asarray(image.convert("RGB"))
+        except (UnidentifiedImageError, OSError) as exc:
+            raise InputError(
+                f"{where}: a compressed frame ({message.format}) could not be decoded: {exc}", path
+            ) from exc
+        return check_frame_shape(frame, spec, where, path)
+    encoding = str(message.encoding).lower()
+    if encoding not in ("rgb8", "bgr8"):
+        raise InputError(
+            f"{where}: image encoding '{message.encoding}' is not supported; GelSight frames must be rgb8 or bgr8 "
+            "(colour, 8 bits per channel)",
+            path,
+        )
+    if (message.width, message.height) != (spec.width_px, spec.height_px):
+        raise InputError(
+            f"{where}: frames are {message.width}x{message.height} px, but the {spec.name} gives "
+            f"{spec.width_px}x{spec.height_px}: is this the GelSight topic, and is the camera at full size?",
+            path,
+        )
+    data = np.frombuffer(bytes(message.data), dtype=np.uint8)
+    if len(data) < message.step * message.height or message.step < message.width * 3:
+        raise InputError(f"{where}: image data is shorter than height x step ({len(data)} bytes)", path)
+    frame = data[: message.step * message.height].reshape(message.height, message.step)[:, : message.width * 3]
+    frame = frame.reshape(message.height, message.width, 3)
+    return np.ascontiguousarray(frame if encoding == "rgb8" else frame[:, :, ::-1])
+
+
+def read_png(path: Path, spec: GelSightSpec) -> np.ndarray:
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            frame = np.asarray(image.convert("RGB"))
+    except (UnidentifiedImageError, OSError) as exc:
+        raise InputError(f"not a readable image ({exc})", path) from exc
+    return check_frame_shape(frame, spec, "GelSight frame", path)
+
+
+def png_timestamp(path: Path) -> float:
+    """The timestamp (seconds) in a frame's file name: `1712.345678.png` or `left_1712.345678.png`."""
+    stem = path.name[: -len(path.suffix)]
+    try:
+        return float(stem.rsplit("_", 1)[-1])
+    except ValueError as exc:
+        raise InputError("GelSight PNG names must be their timestamp in seconds (e.g. 1712.345678.png)", path) from exc
+
+
+def image_folder_stream(folder: Path, spec: GelSightSpec = GELSIGHT_MINI, offset_s: float = 0.0) -> ImageStream:
+    """The PNGs of a folder, in time order (times shifted by -offset_s onto the recording's clock)."""
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith("."))
+    if not files:
+        raise InputError("no GelSight frames (*.png named by their timestamp) in the folder", folder)
+    times = np.array([png_timestamp(p) for p in files])
+    order = np.argsort(times, kind="stable")
+    files, times = [files[i] for i in order], times[order]
+    kept, dropped, rate = clean_timeline(times, np.ones(len(times), bool), folder, folder.name)
+    files, times = [files[i] for i in kept], times[kept]
+    check_frame_shape(read_png(files[0], spec), spec, "GelSight frame", files[0])
+
+    def load(indices: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
+        for i in indices:
+            yield int(i), read_png(files[i], spec)
+
+    return ImageStream(folder, folder.name, times - offset_s, dropped, rate, load, {"files": files})
+
+
+def bag_image_stream(reader: Any, path: Path, topic: str, spec: GelSightSpec) -> ImageStream:
+    msgtype = reader.topics[topic].msgtype
+    where = f"topic '{topic}'"
+    stamps, log_times = [], []
+    for k, (stamp, log_time, message) in enumerate(bags.read_messages(reader, topic)):
+        if k == 0:
+            decode_image_message(message, msgtype, spec, where, path)  # size and encoding, up front
+        stamps.append(stamp)
+        log_times.append(log_time)
+    if not stamps:
+        raise InputError(f"topic '{topic}' holds no frames", path)
+    times = np.asarray(stamps)
+    kept, dropped, rate = clean_timeline(times, np.ones(len(times), bool), path, topic)
+    log_ns = np.asarray(log_times, dtype=np.int64)
+    kept_log = log_ns[kept]
+
+    by_log_time: dict[int, list[int]] = {}
+    for original, log_time in enumerate(log_times):
+        by_log_time.setdefault(int(log_time), []).append(original)
+
+    def load(indices: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
+        if len(indices) == 0:
+            return
+        wanted = {int(kept[i]): int(i) for i in indices}
+        start, stop = int(kept_log[indices].min()), int(kept_log[indices].max()) + 1
+        seen: dict[int, int] = {}
+        with bags.open_bag(path) as bag:
+            connections = [c for c in bag.connections if c.topic == topic]
+            for connection, log_time, raw in bag.messages(connections=connections, start=start, stop=stop):
+                # The message's place in the topic: messages sharing a receive time come in bag order.
+                k = seen.get(log_time, 0)
+                seen[log_time] = k + 1
+                same_time = by_log_time.get(int(log_time), [])
+                original = same_time[k] if k < len(same_time) else -1
+                if original in wanted:
+                    message = bag.deserialize(raw, connection.msgtype)
+                    yield wanted[original], decode_image_message(message, connection.msgtype, spec, where, path)
+
+    return ImageStream(path, topic, times[kept], dropped, rate, load, {"msgtype": msgtype})
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Recordings
+
+
+class Recording:
+    """One recording (bag or Motive take) and the streams in it."""
+
+    def __init__(self, path: str | Path, time_offset_s: float | None = None, spec: GelSightSpec = GELSIGHT_MINI):
+        self.path = Path(path)
+        self.spec = spec
+        self.time_offset_s = time_offset_s
+        self.take: MotiveTake | None = None
+        if not self.path.exists():
+            raise InputError("recording not found", self.path)
+        if is_motive_csv(self.path):
+            self.take = read_motive_csv(self.path)
+        elif not bags.is_bag(self.path):
+            raise InputError(
+                "not a recording YOTO reads: expected a ROS1 .bag, a ROS2 bag (folder, .db3 or .mcap) or a Motive "
+                ".csv export",
+                self.path,
+            )
+
+    @property
+    def kind(self) -> str:
+        return "motive" if self.take is not None else "bag"
+
+    def pose(self, selector: str) -> PoseStream:
+        """A rigid body's pose stream (see the module docstring for how it is named)."""
+        if self.take is not None:
+            return self.take.rigid_body(selector)
+        with bags.open_bag(self.path) as reader:
+            types = bags.POSE_TYPES
+            try:
+                topic = bags.resolve_topic(reader, self.path, selector, types, "a rigid body")
+            except InputError:
+                children = bags.tf_children(reader)
+                child = selector.strip("/")
+                if child not in children:
+                    raise
+                return self._tf_stream(reader, children[child], child)
+            msgtype = reader.topics[topic].msgtype
+            stamps, positions, quaternions = [], [], []
+            for stamp, _, message in bags.read_messages(reader, topic):
+                position, orientation = bags.pose_fields(message, msgtype)
+                stamps.append(stamp)
+                positions.append((position.x, position.y, position.z))
+                quaternions.append((orientation.x, orientation.y, orientation.z, orientation.w))
+        if not stamps:
+            raise InputError(f"topic '{topic}' holds no messages", self.path)
+        return make_pose_stream(self.path, topic, np.asarray(stamps), np.asarray(positions), np.asarray(quaternions))
+
+    def _tf_stream(self, reader: Any, topic: str, child: str) -> PoseStream:
+        stamps, positions, quaternions, parents = [], [], [], set()
+        for _, _, message in bags.read_messages(reader, topic):
+            for transform in message.transforms:
+                if str(transform.child_frame_id).strip("/") != child:
+                    continue
+                stamp = transform.header.stamp
+                stamps.append(float(stamp.sec) + float(stamp.nanosec) * 1e-9)
+                t, q = transform.transform.translation, transform.transform.rotation
+                positions.append((t.x, t.y, t.z))
+                quaternions.append((q.x, q.y, q.z, q.w))
+                parents.add(str(transform.header.frame_id))
+        if len(parents) > 1:
+            raise InputError(
+                f"TF frame '{child}' on {topic} has several parents ({', '.join(sorted(parents))}); YOTO reads a "
+                "rigid body's TF only as a child of the mocap world frame",
+                self.path,
+            )
+        order = np.argsort(stamps, kind="stable")
+        return make_pose_stream(
+            self.path,
+            f"{topic}:{child}",
+            np.asarray(stamps)[order],
+            np.asarray(positions)[order],
+            np.asarray(quaternions)[order],
+        )
+
+    def point(self, selector: str) -> PointStream:
+        """A single marker's position stream (PointStamped topic or name; a Motive marker name)."""
+        if self.take is not None:
+            return self.take.marker(selector)
+        with bags.open_bag(self.path) as reader:
+            topic = bags.resolve_topic(reader, self.path, selector, bags.POINT_TYPES, "a marker")
+            stamps, positions = [], []
+            for stamp, _, message in bags.read_messages(reader, topic):
+                stamps.append(stamp)
+                positions.append((message.point.x, message.point.y, message.point.z))
+        if not stamps:
+            raise InputError(f"topic '{topic}' holds no messages", self.path)
+        return make_point_stream(self.path, topic, np.asarray(stamps), np.asarray(positions))
+
+    def images(self, selector: str) -> ImageStream:
+        """GelSight frames: an image topic of a bag, or a folder of time-stamped PNGs beside a Motive take."""
+        if self.take is None:
+            with bags.open_bag(self.path) as reader:
+                topic = bags.resolve_topic(reader, self.path, selector, bags.IMAGE_TYPES, "GelSight images")
+                return bag_image_stream(reader, self.path, topic, self.spec)
+        folder = Path(selector)
+        if not folder.is_absolute() and not folder.is_dir():
+            folder = self.path.parent / selector
+        if not folder.is_dir():
+            raise InputError(
+                f"GelSight frames for a Motive take come from a folder of PNGs; no folder '{selector}'", self.path
+            )
+        raw = image_folder_stream(folder, self.spec)
+        offset = self.time_offset_s if self.time_offset_s is not None else self._image_offset(raw)
+        raw.timestamps_s = raw.timestamps_s - offset
+        raw.details["time_offset_s"] = offset
+        return raw
+
+    def _image_offset(self, stream: ImageStream) -> float:
+        """Which clock the PNG stamps use: the take's (offset 0) or the wall clock (the take's start time)."""
+        assert self.take is not None
+        t0, t1 = float(self.take.times_s[0]), float(self.take.times_s[-1])
+        a, b = stream.span_s
+        candidates = [0.0]
+        start = self.take.capture_start_epoch_s
+        if start is not None:
+            candidates.append(start)
+        for offset in candidates:
+            overlap = min(b - offset, t1) - max(a - offset, t0)
+            if overlap > 0.5 * min(b - a, t1 - t0):
+                return offset
+        raise InputError(
+            f"the GelSight frames in {stream.source} ({a:.3f} to {b:.3f} s) do not overlap the take ({t0:.3f} to "
+            f"{t1:.3f} s after its start, {self.take.header.get('Capture Start Time', 'no start time')}): give the "
+            "offset between the two clocks (--time-offset)",
+            self.path,
+        )
+
+    def describe(self) -> str:
+        if self.take is not None:
+            return self.take.describe()
+        return ", ".join(summary.name for summary in bags.bag_topics(self.path))
+
+
+def open_recording(path: str | Path, time_offset_s: float | None = None) -> Recording:
+    return Recording(path, time_offset_s)
+
+
+def read_pose_stream(path: str | Path, topic_or_body: str) -> PoseStream:
+    """A rigid body's poses `T_world_body` (mocap world frame, metres) from a bag or a Motive CSV.
+
+    Occluded frames are left out (`dropped` counts them). Unpacks as `(timestamps_s, T_world_body)`.
+    """
+    return Recording(path).pose(topic_or_body)
+
+
+def read_point_stream(path: str | Path, topic_or_marker: str) -> PointStream:
+    """A single marker's positions (mocap world frame, metres). Unpacks as `(timestamps_s, p_world)`."""
+    return Recording(path).point(topic_or_marker)
+
+
+def read_image_stream(path: str | Path, topic_or_folder: str, time_offset_s: float | None = None) -> ImageStream:
+    """GelSight frames with their timestamps from a bag's image topic, or from a folder of PNGs (`path` may then
+    be the folder itself, or the Motive take the folder belongs to)."""
+    path = Path(path)
+    if path.is_dir() and not bags.is_bag(path):
+        return image_folder_stream(path, offset_s=time_offset_s or 0.0)
+    return Recording(path, time_offset_s).images(topic_or_folder)
+
+
+__all__ = [
+    "ImageStream",
+    "PointStream",
+    "PoseStream",
+    "Recording",
+    "open_recording",
+    "read_image_stream",
+    "read_point_stream",
+    "read_pose_stream",
+]

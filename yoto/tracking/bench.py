@@ -1,0 +1,366 @@
+"""The tracking benchmark: simulated trajectories after one touch, open and closed loop side by side.
+
+For each object, N trajectories (`yoto.simulate.trajectory`, a fixed seed): the touch's pose from the pose stage,
+then the open loop and the closed loop on the same streams and frames. Rows like the paper's Table 3 (mean +- std
+over the trajectories of the error during motion), plus the peak, the settled error and drift, the simulated slip,
+and the closed loop's speed; a figure like its Fig. 4 (one trajectory per object); and, when several path lengths
+are asked for, the settled drift against path length (the same touches and path shapes, scaled). Finished
+trajectories are cached in OUT/cache, so an interrupted run resumes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from yoto.contacts import SIDES
+from yoto.io import read_json, write_json_atomic, write_text_atomic
+from yoto.objects.model import ObjectModel
+from yoto.provenance import run_info
+from yoto.simulate.trajectory import SimulatedTrajectory, TrajectoryConfig, TrajectorySimulator
+from yoto.tracking.evaluate import ErrorCurve, motion_interval, plot_tracking, summarize_errors, tracking_errors
+from yoto.tracking.streams import TactileStream
+from yoto.tracking.track import TrackConfig, touch_from_pair, track
+
+RIGHT_TOUCH_M = 0.005  # a touch within 5 mm and 5 deg of the truth is right (SPEC)
+RIGHT_TOUCH_RAD = float(np.radians(5.0))
+FIGURES = ("motion_mean", "motion_peak", "settled", "settled_drift")
+DRIFT_TARGET_MM, DRIFT_TARGET_DEG = 0.5, 0.5  # the issue's closed-loop target
+
+
+@dataclass(frozen=True)
+class TrackBenchConfig:
+    """What the tracking benchmark runs."""
+
+    trajectories: int = 5  # per object and path length (the paper: 5 per object)
+    seed: int = 11  # trajectory seed (touch i is pair i of `yoto simulate pairs --seed SEED`)
+    method: str = "match"  # the touch's contact localizer ("oracle": the true contacts)
+    path_lengths_m: tuple[float, ...] = (0.1,)  # the first is the main table's; more add drift against length
+    trajectory: TrajectoryConfig = TrajectoryConfig()  # the scenario at the first path length
+    track: TrackConfig = TrackConfig()
+
+
+def scaled_trajectory(config: TrajectoryConfig, path_length_m: float) -> TrajectoryConfig:
+    """The scenario at another path length: the rotation range scales with it (slip scales by its rates)."""
+    factor = path_length_m / config.path_length_m
+    low, high = config.rotation_range_rad
+    return dataclasses.replace(config, path_length_m=path_length_m, rotation_range_rad=(low * factor, high * factor))
+
+
+def tactile_streams(trajectory: SimulatedTrajectory) -> dict[str, TactileStream]:
+    """The simulated tactile frames as in-memory streams."""
+    return {
+        side: TactileStream.in_memory(
+            np.array([frame.timestamp_s for frame in trajectory.tactile[side]]),
+            [frame.points_sensor for frame in trajectory.tactile[side]],
+            f"{side} tactile",
+        )
+        for side in SIDES
+    }
+
+
+def evaluate_trajectory(
+    trajectory: SimulatedTrajectory, model: ObjectModel, T_world_object_touch: np.ndarray, config: TrackConfig
+) -> dict[str, Any]:
+    """Track one simulated trajectory open and closed loop from a touch estimate; errors, curves, speed."""
+    touch = touch_from_pair(trajectory.touch.pair, T_world_object_touch, trajectory.touch_time_s, "simulated")
+    result = track(touch, trajectory.streams, model, tactile_streams(trajectory), config)
+    truth, _ = trajectory.truth.interpolate(result.timestamps_s)
+    motion = motion_interval(trajectory.streams, result.timestamps_s)
+    record: dict[str, Any] = {"slip": trajectory.summary, "closed_loop_speed": result.correction_summary()}
+    for name, poses in (("open_loop", result.T_world_object_open_loop), ("closed_loop", result.T_world_object)):
+        errors = tracking_errors(
+            result.timestamps_s, poses, truth, T_world_object_touch, trajectory.touch.T_world_object
+        )
+        record[name] = summarize_errors(errors, motion)
+        record[name]["curve"] = {
+            "t_s": np.round(result.timestamps_s - trajectory.touch_time_s, 4).tolist(),
+            "mm": np.round(1e3 * errors.translation_m, 4).tolist(),
+            "deg": np.round(np.degrees(errors.rotation_rad), 4).tolist(),
+        }
+    touch_error = record["open_loop"]["touch"]
+    record["right_touch"] = bool(
+        touch_error["mm"] <= 1e3 * RIGHT_TOUCH_M and touch_error["deg"] <= np.degrees(RIGHT_TOUCH_RAD)
+    )
+    return record
+
+
+def touch_estimate(trajectory: SimulatedTrajectory, model: ObjectModel, localizer) -> np.ndarray:
+    from yoto.pose import estimate_pose
+
+    return estimate_pose(trajectory.touch.pair, model, localizer).T_world_object
+
+
+def run_track_benchmark(
+    models: list[ObjectModel],
+    config: TrackBenchConfig,
+    out_dir: str | Path,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run (or resume) the benchmark; write OUT/tracking.md, OUT/tracking.json, OUT/tracking.png. Returns the
+    report."""
+    from yoto.localize import make_localizer
+
+    out_dir = Path(out_dir)
+    cache = out_dir / "cache"
+    localizer = make_localizer(config.method)
+    records: dict[str, dict[str, list[dict[str, Any]]]] = {}
+    todo = len(models) * len(config.path_lengths_m) * config.trajectories
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=todo, unit="trajectory", desc="tracking benchmark")
+    started = time.perf_counter()
+    try:
+        for model in models:
+            records[model.name] = {}
+            for length in config.path_lengths_m:
+                scenario = scaled_trajectory(config.trajectory, length)
+                simulator = None
+                key = f"{1e3 * length:.0f}mm"
+                records[model.name][key] = []
+                for index in range(config.trajectories):
+                    path = cache / f"{model.name}_{key}_{config.method}_{config.seed}_{index:03d}.json"
+                    if path.exists() and not overwrite:
+                        records[model.name][key].append(read_json(path))
+                    else:
+                        simulator = simulator or TrajectorySimulator(model, scenario)
+                        trajectory = simulator.trajectory(config.seed, index)
+                        T_touch = touch_estimate(trajectory, model, localizer)
+                        record = evaluate_trajectory(trajectory, model, T_touch, config.track)
+                        record["index"] = index
+                        write_json_atomic(path, record)
+                        records[model.name][key].append(record)
+                    if bar is not None:
+                        bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    report = build_report(records, config)
+    report["seconds"] = time.perf_counter() - started
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out_dir / "tracking.json", report)
+    write_text_atomic(out_dir / "tracking.md", format_markdown(report))
+    main = f"{1e3 * config.path_lengths_m[0]:.0f}mm"
+    panels = []
+    for name, by_length in records.items():
+        first = by_length[main][0]
+        curves = [
+            ErrorCurve(
+                label.replace("_", " "),
+                np.array(first[label]["curve"]["t_s"]),
+                np.array(first[label]["curve"]["mm"]),
+                np.array(first[label]["curve"]["deg"]),
+                (first[label]["motion_mean"]["mm"], first[label]["motion_mean"]["deg"]),
+            )
+            for label in ("open_loop", "closed_loop")
+        ]
+        motion = first["open_loop"]["motion_s"]
+        relative = None
+        if motion is not None:
+            relative = (motion[0] - first["slip"]["touch_time_s"], motion[1] - first["slip"]["touch_time_s"])
+        panels.append((name, curves, relative))
+    plot_tracking(
+        panels,
+        out_dir / "tracking.png",
+        f"tracking error after one touch, trajectory 0 of each object ({main} path; dashed: mean during motion; "
+        "shaded: settled tail)",
+    )
+    return report
+
+
+def _stats(values: list[float]) -> dict[str, float]:
+    array = np.asarray(values, dtype=np.float64)
+    if len(array) == 0:
+        return {"mean": float("nan"), "std": float("nan"), "max": float("nan")}
+    return {"mean": float(np.nanmean(array)), "std": float(np.nanstd(array)), "max": float(np.nanmax(array))}
+
+
+def build_report(records: dict[str, dict[str, list[dict[str, Any]]]], config: TrackBenchConfig) -> dict[str, Any]:
+    """Per object and path length: mean/std/max over trajectories of every figure, open and closed loop; over all
+    trajectories and over those whose touch was right."""
+    table: dict[str, Any] = {}
+    for name, by_length in records.items():
+        table[name] = {}
+        for key, trials in by_length.items():
+            right = [t for t in trials if t["right_touch"]]
+            entry: dict[str, Any] = {
+                "trajectories": len(trials),
+                "right_touches": len(right),
+                "speed": {
+                    "latency_median_ms": _stats([t["closed_loop_speed"]["latency_median_ms"] for t in trials]),
+                    "latency_p90_ms": _stats([t["closed_loop_speed"]["latency_p90_ms"] for t in trials]),
+                    "instants_per_s": _stats([t["closed_loop_speed"]["instants_per_s"] for t in trials]),
+                    "frames_per_s": _stats([t["closed_loop_speed"]["frames_per_s"] for t in trials]),
+                    "frames_used": sum(t["closed_loop_speed"]["frames_used"] for t in trials),
+                    "frames": sum(t["closed_loop_speed"]["frames"] for t in trials),
+                },
+            }
+            # The issue's targets: open loop within the touch's own error plus the slip; closed loop drifting less
+            # than 0.5 mm and 0.5 deg.
+            entry["open_loop_excess"] = {
+                unit: _stats(
+                    [
+                        t["open_loop"]["settled"][unit]
+                        - t["open_loop"]["touch"][unit]
+                        - t["slip"][f"slip_final_{unit}"]
+                        for t in trials
+                    ]
+                )
+                for unit in ("mm", "deg")
+            }
+            for subset, chosen in (("all", trials), ("right_touch", right)):
+                entry[subset] = {
+                    loop: {
+                        figure: {unit: _stats([t[loop][figure][unit] for t in chosen]) for unit in ("mm", "deg")}
+                        for figure in FIGURES
+                    }
+                    for loop in ("open_loop", "closed_loop")
+                }
+                entry[subset]["touch"] = {
+                    unit: _stats([t["open_loop"]["touch"][unit] for t in chosen]) for unit in ("mm", "deg")
+                }
+                entry[subset]["slip_final"] = {
+                    unit: _stats([t["slip"][f"slip_final_{unit}"] for t in chosen]) for unit in ("mm", "deg")
+                }
+                entry[subset]["closed_loop_drift_met"] = sum(
+                    t["closed_loop"]["settled_drift"]["mm"] < DRIFT_TARGET_MM
+                    and t["closed_loop"]["settled_drift"]["deg"] < DRIFT_TARGET_DEG
+                    for t in chosen
+                )
+            table[name][key] = entry
+    return {
+        "run": run_info(),
+        "config": {
+            "trajectories": config.trajectories,
+            "seed": config.seed,
+            "method": config.method,
+            "path_lengths_mm": [1e3 * length for length in config.path_lengths_m],
+            "trajectory": dataclasses.asdict(config.trajectory),
+            "track": dataclasses.asdict(config.track),
+        },
+        "results": table,
+    }
+
+
+def format_markdown(report: dict[str, Any]) -> str:
+    """The report as Markdown tables for people."""
+    config, results, run = report["config"], report["results"], report["run"]
+    main = f"{config['path_lengths_mm'][0]:.0f}mm"
+    names = list(results)
+    trajectory = config["trajectory"]
+    lines = [
+        "# Tracking after one touch (simulated trajectories)",
+        "",
+        f"commit {run['commit']}, {run['device']}, numpy {run['numpy']}; seed {config['seed']}, "
+        f"{config['trajectories']} trajectories per object, touch from the pose stage with '{config['method']}'.",
+        f"Scenario: {config['path_lengths_mm'][0]:.0f} mm path, "
+        f"{np.degrees(trajectory['rotation_range_rad'][0]):.0f}-{np.degrees(trajectory['rotation_range_rad'][1]):.0f}"
+        f" deg rotation in {trajectory['motion_s']:.1f} s; plastic slip "
+        f"{1e3 * trajectory['slip_translation_per_m'] * config['path_lengths_mm'][0] / 1e3:.1f} mm / "
+        f"{np.degrees(trajectory['slip_rotation_per_m']) * config['path_lengths_mm'][0] / 1e3:.1f} deg, "
+        f"inertial peak {1e3 * trajectory['peak_translation_m']:.1f} mm / "
+        f"{np.degrees(trajectory['peak_rotation_rad']):.1f} deg; arm lag {1e3 * trajectory['arm_lag_s']:.0f} ms; "
+        f"jitter {1e3 * trajectory['jitter_translation_m']:.2f} mm / "
+        f"{np.degrees(trajectory['jitter_rotation_rad']):.2f} deg per axis per arm.",
+        "",
+        "Errors in mm / deg, mean +- std over the trajectories (Table 3 reports the error during motion). "
+        "Settled: mean error after the motion; settled drift: how much the motion changed the error (open loop: "
+        "the slip). 'right touches': touches within 5 mm and 5 deg.",
+        "",
+    ]
+
+    def cell(stats: dict[str, dict[str, float]]) -> str:
+        mm, deg = stats["mm"], stats["deg"]
+        return f"{mm['mean']:.2f} +- {mm['std']:.2f} / {deg['mean']:.2f} +- {deg['std']:.2f}"
+
+    def excess(stats: dict[str, dict[str, float]]) -> str:
+        mm, deg = stats["mm"], stats["deg"]
+        return f"{mm['mean']:.2f} ({mm['max']:.2f}) / {deg['mean']:.2f} ({deg['max']:.2f})"
+
+    for subset, title in (("all", "All trajectories"), ("right_touch", "Trajectories whose touch was right")):
+        lines += [f"## {title} ({main} path)", "", "| | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
+        lines.append(
+            "| trajectories (right touches) | "
+            + " | ".join(f"{results[n][main]['trajectories']} ({results[n][main]['right_touches']})" for n in names)
+            + " |"
+        )
+        lines.append("| touch error | " + " | ".join(cell(results[n][main][subset]["touch"]) for n in names) + " |")
+        lines.append(
+            "| simulated slip at the end | "
+            + " | ".join(cell(results[n][main][subset]["slip_final"]) for n in names)
+            + " |"
+        )
+        for loop, label in (("open_loop", "open loop"), ("closed_loop", "closed loop")):
+            for figure, figure_label in zip(
+                FIGURES, ("during motion", "peak", "settled", "settled drift"), strict=True
+            ):
+                lines.append(
+                    f"| {label}: {figure_label} | "
+                    + " | ".join(cell(results[n][main][subset][loop][figure]) for n in names)
+                    + " |"
+                )
+        lines.append("")
+    lines += [
+        "## The issue's targets",
+        "",
+        "Open loop within the touch's own error plus the slip: settled error - touch error - simulated slip (mm / deg; "
+        "at most 0 meets it, the streams' remaining jitter aside). Closed loop: trajectories whose settled drift is "
+        f"under {DRIFT_TARGET_MM} mm and {DRIFT_TARGET_DEG} deg (a wrong touch is tracked faithfully, so its drift "
+        "says little).",
+        "",
+        "| | " + " | ".join(names) + " |",
+        "|---" * (len(names) + 1) + "|",
+        "| open loop: settled - touch - slip, mean (max) | "
+        + " | ".join(excess(results[n][main]["open_loop_excess"]) for n in names)
+        + " |",
+        "| closed loop: drift under the target, right touches | "
+        + " | ".join(
+            f"{results[n][main]['right_touch']['closed_loop_drift_met']} of {results[n][main]['right_touches']}"
+            for n in names
+        )
+        + " |",
+        "| closed loop: drift under the target, all trajectories | "
+        + " | ".join(
+            f"{results[n][main]['all']['closed_loop_drift_met']} of {results[n][main]['trajectories']}" for n in names
+        )
+        + " |",
+        "",
+    ]
+    if len(config["path_lengths_mm"]) > 1:
+        lengths = [f"{length:.0f}mm" for length in config["path_lengths_mm"]]
+        lines += [
+            "## Settled drift against path length (trajectories whose touch was right, mm / deg)",
+            "",
+            "| object | loop | " + " | ".join(lengths) + " |",
+            "|---|---|" + "---|" * len(lengths),
+        ]
+        for name in names:
+            for loop in ("open_loop", "closed_loop"):
+                lines.append(
+                    f"| {name} | {loop.replace('_', ' ')} | "
+                    + " | ".join(cell(results[name][key]["right_touch"][loop]["settled_drift"]) for key in lengths)
+                    + " |"
+                )
+        lines.append("")
+    lines += ["## Closed loop speed (one instant: a frame of each sensor, registered together)", ""]
+    lines += [
+        "| object | ms per instant, median (90th percentile) | instants per s | tactile frames per s | frames used |",
+        "|---|---|---|---|---|",
+    ]
+    for name in names:
+        speed = results[name][main]["speed"]
+        lines.append(
+            f"| {name} | {speed['latency_median_ms']['mean']:.1f} ({speed['latency_p90_ms']['mean']:.1f}) | "
+            f"{speed['instants_per_s']['mean']:.0f} | {speed['frames_per_s']['mean']:.0f} | "
+            f"{speed['frames_used']} / {speed['frames']} |"
+        )
+    lines += ["", f"Run time {report.get('seconds', 0.0):.0f} s. Figure: tracking.png.", ""]
+    return "\n".join(lines)

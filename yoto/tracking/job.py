@@ -1,0 +1,220 @@
+"""`yoto track` as a function: files in (a touch, two sensor streams, tactile frames, ground truth), files out.
+
+The touch's pose comes from the pose stage (`yoto.pose.estimate_pose` on the contact pair) or from a pose result
+file `yoto pose` wrote. Tracked poses are written as a TUM file of `T_world_object` in the mesh file's frame, at
+every timestamp of the sensor streams from the touch on (SPEC). With ground truth, the errors of the tracked poses
+(and of the open loop beside them) are summarised as the paper's Table 3 and plotted like its Fig. 4.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from yoto.contacts import SIDES, ContactPair, read_contact_pair
+from yoto.errors import InputError
+from yoto.geometry import validate_transform
+from yoto.io import read_json, write_json_atomic
+from yoto.objects.model import ObjectModel
+from yoto.tracking.evaluate import (
+    ErrorCurve,
+    motion_interval,
+    plot_tracking,
+    summarize_errors,
+    tracking_errors,
+    truth_at,
+)
+from yoto.tracking.streams import TactileStream, read_sensor_stream, read_tactile_stream
+from yoto.tracking.track import TrackConfig, TrackResult, touch_from_pair, touch_time_of, track
+from yoto.trajectory import PoseStream, write_tum
+
+
+@dataclass(frozen=True)
+class Source:
+    """A stream in a file: a TUM file or frame folder, or a recording (bag, Motive CSV) and the topic or body in it."""
+
+    path: Path
+    topic: str | None = None  # bag topic, or Motive rigid-body name; None for TUM files and frame folders
+
+
+@dataclass(frozen=True)
+class TrackJob:
+    """What `yoto track` reads and writes."""
+
+    pair: Path  # the touch: a contact pair file (SPEC)
+    sensors: dict[str, Source]  # side -> the sensor's pose stream T_world_sensor
+    out: Path  # tracked T_world_object (mesh file's frame), TUM
+    tactile: dict[str, Source] = field(default_factory=dict)  # side -> tactile frames during motion (closed loop)
+    calibration: Path | None = None  # sensor calibration, for tactile frames given as GelSight images in a bag
+    pose_result: Path | None = None  # the touch's pose from a `yoto pose` result instead of estimating it
+    method: str = "match"  # contact localizer for the touch's pose
+    checkpoint: str | None = None  # network weights for method "yoto"
+    model: str | None = None  # object model name or file (default: the pair's object)
+    workspace: str | None = None
+    touch_time_s: float | None = None  # default: the pair file's "timestamp", else matched to the streams
+    truth: Source | None = None  # ground truth T_world_object (mesh file's frame): TUM, or mocap of the object
+    report: Path | None = None  # JSON report (per-instant corrections, errors)
+    figure: Path | None = None  # error plot (needs `truth`)
+
+
+@dataclass
+class TrackOutcome:
+    """What a `TrackJob` produced."""
+
+    result: TrackResult
+    touch_source: str
+    errors: dict[str, dict[str, Any]] = field(default_factory=dict)  # "closed_loop"/"open_loop" -> Table-3 figures
+    written: list[Path] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+
+def read_streams(job: TrackJob) -> dict[str, PoseStream]:
+    return {
+        side: read_sensor_stream(job.sensors[side].path, job.sensors[side].topic, f"{side} sensor") for side in SIDES
+    }
+
+
+def read_tactile(job: TrackJob) -> dict[str, TactileStream]:
+    return {
+        side: read_tactile_stream(source.path, source.topic, job.calibration, f"{side} tactile")
+        for side, source in job.tactile.items()
+    }
+
+
+def touch_pose(job: TrackJob, pair: ContactPair, model: ObjectModel) -> tuple[np.ndarray, str]:
+    """The touch's T_world_object (canonical frame) and where it came from."""
+    if job.pose_result is not None:
+        payload = read_json(job.pose_result)
+        if not isinstance(payload, dict) or "T_world_object" not in payload:
+            raise InputError("not a pose result (no 'T_world_object')", job.pose_result)
+        T_world_mesh = validate_transform(payload["T_world_object"], "T_world_object", job.pose_result)
+        return T_world_mesh @ model.T_mesh_object, f"pose result {job.pose_result.name}"
+    from yoto.localize import make_localizer
+    from yoto.pose import estimate_pose
+
+    estimate = estimate_pose(pair, model, make_localizer(job.method, job.checkpoint))
+    source = f"yoto pose ({job.method}), confidence {estimate.confidence:.2f}"
+    return estimate.T_world_object, source
+
+
+def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOutcome:
+    """Read the job's files, track, write the tracked poses (and report, figure); return what happened."""
+    from yoto.objects.build import load_object_model
+
+    pair = read_contact_pair(job.pair)
+    model = load_object_model(job.model or pair.object_name, job.workspace)
+    streams = read_streams(job)
+    tactile = read_tactile(job)
+    warnings = []
+    time_s, time_source, mismatch = touch_time_of(pair, streams, job.touch_time_s, config)
+    if time_source.startswith("matched") and mismatch > config.touch_mismatch_warning_m:
+        warnings.append(
+            f"the sensor streams never come closer than {mismatch * 1e3:.1f} mm (position plus 50 mm per radian) to "
+            "the pair file's sensor poses: are they the same recording, in the same world frame?"
+        )
+    T_world_object, pose_source = touch_pose(job, pair, model)
+    touch = touch_from_pair(pair, T_world_object, time_s, time_source)
+    touch.mismatch_m = mismatch
+    result = track(touch, streams, model, tactile or None, config)
+    outcome = TrackOutcome(result, pose_source, warnings=warnings)
+    mode = "closed loop (corrected by tactile frames)" if result.closed_loop else "open loop"
+    outcome.written.append(
+        write_tum(
+            job.out,
+            PoseStream(result.timestamps_s, result.T_world_mesh(model), "object"),
+            f"T_world_object of {model.name}, the mesh file's frame; yoto track, {mode}; touch at {time_s:.6f} s",
+        )
+    )
+    if result.skipped_times:
+        warnings.append(f"{result.skipped_times} stream timestamps had no pose of either sensor (dropouts): skipped")
+    truth_stream = None
+    if job.truth is not None:
+        truth_stream = read_sensor_stream(job.truth.path, job.truth.topic, "object ground truth")
+        outcome.errors, curves = evaluate_against_truth(result, truth_stream, streams, model)
+        if job.figure is not None:
+            motion = outcome.errors["open_loop"]["motion_s"]
+            panels = [(f"{model.name}: tracking error", curves, None if motion is None else tuple(motion))]
+            outcome.written.append(plot_tracking(panels, job.figure))
+    elif job.figure is not None:
+        warnings.append("--figure needs ground truth (--truth); no figure written")
+    if job.report is not None:
+        outcome.written.append(write_json_atomic(job.report, report_payload(job, model, outcome)))
+    return outcome
+
+
+def evaluate_against_truth(
+    result: TrackResult, truth_mesh: PoseStream, streams: dict[str, PoseStream], model: ObjectModel
+) -> tuple[dict[str, dict[str, Any]], list[ErrorCurve]]:
+    """Table-3 figures of the tracked (and open-loop) poses against a ground-truth `T_world_mesh` stream, and the
+    per-frame error curves (times relative to the touch)."""
+    truth, covered = truth_at(truth_mesh, result.timestamps_s, model.T_mesh_object)
+    times = result.timestamps_s[covered]
+    truth_touch, _ = truth_at(truth_mesh, np.array([result.touch.time_s]), model.T_mesh_object)
+    motion = motion_interval(streams, times)
+    variants = {"open_loop": result.T_world_object_open_loop}
+    if result.closed_loop:
+        variants = {"closed_loop": result.T_world_object, **variants}
+    summaries, curves = {}, []
+    for name, poses in variants.items():
+        errors = tracking_errors(times, poses[covered], truth[covered], result.touch.T_world_object, truth_touch[0])
+        summaries[name] = summarize_errors(errors, motion)
+        mean = summaries[name]["motion_mean"]
+        curves.append(
+            ErrorCurve(
+                name.replace("_", " "),
+                times - result.touch.time_s,
+                1e3 * errors.translation_m,
+                np.degrees(errors.rotation_rad),
+                (mean["mm"], mean["deg"]),
+            )
+        )
+    for summary in summaries.values():  # motion times relative to the touch, as the curves
+        if summary["motion_s"] is not None:
+            summary["motion_s"] = [value - result.touch.time_s for value in summary["motion_s"]]
+    return summaries, curves
+
+
+def report_payload(job: TrackJob, model: ObjectModel, outcome: TrackOutcome) -> dict[str, Any]:
+    """The JSON report: the touch, the streams' jitter, every tactile instant, errors when there was a truth."""
+    result = outcome.result
+    return {
+        "object": model.name,
+        "frame": "mesh file frame (the frame of the mesh the object model was built from)",
+        "mode": "closed loop" if result.closed_loop else "open loop",
+        "out": str(job.out),
+        "touch": {
+            "time_s": result.touch.time_s,
+            "time_from": result.touch.time_source,
+            "pose_from": outcome.touch_source,
+            "T_world_object": result.touch.T_world_object @ model.T_object_mesh,
+        },
+        "frames": len(result.timestamps_s),
+        "skipped_times": result.skipped_times,
+        "jitter": {
+            side: {
+                "translation_mm": 1e3 * jitter.translation_m,
+                "rotation_deg": float(np.degrees(jitter.rotation_rad)),
+                "glitches": int(jitter.glitch.sum()),
+            }
+            for side, jitter in result.jitter.items()
+        },
+        "closed_loop": result.correction_summary() if result.closed_loop else None,
+        "corrections": [
+            {
+                "time_s": c.timestamp_s,
+                "used": list(c.used),
+                "unusable": c.unusable,
+                "correction_mm": 1e3 * c.correction_m,
+                "correction_deg": float(np.degrees(c.correction_rad)),
+                "slip_mm": 1e3 * c.slip_m,
+                "slip_deg": float(np.degrees(c.slip_rad)),
+                "latency_ms": c.latency_ms,
+            }
+            for c in result.corrections
+        ],
+        "errors": outcome.errors or None,
+        "warnings": outcome.warnings,
+    }

@@ -1,0 +1,542 @@
+"""Tracking after one touch: open loop from the live sensor poses (paper Sec. 4.3), closed loop from the gel.
+
+**Open loop.** The touch's pose estimate fixes the object in each sensor's frame, its grasp
+`T_sensor_object = T_world_sensor^-1 @ T_world_object` (sensor poses as the contact pair gives them). At every later
+time each live sensor pose gives `T_world_sensor(t) @ T_sensor_object`; the two are averaged (`fusion.py`).
+
+**Closed loop.** Slip moves the object in the gels, and the grasps drift with it. Each new tactile frame is a
+measurement of where the object really is: its points, mapped into the object frame through the live sensor pose
+and the predicted object pose, must lie on the object's surface. A point-to-plane Gauss-Newton
+(`yoto.registration`) started at the prediction, over the surface near the current contact (correspondences within
+a few millimetres), gives the correction; frames of both sensors taken at about the same time are registered
+together (two contacts fix all six degrees of freedom where one may leave some free). The correction is not
+applied blindly: a small Kalman filter on the object-frame error weighs it against the prediction, with
+  - the registration's information (its Gauss-Newton normal matrix), so directions a contact cannot see (sliding
+    along a flat face, spinning a sphere) keep the prediction;
+  - a measurement bias: a reconstruction's errors are smooth over the patch and the same from frame to frame
+    (calibration, lighting), so a registration is off by a bias that repeating the frame does not average away.
+    The filter estimates it beside the slip, with the size a contact's shape gives it in each direction (small
+    where the contact pins the object, large where it barely does), so only changes the bias cannot explain
+    correct the pose;
+  - a slip model: slip grows with the sensors' travel at a rate the filter estimates along the way (the paper
+    observes drift growing with motion length), plus a random part for elastic, inertial slip. The rate lets the
+    evidence of all frames add up, so even a direction a single frame sees poorly is corrected over the path.
+Both grasps then take the corrected pose. A frame is unusable, and the prediction (open loop) stands, when it has
+too few points (contact lost), when too few of its points lie on the surface after registration (a bad fit),
+or when it asks for a jump larger than slip can make; when one sensor's frame is unusable, the other's is used
+alone.
+
+Frames: YOTO's canonical `object` frame inside (origin at the centroid: corrections rotate about it); results
+convert to the mesh file's frame with `T_world_mesh = T_world_object @ T_object_mesh`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from yoto.contacts import MIN_TACTILE_POINTS, SIDES, ContactPair
+from yoto.errors import InputError
+from yoto.geometry import (
+    invert_transform,
+    pose_from_twist,
+    rotation_angle_rad,
+    skew,
+    so3_log,
+    transform_points,
+    twist_of_pose,
+)
+from yoto.objects.model import ObjectModel
+from yoto.pointcloud import voxel_downsample
+from yoto.registration import GaussNewtonConfig, plane_distances, point_to_plane_gauss_newton, truncated_plane_fit
+from yoto.tracking.fusion import (
+    FusionConfig,
+    SensorPoses,
+    StreamJitter,
+    fuse_object_poses,
+    sensor_poses,
+    smooth_stream,
+    stream_jitter,
+)
+from yoto.tracking.streams import TactileStream
+from yoto.trajectory import PoseStream
+
+TOUCH_MATCH_ROTATION_M_PER_RAD = 0.05  # how rotation counts against translation when matching the touch in time
+
+
+@dataclass(frozen=True)
+class CorrectionConfig:
+    """How tactile frames during motion correct the tracked pose (closed loop)."""
+
+    points_per_contact: int = 250  # tactile points registered per contact, after voxel down-sampling
+    voxel_m: float = 0.0004  # voxel size of that down-sampling
+    min_depth_fraction: float = 0.4  # only points pressed at least this share of the frame's deepest point count:
+    # the rim, where the gel barely touches and sinks in beside the object, is where reconstructions are off
+    sync_tolerance_s: float = 0.02  # a left and a right frame this close in time are registered together
+    iterations: int = 10  # Gauss-Newton iterations at most ...
+    step_tolerance_m: float = 1e-6  # ... stopping when a step moves less than this ...
+    step_tolerance_rad: float = 1e-5  # ... and turns less than this (far below what a frame can tell)
+    max_distance_m: float = 0.002  # correspondences further than this are ignored (the capture range per frame)
+    surface_noise_m: float = 3e-5  # 1-sigma of a tactile point's distance from the surface (robust scale floor)
+    registration_prior_rotation_rad: float = float(np.radians(3.0))  # weak prior on the prediction inside the
+    registration_prior_translation_m: float = 0.003  # registration (keeps free directions put)
+    pixel_noise_m: float = 4e-5  # 1-sigma error of a tactile point that is new in every frame (camera noise, and
+    # what registering a frame adds: its mask edge, its sampling)
+    bias_points: float = 3.0  # the error a contact's points share from frame to frame (calibration, lighting,
+    bias_noise_m: float = 3e-5  # integration drift) is smooth over the patch: as if this many points had this error
+    bias_travel_m: float = 0.1  # that shared error changes as the contact slides: fully over this much travel
+    inlier_distance_m: float = 0.0003  # a registered point this close to the surface lies on it
+    min_inlier_fraction: float = 0.5  # a frame with fewer of its points on the surface after registration is unusable
+    innovation_bound: float = 12.6  # a registration whose normalized innovation squared exceeds this (chi-square,
+    # 6 degrees of freedom, 95%) has its information scaled down by bound / NIS
+    max_correction_m: float = 0.003  # a frame asking for a larger jump than this is unusable (a wrong fit) ...
+    max_correction_rad: float = float(np.radians(3.0))  # ... or a larger turn than this
+    touch_translation_m: float = 0.001  # 1-sigma uncertainty of the touch's pose: how far the first frames may
+    touch_rotation_rad: float = float(np.radians(2.0))  # move it
+    slip_rate_translation: float = 0.03  # 1-sigma prior of the slip rate: metres of slip per metre of travel ...
+    slip_rate_rotation: float = float(np.radians(20.0))  # ... and radians per metre (paper: 1-3 mm, 1-2 deg / 100 mm)
+    slip_travel_m: float = 0.1  # over this much travel the slip rate may change by its prior, and the slip may
+    slip_wander_translation_m: float = 0.001  # leave its rate by this (elastic, inertial slip) ...
+    slip_wander_rotation_rad: float = float(np.radians(1.0))  # ... and this
+    turn_radius_m: float = 0.05  # the sensors turning by one radian count as this much travel
+    creep_translation_m: float = 1e-5  # 1-sigma slip per second at rest (per square root of a second) ...
+    creep_rotation_rad: float = float(np.radians(0.01))  # ... and its rotation
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """How `track` follows the object after the touch."""
+
+    fusion: FusionConfig = FusionConfig()
+    correction: CorrectionConfig = CorrectionConfig()
+    touch_mismatch_warning_m: float = 0.005  # warn when the streams never come this close to the pair's sensor poses
+
+
+@dataclass
+class Touch:
+    """What the touch fixes: its time, the object's pose then, and each sensor's grasp of the object."""
+
+    time_s: float
+    T_world_object: np.ndarray  # (4, 4) the touch's pose estimate, canonical object frame
+    T_sensor_object: dict[str, np.ndarray]  # side -> (4, 4) the object in the sensor's frame
+    time_source: str = ""  # how the time was found (pair file, given, matched to the streams)
+    mismatch_m: float = 0.0  # how far the streams were from the pair's sensor poses at that time (matched only)
+
+
+def touch_from_pair(pair: ContactPair, T_world_object: np.ndarray, time_s: float, time_source: str = "") -> Touch:
+    """The grasps `T_sensor_object` of a touch from its pair's sensor poses and the pose estimated from it."""
+    grasps = {side: invert_transform(pair.contact(side).T_world_sensor) @ T_world_object for side in SIDES}
+    return Touch(float(time_s), np.asarray(T_world_object, dtype=np.float64), grasps, time_source)
+
+
+def find_touch_time(
+    pair: ContactPair, streams: dict[str, PoseStream], config: FusionConfig = FusionConfig()
+) -> tuple[float, float]:
+    """When the streams' sensor poses are nearest the pair's: (timestamp, mismatch), the mismatch in metres with
+    rotation counted at 5 cm per radian, summed over both sensors."""
+    times = np.union1d(streams["left"].timestamps_s, streams["right"].timestamps_s)
+    poses = sensor_poses(streams, times, config)
+    mismatch = np.zeros(len(times))
+    for side in SIDES:
+        target = pair.contact(side).T_world_sensor
+        live = poses.T_world_sensor[side]
+        mismatch += np.linalg.norm(live[:, :3, 3] - target[:3, 3], axis=1)
+        angles = np.linalg.norm(so3_log(np.einsum("ji,njk->nik", target[:3, :3], live[:, :3, :3])), axis=1)
+        mismatch += TOUCH_MATCH_ROTATION_M_PER_RAD * angles
+        mismatch[~poses.covered[side]] = np.inf
+    if not np.isfinite(mismatch).any():
+        raise InputError("the two sensor pose streams never overlap in time")
+    best = int(np.argmin(mismatch))
+    return float(times[best]), float(mismatch[best])
+
+
+def touch_time_of(
+    pair: ContactPair, streams: dict[str, PoseStream], given_s: float | None, config: TrackConfig
+) -> tuple[float, str, float]:
+    """The touch's time: given, else the pair file's `timestamp`, else matched to the streams (with a warning
+    when they never come close). Returns (time, how it was found, mismatch in metres)."""
+    if given_s is not None:
+        return float(given_s), "given", 0.0
+    stamp = pair.extra.get("timestamp")
+    if stamp is not None:
+        try:
+            return float(stamp), "the pair file's timestamp", 0.0
+        except (TypeError, ValueError):
+            raise InputError(f"'timestamp' must be a number of seconds, got {stamp!r}", pair.path) from None
+    found, mismatch = find_touch_time(pair, streams, config.fusion)
+    return found, "matched to the streams", mismatch
+
+
+# ------------------------------------------------------------------------------------------------ results
+@dataclass
+class Correction:
+    """What one tactile instant (a frame of one sensor, or of both at about the same time) did."""
+
+    timestamp_s: float  # the instant's time: its latest frame's
+    used: tuple[str, ...]  # sides whose frames corrected the pose
+    unusable: dict[str, str]  # side -> why its frame was not used
+    correction_m: float = 0.0  # how far the applied correction moved the centroid ...
+    correction_rad: float = 0.0  # ... and turned the object
+    slip_m: float = 0.0  # the object's total motion in the grasp since the touch, as tracked so far ...
+    slip_rad: float = 0.0
+    inlier_fraction: float = 0.0  # share of the registered points on the surface after registration
+    latency_ms: float = 0.0  # loading, registering and updating, this instant
+
+
+@dataclass
+class TrackResult:
+    """The tracked object poses after a touch."""
+
+    timestamps_s: np.ndarray  # (M,) the sensor streams' timestamps from the touch on (those with a sensor pose)
+    T_world_object: np.ndarray  # (M, 4, 4) canonical frame: closed loop where tactile frames were given
+    T_world_object_open_loop: np.ndarray  # (M, 4, 4) the open-loop poses at the same times
+    sensor_weights: np.ndarray  # (M, 2) how much (left, right) counted in each rotation
+    touch: Touch
+    jitter: dict[str, StreamJitter]
+    closed_loop: bool
+    corrections: list[Correction] = field(default_factory=list)
+    skipped_times: int = 0  # stream timestamps after the touch where neither sensor had a pose (dropouts)
+
+    def T_world_mesh(self, model: ObjectModel, open_loop: bool = False) -> np.ndarray:
+        """The tracked poses in the mesh file's frame."""
+        poses = self.T_world_object_open_loop if open_loop else self.T_world_object
+        return poses @ model.T_object_mesh
+
+    def correction_summary(self) -> dict[str, Any]:
+        """Counts of used and unusable frames, and the speed of the closed loop."""
+        reasons: dict[str, int] = {}
+        for correction in self.corrections:
+            for reason in correction.unusable.values():
+                key = reason.split(" (")[0]
+                reasons[key] = reasons.get(key, 0) + 1
+        latency = np.array([c.latency_ms for c in self.corrections]) if self.corrections else np.zeros(1)
+        frames = sum(len(c.used) + len(c.unusable) for c in self.corrections)
+        median = float(np.median(latency))
+        return {
+            "instants": len(self.corrections),
+            "frames": frames,
+            "frames_used": sum(len(c.used) for c in self.corrections),
+            "unusable": reasons,
+            "latency_median_ms": median,
+            "latency_p90_ms": float(np.percentile(latency, 90)),
+            "instants_per_s": 1000.0 / median if median > 0 else float("inf"),
+            "frames_per_s": 1000.0 * frames / max(float(latency.sum()), 1e-9),
+        }
+
+
+# ------------------------------------------------------------------------------------------------ tracking
+def _output_times(streams: dict[str, PoseStream], touch_time_s: float) -> np.ndarray:
+    times = np.union1d(streams["left"].timestamps_s, streams["right"].timestamps_s)
+    return times[times >= touch_time_s - 1e-9]
+
+
+def track(
+    touch: Touch,
+    streams: dict[str, PoseStream],
+    model: ObjectModel | None = None,
+    tactile: dict[str, TactileStream] | None = None,
+    config: TrackConfig = TrackConfig(),
+) -> TrackResult:
+    """Track the object from the touch on: open loop from the streams, corrected by tactile frames when given.
+
+    `streams`: side -> `T_world_sensor` stream. `tactile`: side -> that sensor's frames (either side may be
+    absent); the closed loop needs the object `model`. Returns poses at every stream timestamp from the touch on.
+    """
+    times = _output_times(streams, touch.time_s)
+    if len(times) == 0:
+        raise InputError(f"the sensor streams end before the touch at {touch.time_s:.6f} s")
+    jitter = {side: stream_jitter(streams[side], config.fusion) for side in SIDES}
+    streams = {side: smooth_stream(streams[side], jitter[side], config.fusion) for side in SIDES}
+    sensors = sensor_poses(streams, times, config.fusion, jitter)
+    keep = sensors.any_covered
+    sensors = sensors.select(keep)
+    open_loop, weights = fuse_object_poses(sensors, touch.T_sensor_object)
+    result = TrackResult(
+        timestamps_s=sensors.timestamps_s,
+        T_world_object=open_loop,
+        T_world_object_open_loop=open_loop,
+        sensor_weights=weights,
+        touch=touch,
+        jitter=sensors.jitter,
+        closed_loop=bool(tactile),
+        skipped_times=int((~keep).sum()),
+    )
+    if not tactile:
+        return result
+    if model is None:
+        raise ValueError("the closed loop registers tactile frames on the object: pass its model")
+    corrector = _Corrector(model, touch, streams, sensors.jitter, config)
+    instants = group_frames(tactile, touch.time_s, config.correction.sync_tolerance_s)
+    starts = np.searchsorted(sensors.timestamps_s, [instant_time for instant_time, _ in instants], side="left")
+    closed = np.empty_like(open_loop)
+    begin = 0
+    for (instant_time, frames), start in zip(instants, starts, strict=True):
+        if start > begin:  # the outputs before this instant follow the grasps as they were
+            closed[begin:start] = fuse_object_poses(sensors, corrector.grasps, slice(begin, start))[0]
+            begin = start
+        result.corrections.append(corrector.correct(instant_time, {side: (tactile[side], i) for side, i in frames}))
+    if begin < len(closed):
+        closed[begin:] = fuse_object_poses(sensors, corrector.grasps, slice(begin, None))[0]
+    result.T_world_object = closed
+    return result
+
+
+def group_frames(
+    tactile: dict[str, TactileStream], start_s: float, tolerance_s: float
+) -> list[tuple[float, list[tuple[str, int]]]]:
+    """Tactile instants from the touch on: each left frame with the nearest right frame within `tolerance_s` (not
+    already taken), the rest alone. Returns (instant time = its latest frame's, [(side, frame index)]) by time."""
+    stamps = {side: tactile[side].timestamps_s if side in tactile else np.empty(0) for side in SIDES}
+    right = stamps["right"]
+    taken = right < start_s - 1e-6  # frames before the touch are never used
+    instants: list[tuple[float, list[tuple[str, int]]]] = []
+    for i, t_left in enumerate(stamps["left"]):
+        if t_left < start_s - 1e-6:
+            continue
+        frames = [("left", i)]
+        latest = float(t_left)
+        after = int(np.searchsorted(right, t_left))
+        nearby = [j for j in (after - 1, after) if 0 <= j < len(right) and not taken[j]]
+        if nearby:
+            j = min(nearby, key=lambda j: abs(right[j] - t_left))
+            if abs(right[j] - t_left) <= tolerance_s:
+                taken[j] = True
+                frames.append(("right", j))
+                latest = max(latest, float(right[j]))
+        instants.append((latest, frames))
+    instants += [(float(right[j]), [("right", int(j))]) for j in np.flatnonzero(~taken)]
+    instants.sort(key=lambda item: item[0])
+    return instants
+
+
+def contact_samples(points_sensor: np.ndarray, config: CorrectionConfig) -> np.ndarray:
+    """A fixed, spatially even subset of a tactile cloud's firmly pressed points (`min_depth_fraction`): voxel means,
+    then at most `points_per_contact`."""
+    deepest = float(points_sensor[:, 2].min())
+    pressed = (
+        points_sensor[points_sensor[:, 2] <= config.min_depth_fraction * deepest] if deepest < 0 else points_sensor
+    )
+    if len(pressed) < MIN_TACTILE_POINTS:  # a shallow, noisy frame: keep what there is
+        pressed = points_sensor
+    step = max(1, len(pressed) // (16 * config.points_per_contact))  # thin huge clouds before the voxels
+    (points,) = voxel_downsample(pressed[::step], config.voxel_m)
+    if len(points) > config.points_per_contact:
+        points = points[np.random.default_rng(0).choice(len(points), config.points_per_contact, replace=False)]
+    return points
+
+
+class _Corrector:
+    """The closed loop's state: the grasps, and a Kalman filter on (error, slip rate, measurement bias).
+
+    Error-state filter: the grasps hold the current estimate; the state is the object-frame error of the grasps
+    (a twist, rotation about the centroid first), the slip rate per metre of travel, and the registrations' bias,
+    6 numbers each. The error's mean is folded into the grasps after every update.
+    """
+
+    def __init__(
+        self,
+        model: ObjectModel,
+        touch: Touch,
+        streams: dict[str, PoseStream],
+        jitter: dict[str, StreamJitter],
+        config: TrackConfig,
+    ):
+        self.model, self.streams, self.jitter, self.config = model, streams, jitter, config
+        c = config.correction
+        self.grasps = dict(touch.T_sensor_object)
+        self.touch_grasp = touch.T_sensor_object["left"]
+        self.rate = np.zeros(6)  # slip per metre of travel (rad/m, m/m), object frame
+        self.bias = np.zeros(6)  # the registrations' bias (rad, m)
+        self.bias_covariance: np.ndarray | None = None  # its size, from the first registered contact's shape
+        self.covariance = np.diag(
+            [c.touch_rotation_rad**2] * 3
+            + [c.touch_translation_m**2] * 3
+            + [c.slip_rate_rotation**2] * 3
+            + [c.slip_rate_translation**2] * 3
+            + [0.0] * 6
+        )
+        self.solver = GaussNewtonConfig(
+            iterations=c.iterations,
+            max_distance_m=c.max_distance_m,
+            surface_noise_m=c.surface_noise_m,
+            prior_rotation_rad=c.registration_prior_rotation_rad,
+            prior_translation_m=c.registration_prior_translation_m,
+            step_tolerance_m=c.step_tolerance_m,
+            step_tolerance_rad=c.step_tolerance_rad,
+        )
+        self.last_correction = (0.0, 0.0)  # (metres, radians) of the latest applied correction
+        self.last_time = touch.time_s
+        self.last_sensors = sensor_poses(streams, np.array([touch.time_s]), config.fusion, jitter)
+
+    def _apply(self, twist: np.ndarray) -> None:
+        """Move the object by `twist` (object frame) in both grasps: T_world_object <- T_world_object @ exp^-1."""
+        undo = invert_transform(pose_from_twist(twist))
+        self.grasps = {side: grasp @ undo for side, grasp in self.grasps.items()}
+
+    def _predict(self, sensors: SensorPoses, now_s: float) -> None:
+        """Slip since the last instant: the rate times the travel, and the covariance grown by the slip model."""
+        c = self.config.correction
+        travelled, turned = [], []
+        for side in SIDES:
+            before, now = self.last_sensors.T_world_sensor[side][0], sensors.T_world_sensor[side][-1]
+            travelled.append(np.linalg.norm(now[:3, 3] - before[:3, 3]))
+            turned.append(rotation_angle_rad(before, now))
+        travel = float(np.mean(travelled)) + c.turn_radius_m * float(np.mean(turned))
+        elapsed = max(now_s - self.last_time, 0.0)
+        self._apply(self.rate * travel)
+        transition = np.eye(18)
+        transition[:6, 6:12] = travel * np.eye(6)
+        share = travel / c.slip_travel_m
+        noise = np.diag(
+            [c.slip_wander_rotation_rad**2 * share + c.creep_rotation_rad**2 * elapsed] * 3
+            + [c.slip_wander_translation_m**2 * share + c.creep_translation_m**2 * elapsed] * 3
+            + [c.slip_rate_rotation**2 * share] * 3
+            + [c.slip_rate_translation**2 * share] * 3
+            + [0.0] * 6
+        )
+        if self.bias_covariance is not None:
+            noise[12:, 12:] = self.bias_covariance * min(travel / c.bias_travel_m, 1.0)
+        self.covariance = transition @ self.covariance @ transition.T + noise
+        self.last_time, self.last_sensors = now_s, sensors
+
+    def _information(self, points_object: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Gauss-Newton normal matrices (6, 6) of one contact's registered points (object frame, rotation about the
+        origin), for the noise new in every frame (all points, `pixel_noise_m`) and for the shared bias
+        (`bias_points` points of `bias_noise_m`)."""
+        c = self.config.correction
+        _, matched, _, normals = plane_distances(self.model, points_object, c.max_distance_m)
+        jacobian = np.concatenate([np.cross(points_object, normals), normals], axis=1)[matched]
+        if len(jacobian) == 0:
+            return np.zeros((6, 6)), np.zeros((6, 6))
+        normal = jacobian.T @ jacobian
+        return normal / c.pixel_noise_m**2, normal * (c.bias_points / len(jacobian)) / c.bias_noise_m**2
+
+    def _register(self, points: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, float]]:
+        """The correction T_object_predicted bringing the sides' points (predicted object frame) onto the surface,
+        and each side's inlier fraction after it."""
+        c = self.config.correction
+        stacked = np.vstack(list(points.values()))
+        correction = point_to_plane_gauss_newton(self.model, stacked, np.eye(4)[None], self.solver)[0]
+        fractions = {}
+        for side, side_points in points.items():
+            fit = truncated_plane_fit(
+                self.model,
+                transform_points(correction, side_points)[None],
+                c.max_distance_m,
+                inlier_m=c.inlier_distance_m,
+            )
+            fractions[side] = float(fit.inlier_fraction[0])
+        return correction, fractions
+
+    def correct(self, instant_s: float, frames: dict[str, tuple[TactileStream, int]]) -> Correction:
+        """Predict the slip to this instant, register its frames, fuse the correction, update both grasps."""
+        started = time.perf_counter()
+        c = self.config.correction
+        unusable: dict[str, str] = {}
+        clouds: dict[str, tuple[float, np.ndarray]] = {}
+        for side, (stream, index) in frames.items():
+            stamp = float(stream.timestamps_s[index])
+            try:
+                points = np.asarray(stream.load(index), dtype=np.float64).reshape(-1, 3)
+            except InputError as exc:
+                unusable[side] = f"unreadable ({exc})"
+                continue
+            points = points[np.isfinite(points).all(axis=1)]
+            if len(points) < MIN_TACTILE_POINTS:
+                unusable[side] = f"too few points ({len(points)})"
+                continue
+            clouds[side] = (stamp, points)
+        stamps = np.array([stamp for stamp, _ in clouds.values()] + [instant_s])
+        sensors = sensor_poses(self.streams, stamps, self.config.fusion, self.jitter)
+        self._predict(sensors, instant_s)
+        predicted = fuse_object_poses(sensors, self.grasps)[0]
+        points_predicted: dict[str, np.ndarray] = {}
+        pose_noise: dict[str, np.ndarray] = {}
+        for row, (side, (_, points)) in enumerate(clouds.items()):
+            if not sensors.covered[side][row]:
+                unusable[side] = "no sensor pose at the frame's time"
+                continue
+            T_predicted_sensor = invert_transform(predicted[row]) @ sensors.T_world_sensor[side][row]
+            points_predicted[side] = transform_points(T_predicted_sensor, contact_samples(points, c))
+            pose_noise[side] = self._pose_noise(side, T_predicted_sensor)
+
+        record = Correction(timestamp_s=instant_s, used=(), unusable=unusable)
+        if points_predicted:
+            correction, fractions = self._register(points_predicted)
+            bad = {side for side, fraction in fractions.items() if fraction < c.min_inlier_fraction}
+            if bad and len(bad) < len(points_predicted):  # one side fits badly: try the other alone
+                for side in bad:
+                    unusable[side] = f"bad fit ({fractions[side]:.0%} of points on the surface)"
+                    del points_predicted[side]
+                correction, fractions = self._register(points_predicted)
+                bad = {side for side, fraction in fractions.items() if fraction < c.min_inlier_fraction}
+            if bad:
+                for side in points_predicted:
+                    unusable[side] = f"bad fit ({fractions[side]:.0%} of points on the surface)"
+            else:
+                refused = self._update(points_predicted, pose_noise, correction)
+                for side in points_predicted if refused else ():
+                    unusable[side] = refused
+                if not refused:
+                    record.used = tuple(points_predicted)
+                    record.inlier_fraction = float(np.mean(list(fractions.values())))
+                    record.correction_m, record.correction_rad = self.last_correction
+        slip = invert_transform(self.touch_grasp) @ self.grasps["left"]
+        record.slip_m = float(np.linalg.norm(slip[:3, 3]))
+        record.slip_rad = rotation_angle_rad(slip, np.eye(4))
+        record.latency_ms = 1000.0 * (time.perf_counter() - started)
+        return record
+
+    def _pose_noise(self, side: str, T_object_sensor: np.ndarray) -> np.ndarray:
+        """Covariance (6, 6) of the object-frame twist (rotation about the centroid first) by which the sensor's
+        pose jitter moves its contact's points: rotation jitter about the sensor turns them about its origin."""
+        jitter = self.jitter[side]
+        lever = skew(T_object_sensor[:3, 3])  # the sensor's origin relative to the centroid, object frame
+        var_r, var_t = jitter.smoothed_rotation_rad**2, jitter.smoothed_translation_m**2
+        # points move by w x (p - s) + t = w x p + (s x w + t): the twist (w, [s]_x w + t)
+        return np.block(
+            [[var_r * np.eye(3), var_r * lever.T], [var_r * lever, var_t * np.eye(3) + var_r * lever @ lever.T]]
+        )
+
+    def _update(
+        self, points_predicted: dict[str, np.ndarray], pose_noise: dict[str, np.ndarray], correction: np.ndarray
+    ) -> str:
+        """Kalman update with the registration's twist z = error + bias + noise (information form), then the new
+        grasps, slip rate and bias. Each contact's information is discounted by its sensor's pose jitter,
+        (H^-1 + S)^-1 = H (I + S H)^-1. Returns why the correction was refused (a jump larger than slip makes),
+        or "" when it was applied."""
+        c = self.config.correction
+        twist = twist_of_pose(correction)
+        white, shared = np.zeros((6, 6)), np.zeros((6, 6))
+        for side, side_points in points_predicted.items():
+            per_frame, bias = self._information(transform_points(correction, side_points))
+            white += per_frame @ np.linalg.inv(np.eye(6) + pose_noise[side] @ per_frame)
+            shared += bias
+        covariance = self.covariance.copy()
+        if self.bias_covariance is None:  # the bias's size in each direction, from the first contact's shape
+            weak = np.diag([c.registration_prior_rotation_rad**-2] * 3 + [c.registration_prior_translation_m**-2] * 3)
+            self.bias_covariance = np.linalg.inv(shared + weak)
+            covariance[12:, 12:] = self.bias_covariance
+        observe = np.hstack([np.eye(6), np.zeros((6, 6)), np.eye(6)])  # z = error + bias
+        # A registration further from the prediction than the filter expects (normalized innovation squared above
+        # its bound) counts less: its information is scaled down by bound / NIS (a Huber-like robust update).
+        innovation = twist - self.bias
+        predicted = observe @ covariance @ observe.T
+        nis = float(innovation @ white @ np.linalg.solve(np.eye(6) + predicted @ white, innovation))
+        if nis > c.innovation_bound:
+            white = white * (c.innovation_bound / nis)
+        prior_precision = np.linalg.inv(covariance)
+        precision = prior_precision + observe.T @ white @ observe
+        prior_mean = np.concatenate([np.zeros(6), self.rate, self.bias])
+        mean = np.linalg.solve(precision, prior_precision @ prior_mean + observe.T @ white @ twist)
+        moved_m, turned_rad = float(np.linalg.norm(mean[3:6])), float(np.linalg.norm(mean[:3]))
+        if moved_m > c.max_correction_m or turned_rad > c.max_correction_rad:
+            return f"jump ({moved_m * 1e3:.1f} mm, {np.degrees(turned_rad):.1f} deg)"
+        self.covariance = np.linalg.inv(precision)
+        self._apply(mean[:6])
+        self.rate, self.bias = mean[6:12], mean[12:]
+        self.last_correction = (moved_m, turned_rad)
+        return ""
