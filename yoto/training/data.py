@@ -158,16 +158,16 @@ def load_labelled_contacts(
             if model is None:
                 skipped_objects.add(labelled.object_name)
                 continue
-            T_object_sensor = (
-                model.T_object_mesh @ invert_transform(labelled.T_world_mesh) @ labelled.contact.T_world_sensor
-            )
-            p_object = transform_points(model.T_object_mesh, labelled.p_mesh)
-            try:
-                samples[model.name].append(
-                    contact_sample(labelled.contact.points_sensor, model, p_object, T_object_sensor, source=path.name)
+            contacts[model.name].append(
+                LabelledContact(
+                    points_sensor=labelled.contact.points_sensor,
+                    p_object=transform_points(model.T_object_mesh, labelled.p_mesh),
+                    T_object_sensor=model.T_object_mesh
+                    @ invert_transform(labelled.T_world_mesh)
+                    @ labelled.contact.T_world_sensor,
+                    source=path.name,
                 )
-            except DegenerateGeometryError as exc:
-                log.warning("%s: skipped, %s", path, exc)
+            )
             continue
         pair = read_contact_pair(path)
         model = models.get(pair_objects.get(pair.object_name, pair.object_name))
