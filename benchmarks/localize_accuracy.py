@@ -1,4 +1,6 @@
-"""Accuracy and latency of a trained localizer on contact pairs with ground truth (e.g. simulated ones).
+"""Accuracy and latency of a trained point-network localizer (`paper`, `cpu-points` presets) on contact pairs with
+ground truth (e.g. simulated ones). The `cpu` preset's network is measured by benchmarks/network_ablation.py and
+`yoto bench --yoto LABEL=CHECKPOINT`.
 
 Per object: contact localization error (mm) of the answer and of the best returned candidate, top-1 block
 recall, per-contact latency (the paper's way: every call timed end to end, warm-up excluded), and the pose
@@ -22,7 +24,7 @@ import numpy as np
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", help="localizer checkpoint (default: the shipped weights)")
+    parser.add_argument("--checkpoint", required=True, help="a point-network localizer checkpoint (RUN/model.pt)")
     parser.add_argument("--pairs", nargs="+", required=True, help="pair files or folders")
     parser.add_argument("--workspace", help="workspace holding the object models")
     parser.add_argument("--threads", type=int, default=2)

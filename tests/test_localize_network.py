@@ -11,7 +11,9 @@ torch = pytest.importorskip("torch")
 
 from test_training import cut_contact, tiny_run, write_cut_pairs  # noqa: E402
 
+from yoto.contacts import contact_in_sensor  # noqa: E402
 from yoto.errors import InputError  # noqa: E402
+from yoto.geometry import rotation_angle_rad  # noqa: E402
 from yoto.localize import make_localizer  # noqa: E402
 from yoto.localize.network import (  # noqa: E402
     NetworkLocalizer,
@@ -21,6 +23,8 @@ from yoto.localize.network import (  # noqa: E402
 )
 from yoto.network.candidates import Candidate, candidates_of, fit_temperature, softmax  # noqa: E402
 from yoto.network.checkpoint import LocalizerCheckpoint, load_torch, save_torch_atomic  # noqa: E402
+from yoto.network.presets import network_config_from_dict  # noqa: E402
+from yoto.workspace import object_model_path  # noqa: E402
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -119,11 +123,15 @@ def test_the_shipped_weights_read_unchanged():
         if key == "state_dict":
             assert value.keys() == on_disk[key].keys()
             assert all(torch.equal(value[name], on_disk[key][name]) for name in value)
+        elif key == "network_config":  # files written before configs named their kind hold a point network
+            assert value == {"kind": "points", **on_disk[key]}, key
         else:
             assert value == on_disk[key], key
-    localizer = NetworkLocalizer.from_checkpoint(None)
+    localizer = make_localizer("yoto")
     assert sorted(localizer.trained_objects.values()) == sorted(o.name for o in checkpoint.objects)
-    assert localizer.temperature == checkpoint.calibration.temperature
+    card = json.loads(path.with_suffix(".json").read_text())
+    assert network_config_from_dict(card["network_config"]) == checkpoint.network_config
+    assert card["command"].startswith("yoto train")
 
 
 def test_candidates_merge_close_hypotheses_and_sum_beliefs():
@@ -197,3 +205,97 @@ def test_pose_stage_uses_the_network_localizer(localizer, builtin_models, tmp_pa
     estimate = estimate_pose(read_contact_pair(path), model, localizer)
     assert estimate.method == "yoto" and 0.0 <= estimate.confidence <= 1.0
     assert estimate.latency_ms["localize_left"] > 0
+
+
+# ---------------------------------------------------------------------------------------- the `cpu` preset
+@pytest.fixture(scope="module")
+def descriptor_checkpoint(builtin_models, tmp_path_factory):
+    from test_training_descriptor import tiny_descriptor_run
+
+    workspace = tmp_path_factory.mktemp("ws_descriptor_localizer")
+    builtin_models["fruit"].save(object_model_path("fruit", workspace))
+    return tiny_descriptor_run(workspace)
+
+
+@pytest.fixture(scope="module")
+def fruit_pairs(builtin_models):
+    from yoto.simulate.scenarios import PairSimulator
+
+    return [PairSimulator(builtin_models["fruit"]).pair(11, i) for i in range(3)]
+
+
+def test_load_localizer_picks_the_checkpoints_network(descriptor_checkpoint, localizer):
+    from yoto.localize.descriptor import DescriptorLocalizer
+    from yoto.localize.network import load_localizer
+
+    assert isinstance(make_localizer("yoto", str(descriptor_checkpoint)), DescriptorLocalizer)
+    assert isinstance(load_localizer(localizer.source), NetworkLocalizer)
+    with pytest.raises(InputError, match="anchor-descriptor network"):
+        NetworkLocalizer.from_checkpoint(descriptor_checkpoint)
+
+
+def test_the_fine_stage_finds_contacts_among_all_anchors(descriptor_checkpoint, builtin_models, fruit_pairs):
+    """With every anchor shortlisted the network has no say: the roll search, the poses it proposes and ICP must
+    find simulated contacts on the bumpy fruit by themselves (as the matched filter does, tests/test_match.py)."""
+    from yoto.localize.descriptor import DescriptorLocalizerConfig
+    from yoto.localize.network import load_localizer
+
+    model = builtin_models["fruit"]
+    localizer = load_localizer(descriptor_checkpoint, config=DescriptorLocalizerConfig(shortlist=100_000))
+    hits = 0
+    for simulated in fruit_pairs:
+        for side in ("left", "right"):
+            candidates = localizer.localize(simulated.pair.contact(side).points_sensor, model)
+            probabilities = np.array([c.probability for c in candidates])
+            assert (probabilities >= 0).all() and probabilities.sum() <= 1.0 + 1e-9
+            residuals = [c.details["residual_mm"] for c in candidates]
+            assert residuals == sorted(residuals)
+            places = np.array([c.p_object for c in candidates])
+            gaps = np.linalg.norm(places[:, None] - places[None], axis=2) + np.eye(len(places))
+            assert gaps.min() >= localizer.config.belief.dedup_radius_m
+            json.dumps([c.details for c in candidates])
+            if np.linalg.norm(candidates[0].p_object - simulated.p_object_true[side]) < 0.0025:
+                hits += 1
+                # The sensor pose behind the answer is the simulator's: the press axis to a few degrees, the roll as
+                # well as the contact's shape allows, the contact's centre to a couple of millimetres (a slide along the
+                # surface is weakly constrained).
+                T_true = simulated.contacts[side].press.T_object_sensor
+                T_found = np.array(candidates[0].details["T_object_sensor"])
+                assert np.degrees(np.arccos(min(T_found[:3, 2] @ T_true[:3, 2], 1.0))) < 3.0
+                assert np.degrees(rotation_angle_rad(T_found, T_true)) < 15.0
+                centre_sensor, _ = contact_in_sensor(simulated.pair.contact(side).points_sensor)
+                centres = [T[:3, :3] @ centre_sensor + T[:3, 3] for T in (T_found, T_true)]
+                assert np.linalg.norm(centres[0] - centres[1]) < 0.002
+                assert candidates[0].details["residual_mm"] < 0.1
+    assert hits >= 5
+
+
+def test_the_ablation_switches_skip_stages(descriptor_checkpoint, builtin_models, fruit_pairs):
+    from yoto.localize.descriptor import DescriptorLocalizerConfig
+    from yoto.localize.network import load_localizer
+
+    model = builtin_models["fruit"]
+    simulated = fruit_pairs[0]
+    points = simulated.pair.contact("left").points_sensor
+    coarse = load_localizer(descriptor_checkpoint, config=DescriptorLocalizerConfig(fine_stage=False))
+    found = coarse.localize(points, model)
+    anchors = coarse.prepare_object(model).anchors
+    scores = [c.details["descriptor_score"] for c in found]
+    assert scores == sorted(scores, reverse=True) and sum(c.probability for c in found) == pytest.approx(1.0)
+    for candidate in found:  # the anchors themselves
+        np.testing.assert_array_equal(candidate.p_object, anchors.points_object[candidate.details["anchor"]])
+    fits = load_localizer(descriptor_checkpoint, config=DescriptorLocalizerConfig(refine=False, shortlist=100_000))
+    unrefined = fits.localize(points, model)
+    assert [c.details["residual_mm"] for c in unrefined] == [c.details["fit_rms_mm"] for c in unrefined]
+    assert min(np.linalg.norm(c.p_object - simulated.p_object_true["left"]) for c in unrefined) < 0.003
+
+
+def test_objects_the_descriptor_network_did_not_see_work_but_warn(descriptor_checkpoint, builtin_models, rng):
+    from yoto.localize.network import load_localizer
+
+    localizer = load_localizer(descriptor_checkpoint)
+    figurine = builtin_models["figurine"]
+    points, _, _ = cut_contact(figurine, 500, rng)
+    with pytest.warns(UnknownObjectWarning, match="not one this localizer was trained on"):
+        candidates = localizer.localize(points, figurine)
+    assert candidates and not candidates[0].details["trained_object"]

@@ -210,7 +210,7 @@ def test_block_neighbours_put_each_block_first():
     assert neighbours.tolist() == [[0, 3, 1], [1, 0, 3], [2, 1, 0], [3, 0, 1]]
 
 
-@pytest.mark.parametrize("name", ["paper", "cpu"])
+@pytest.mark.parametrize("name", ["paper", "cpu-points"])
 def test_presets_build_and_round_trip(name):
     config = PRESETS[name]
     assert NetworkConfig.from_dict(config.to_dict()) == config

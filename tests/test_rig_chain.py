@@ -127,7 +127,7 @@ def test_written_labels_feed_pose_and_training(session, gelsight, tmp_path):
     from yoto.contacts import read_contact_pair
     from yoto.rig.labelling import write_labels
     from yoto.rig.samples import read_labelled_contact
-    from yoto.training.data import load_contact_samples
+    from yoto.training.data import contact_samples, load_labelled_contacts
 
     report = _label(session, gelsight)
     written = write_labels(report, tmp_path, "trials")
@@ -138,8 +138,8 @@ def test_written_labels_feed_pose_and_training(session, gelsight, tmp_path):
     assert np.linalg.norm(pair.T_world_mesh_true[:3, 3] - T_true[:3, 3]) < 2e-3
     contact = read_labelled_contact(written["contacts"][0])
     assert contact.object_name == "fruit" and (contact.contact.points_sensor[:, 2] <= 1e-9).all()
-    samples, files = load_contact_samples([tmp_path / "contacts"], {"fruit": session["model"]})
-    assert len(files) == 6 and len(samples["fruit"]) == 6
+    contacts, files = load_labelled_contacts([tmp_path / "contacts"], {"fruit": session["model"]})
+    assert len(files) == 6 and len(contact_samples(contacts["fruit"], session["model"])) == 6
     # Refused trials write nothing: 10 trials, 6 contacts on disk, each with its cloud and frame.
     assert len(list((tmp_path / "contacts").glob("*.ply"))) == 6
 

@@ -304,12 +304,35 @@ def test_press_patches_look_like_pad_contacts(builtin_models):
 
 def test_pairs_of_one_object_can_train_the_model_of_its_scan(builtin_models, tmp_path, rng):
     """Contacts recorded on the real object train the model built from its scan (same mesh frame)."""
-    from yoto.training.data import load_contact_samples
+    from yoto.training.data import contact_samples, load_labelled_contacts
 
     model = builtin_models["fruit"]
     scan_model = replace(model, name="fruit_scan")
     write_cut_pairs(model, tmp_path, 2, rng)
-    samples, files = load_contact_samples([tmp_path], {"fruit_scan": scan_model})
-    assert len(files) == 2 and samples["fruit_scan"] == []  # without the mapping the pairs are not this model's
-    samples, _ = load_contact_samples([tmp_path], {"fruit_scan": scan_model}, {"fruit": "fruit_scan"})
-    assert len(samples["fruit_scan"]) == 4
+    contacts, files = load_labelled_contacts([tmp_path], {"fruit_scan": scan_model})
+    assert len(files) == 2 and contacts["fruit_scan"] == []  # without the mapping the pairs are not this model's
+    contacts, _ = load_labelled_contacts([tmp_path], {"fruit_scan": scan_model}, {"fruit": "fruit_scan"})
+    assert len(contacts["fruit_scan"]) == 4
+    samples = contact_samples(contacts["fruit_scan"], scan_model)  # the point network's canonical samples
+    assert len(samples) == 4 and all(0 <= sample.block < scan_model.num_blocks for sample in samples)
+
+
+def test_the_speed_test_times_point_network_steps(builtin_models, tmp_path_factory):
+    from yoto.training.speed import measure_training_speed
+
+    workspace = tiny_workspace(builtin_models, tmp_path_factory)
+    result = measure_training_speed(
+        TINY_TRAINING, ["fruit"], workspace, steps=2, warmup=1, device="cpu", patch_config=TINY_PATCHES
+    )
+    assert len(result.step_s) == 2 and (result.step_s > 0).all()
+    assert result.info["device"] == "cpu" and result.info["precision"] == "fp32"
+    assert result.samples_per_s == pytest.approx(np.median(result.batch_sizes) / np.median(result.step_s))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (CI has none)")
+def test_a_gpu_run_validates_on_the_gpu_and_writes_cpu_weights(builtin_models, tmp_path_factory):
+    path = tiny_run(builtin_models, tmp_path_factory, run="run_gpu", device="cuda")
+    checkpoint = LocalizerCheckpoint.load(path)
+    assert all(value.device.type == "cpu" and value.dtype == torch.float32 for value in checkpoint.state_dict.values())
+    history = [json.loads(line) for line in (path.parent / "log.jsonl").read_text().splitlines()]
+    assert all(np.isfinite(record["val_virtual_error_mean_mm"]) for record in history if "stage" in record)

@@ -22,9 +22,9 @@ def make_localizer(method: str, checkpoint: str | None = None) -> ContactLocaliz
         return ScaledMatchLocalizer()  # the matched filter, with finer cells for contacts too small for its default
     if method == "yoto":
         require_torch("the YOTO network localizer")
-        from yoto.localize.network import NetworkLocalizer
+        from yoto.localize.network import load_localizer
 
-        return NetworkLocalizer.from_checkpoint(checkpoint)
+        return load_localizer(checkpoint)
     raise ValueError(f"unknown localization method {method!r} (use one of {', '.join(METHODS)})")
 
 

@@ -1,8 +1,12 @@
-"""The YOTO localizer: a trained coarse-to-fine network locates a tactile contact on an object model.
+"""The YOTO localizers: a trained network locates a tactile contact on an object model.
 
-Per contact: prepare the sensor cloud (parent density, normals) -> canonicalize -> fixed point sample ->
-encoder -> cosine scores against the object's cached block features -> fine head on the candidate pools of
-the top few coarse blocks -> ranked candidates with beliefs (yoto.network.candidates). Block features are
+`load_localizer(checkpoint)` returns the localizer of the checkpoint's network: `NetworkLocalizer` below for the
+paper's point network (`paper`, `cpu-points` presets), `DescriptorLocalizer` (yoto.localize.descriptor) for the
+anchor-descriptor network (`cpu` preset).
+
+The point network, per contact: prepare the sensor cloud (parent density, normals) -> canonicalize -> fixed
+point sample -> encoder -> cosine scores against the object's cached block features -> fine head on the candidate
+pools of the top few coarse blocks -> ranked candidates with beliefs (yoto.network.candidates). Block features are
 computed once per object model (keyed by its fingerprint) and reused for every later contact.
 """
 
@@ -25,7 +29,7 @@ from yoto.network.candidates import candidates_of, rank_hypotheses, rotated_copi
 from yoto.network.checkpoint import Calibration, LocalizerCheckpoint
 from yoto.network.inputs import BlockSet, inference_points, make_block_set
 from yoto.network.model import ContactLocalizationNet
-from yoto.network.presets import NetworkConfig
+from yoto.network.presets import AnchorNetConfig, NetworkConfig
 from yoto.objects.model import ObjectModel
 from yoto.patches.canonical import canonicalize_patch, prepare_tactile_cloud
 
@@ -42,6 +46,44 @@ def default_checkpoint_path() -> Path:
 
 class UnknownObjectWarning(UserWarning):
     """The object was not among the checkpoint's training objects."""
+
+
+def checkpoint_path(path: str | Path | None) -> Path:
+    """`path`, or the shipped default weights when None (InputError saying how to train them if absent)."""
+    if path is not None:
+        return Path(path)
+    path = default_checkpoint_path()
+    if not path.is_file():
+        raise InputError(
+            "no default localizer weights are installed with this copy of YOTO; train them with "
+            f"`{TRAIN_COMMAND}` and pass the run's model.pt as --checkpoint (see docs/network.md)",
+            path,
+        )
+    return path
+
+
+def load_localizer(path: str | Path | None = None, **kwargs: Any) -> Any:
+    """The localizer of a checkpoint written by `yoto train` (None: the weights shipped with YOTO): a
+    `NetworkLocalizer` for the point network, a `DescriptorLocalizer` for the anchor-descriptor network."""
+    path = checkpoint_path(path)
+    checkpoint = LocalizerCheckpoint.load(path)
+    if isinstance(checkpoint.network_config, AnchorNetConfig):
+        from yoto.localize.descriptor import DescriptorLocalizer
+        from yoto.network.descriptor import DescriptorNet
+
+        descriptor_net = DescriptorNet(checkpoint.network_config)
+        _load_weights(descriptor_net, checkpoint, path)
+        return DescriptorLocalizer(descriptor_net, checkpoint, source=path, **kwargs)
+    net = ContactLocalizationNet(checkpoint.network_config)
+    _load_weights(net, checkpoint, path)
+    return NetworkLocalizer(net, checkpoint, source=path, **kwargs)
+
+
+def _load_weights(net: torch.nn.Module, checkpoint: LocalizerCheckpoint, path: Path) -> None:
+    try:
+        net.load_state_dict(checkpoint.state_dict)
+    except RuntimeError as exc:
+        raise InputError(f"checkpoint weights do not fit its network config ({exc})", path) from exc
 
 
 @dataclass
@@ -82,22 +124,15 @@ class NetworkLocalizer:
     # ------------------------------------------------------------------------------------------ loading
     @classmethod
     def from_checkpoint(cls, path: str | Path | None = None, **kwargs: Any) -> NetworkLocalizer:
-        """Load a checkpoint written by `yoto train`; None loads the weights shipped with YOTO."""
-        if path is None:
-            path = default_checkpoint_path()
-            if not path.is_file():
-                raise InputError(
-                    "no default localizer weights are installed with this copy of YOTO; train them with "
-                    f"`{TRAIN_COMMAND}` and pass the run's model.pt as --checkpoint (see docs/network.md)",
-                    path,
-                )
-        checkpoint = LocalizerCheckpoint.load(path)
-        net = ContactLocalizationNet(checkpoint.network_config)
-        try:
-            net.load_state_dict(checkpoint.state_dict)
-        except RuntimeError as exc:
-            raise InputError(f"checkpoint weights do not fit its network config ({exc})", path) from exc
-        return cls(net, checkpoint, source=path, **kwargs)
+        """Load a point-network checkpoint written by `yoto train`; None loads the weights shipped with YOTO."""
+        localizer = load_localizer(path, **kwargs)
+        if not isinstance(localizer, cls):
+            raise InputError(
+                "this checkpoint holds the anchor-descriptor network (`cpu` preset), not the point network; "
+                "load it with yoto.localize.network.load_localizer",
+                checkpoint_path(path),
+            )
+        return localizer
 
     # ------------------------------------------------------------------------------------------- blocks
     def prepare_object(self, model: ObjectModel) -> _ObjectCache:

@@ -57,13 +57,13 @@ def rank_hypotheses(
     scores = logits.gather(1, flat) + confidence
     scores = scores.reshape(batch, count, k)
     return {
-        "logits": logits.float().numpy(),
-        "top_blocks": top_blocks.numpy(),
-        "pools": pools.numpy(),
-        "positions": positions.reshape(batch, count, k, 3).double().numpy(),
-        "confidence": confidence.reshape(batch, count, k).float().numpy(),
-        "scores": scores.float().numpy(),
-        "best": scores.argmax(dim=2).numpy(),
+        "logits": logits.float().cpu().numpy(),
+        "top_blocks": top_blocks.cpu().numpy(),
+        "pools": pools.cpu().numpy(),
+        "positions": positions.reshape(batch, count, k, 3).double().cpu().numpy(),
+        "confidence": confidence.reshape(batch, count, k).float().cpu().numpy(),
+        "scores": scores.float().cpu().numpy(),
+        "best": scores.argmax(dim=2).cpu().numpy(),
     }
 
 

@@ -17,7 +17,7 @@ import torch
 
 from yoto.errors import InputError
 from yoto.io import write_bytes_atomic
-from yoto.network.presets import NetworkConfig
+from yoto.network.presets import AnyNetworkConfig, network_config_from_dict
 
 FORMAT_NAME = "yoto-localizer"
 FORMAT_VERSION = 1
@@ -29,7 +29,7 @@ class TrainedObject:
 
     name: str
     fingerprint: str  # ObjectModel.fingerprint
-    num_blocks: int
+    num_blocks: int  # its blocks (point network) or anchors (anchor-descriptor network)
 
 
 @dataclass(frozen=True)
@@ -54,7 +54,7 @@ class Calibration:
 class LocalizerCheckpoint:
     """A trained localizer: network architecture and weights, the objects it knows, how it was made."""
 
-    network_config: NetworkConfig  # architecture
+    network_config: AnyNetworkConfig  # architecture (its `kind` says which network)
     state_dict: dict[str, torch.Tensor]  # float32 weights on the CPU
     objects: list[TrainedObject] = field(default_factory=list)  # the objects it was trained on
     train_config: dict[str, Any] = field(default_factory=dict)  # yoto.training TrainConfig.to_dict()
@@ -94,7 +94,7 @@ class LocalizerCheckpoint:
         try:
             real_pairs = payload.get("real_pairs")
             return cls(
-                network_config=NetworkConfig.from_dict(payload["network_config"]),
+                network_config=network_config_from_dict(payload["network_config"]),
                 state_dict=dict(payload["state_dict"]),
                 objects=[TrainedObject(**o) for o in payload.get("objects", [])],
                 train_config=dict(payload.get("train_config", {})),

@@ -18,13 +18,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "train",
         help="train the contact localization network (object models -> localizer checkpoint)",
-        description="Stage 1 on virtual patches of every object; stage 2 (with --real-pairs) on virtual patches "
+        description="Stage 1 on virtual contacts (or patches) of every object; stage 2 (with --real-pairs) on them "
         "plus real or simulated contacts with ground truth. One network serves all the objects.",
         epilog=TRAIN_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--objects", nargs="+", required=True, help="object names (workspace or built-in) or files")
-    parser.add_argument("--preset", default="cpu", help="training preset: cpu (2-core CPU) or paper (GPU)")
+    parser.add_argument(
+        "--preset",
+        default="cpu",
+        help="training preset: cpu (the anchor-descriptor network, minutes per object on a 2-core CPU), paper (the "
+        "paper's point network, for a GPU) or cpu-points (the paper's network at CPU sizes)",
+    )
     parser.add_argument("--stage1-epochs", type=int, help="override the preset's stage-1 epochs")
     parser.add_argument("--stage2-epochs", type=int, help="override the preset's stage-2 epochs")
     parser.add_argument(
@@ -90,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
     if args.speed_test:
         from yoto.training.speed import measure_training_speed
 
-        result = measure_training_speed(config, args.objects, args.workspace)
+        result = measure_training_speed(config, args.objects, args.workspace, device=args.device or "cpu")
         print(result.summary())
         return 0
     run_dir = args.run_dir or runs_dir(args.workspace) / args.run_name

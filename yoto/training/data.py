@@ -127,18 +127,28 @@ def find_pair_files_recursive(inputs: list[str | Path]) -> list[Path]:
     return found
 
 
-def load_contact_samples(
+@dataclass
+class LabelledContact:
+    """A tactile contact of a pair file with its ground truth, in the frames of the object model it trains."""
+
+    points_sensor: np.ndarray  # (N, 3) tactile cloud, sensor frame
+    p_object: np.ndarray  # (3,) true contact location, object frame
+    T_object_sensor: np.ndarray  # (4, 4) true sensor pose on the object
+    source: str  # "pair file:side", for messages
+
+
+def load_labelled_contacts(
     pair_inputs: list[str | Path], models: dict[str, ObjectModel], pair_objects: dict[str, str] | None = None
-) -> tuple[dict[str, list[ContactSample]], list[Path]]:
-    """Labelled canonical samples from contact-pair files with ground truth, grouped by object name.
+) -> tuple[dict[str, list[LabelledContact]], list[Path]]:
+    """The contacts of contact-pair files with ground truth, grouped by the name of the model they train.
 
     `pair_objects` maps a pair file's object name to the model it trains (e.g. "drill" -> "drill_scan": contacts
     recorded on the real drill train the model built from its scan, whose mesh frame is the drill's). Pairs of
-    objects not in `models` are skipped with a note; contacts without ground truth, or that cannot be
-    canonicalized, are skipped with a warning. Returns the samples and the pair files read.
+    objects not in `models` are skipped with a note; contacts without ground truth are skipped with a warning.
+    Returns the contacts and the pair files read.
     """
     pair_objects = pair_objects or {}
-    samples: dict[str, list[ContactSample]] = {name: [] for name in models}
+    contacts: dict[str, list[LabelledContact]] = {name: [] for name in models}
     files = find_pair_files_recursive(pair_inputs)
     skipped_objects: set[str] = set()
     for path in files:
@@ -148,16 +158,16 @@ def load_contact_samples(
             if model is None:
                 skipped_objects.add(labelled.object_name)
                 continue
-            T_object_sensor = (
-                model.T_object_mesh @ invert_transform(labelled.T_world_mesh) @ labelled.contact.T_world_sensor
-            )
-            p_object = transform_points(model.T_object_mesh, labelled.p_mesh)
-            try:
-                samples[model.name].append(
-                    contact_sample(labelled.contact.points_sensor, model, p_object, T_object_sensor, source=path.name)
+            contacts[model.name].append(
+                LabelledContact(
+                    points_sensor=labelled.contact.points_sensor,
+                    p_object=transform_points(model.T_object_mesh, labelled.p_mesh),
+                    T_object_sensor=model.T_object_mesh
+                    @ invert_transform(labelled.T_world_mesh)
+                    @ labelled.contact.T_world_sensor,
+                    source=path.name,
                 )
-            except DegenerateGeometryError as exc:
-                log.warning("%s: skipped, %s", path, exc)
+            )
             continue
         pair = read_contact_pair(path)
         model = models.get(pair_objects.get(pair.object_name, pair.object_name))
@@ -172,21 +182,31 @@ def load_contact_samples(
                 log.warning("%s: no ground_truth.%s_p_object; that contact is skipped", path, side)
                 continue
             contact = pair.contact(side)
-            try:
-                samples[model.name].append(
-                    contact_sample(
-                        contact.points_sensor,
-                        model,
-                        transform_points(model.T_object_mesh, pair.p_mesh_true[side]),
-                        T_object_world @ contact.T_world_sensor,
-                        source=f"{path.name}:{side}",
-                    )
+            contacts[model.name].append(
+                LabelledContact(
+                    points_sensor=contact.points_sensor,
+                    p_object=transform_points(model.T_object_mesh, pair.p_mesh_true[side]),
+                    T_object_sensor=T_object_world @ contact.T_world_sensor,
+                    source=f"{path.name}:{side}",
                 )
-            except DegenerateGeometryError as exc:
-                log.warning("%s (%s): skipped, %s", path, side, exc)
+            )
     if skipped_objects:
         log.info("pair files of objects not being trained were skipped: %s", ", ".join(sorted(skipped_objects)))
-    return samples, files
+    return contacts, files
+
+
+def contact_samples(contacts: list[LabelledContact], model: ObjectModel) -> list[ContactSample]:
+    """The point network's canonical samples of labelled contacts; those that cannot be canonicalized are skipped
+    with a warning."""
+    samples = []
+    for contact in contacts:
+        try:
+            samples.append(
+                contact_sample(contact.points_sensor, model, contact.p_object, contact.T_object_sensor, contact.source)
+            )
+        except DegenerateGeometryError as exc:
+            log.warning("%s: skipped, %s", contact.source, exc)
+    return samples
 
 
 # ------------------------------------------------------------------------------------------------ objects

@@ -79,3 +79,56 @@ def log_epoch(record: dict[str, Any]) -> None:
                 f"error {record[f'val_{kind}_error_mean_mm']:.1f} mm, <=5mm {record[f'val_{kind}_within_5mm']:.2f}"
             )
     log.info(text)
+
+
+def log_descriptor_epoch(record: dict[str, Any]) -> None:
+    """One line per epoch of the anchor-descriptor network: loss, speed, retrieval on the validation contacts."""
+    text = (
+        f"{record['stage']} epoch {record['epoch']}: loss {record['train_loss']:.3f} "
+        f"({record['samples_per_s']:.0f} samples/s, tau {record['temperature']:.1f})"
+    )
+    for kind in ("virtual", "real"):
+        if f"val_{kind}_recall_at_1" in record:
+            recalls = ", ".join(
+                f"@{key.rsplit('_', 1)[1]} {value:.2f}"
+                for key, value in record.items()
+                if key.startswith(f"val_{kind}_recall_at_")
+            )
+            text += f" | val {kind}: recall {recalls}, top-1 {record[f'val_{kind}_top1_error_mean_mm']:.1f} mm"
+    log.info(text)
+
+
+def plot_descriptor_curves(run_dir: Path, history: list[dict[str, Any]]) -> Path | None:
+    """curves.png of the anchor-descriptor network: training loss, anchor recall and top-1 error per epoch."""
+    if not history:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+
+    x = np.arange(1, len(history) + 1)
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4))
+    axes[0].plot(x, [r["train_loss"] for r in history])
+    axes[0].set(title="training loss", xlabel="epoch", yscale="log")
+    for kind, style in (("virtual", "-"), ("real", "--")):
+        keys = sorted(
+            (k for k in history[-1] if k.startswith(f"val_{kind}_recall_at_")), key=lambda k: int(k.rsplit("_", 1)[1])
+        )
+        for key in keys:
+            axes[1].plot(x, [r.get(key, np.nan) for r in history], style, label=f"{kind} @{key.rsplit('_', 1)[1]}")
+        if f"val_{kind}_top1_error_mean_mm" in history[-1]:
+            axes[2].plot(x, [r.get(f"val_{kind}_top1_error_mean_mm", np.nan) for r in history], style, label=kind)
+    axes[1].set(title="a right anchor among the best k (validation)", xlabel="epoch", ylim=(0, 1))
+    axes[2].set(title="best anchor's error, mean (mm)", xlabel="epoch", yscale="log")
+    stage_changes = [i + 1 for i in range(1, len(history)) if history[i]["stage"] != history[i - 1]["stage"]]
+    for ax in axes:
+        for change in stage_changes:
+            ax.axvline(change - 0.5, color="grey", lw=0.8, ls=":")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8)
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=90)
+    plt.close(fig)
+    return write_bytes_atomic(run_dir / "curves.png", buffer.getvalue())

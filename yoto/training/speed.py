@@ -23,9 +23,9 @@ from yoto.objects.build import load_object_model
 from yoto.patches.virtual import VirtualPatchConfig
 from yoto.provenance import run_info
 from yoto.training.batches import plan_epoch
-from yoto.training.config import TrainConfig
+from yoto.training.config import AnyTrainConfig, DescriptorTrainConfig
 from yoto.training.data import load_objects
-from yoto.training.step import StepRunner, make_optimizer
+from yoto.training.step import StepRunner, device_and_autocast, make_optimizer
 
 
 @dataclass
@@ -65,14 +65,24 @@ class SpeedResult:
 
 
 def measure_training_speed(
-    config: TrainConfig, objects: list[str], workspace: str | Path | None = None, steps: int = 30, warmup: int = 5
+    config: AnyTrainConfig,
+    objects: list[str],
+    workspace: str | Path | None = None,
+    steps: int = 30,
+    warmup: int = 5,
+    device: str | None = "cpu",
+    patch_config: VirtualPatchConfig = VirtualPatchConfig(),
 ) -> SpeedResult:
-    """Time `steps` training steps (after `warmup` untimed ones) of `config` on `objects`."""
+    """Time `steps` training steps (after `warmup` untimed ones) of `config` on `objects`, on `device` (None: cuda
+    when available) with the config's precision; the point network trains on virtual patches of `patch_config`."""
+    if isinstance(config, DescriptorTrainConfig):
+        return _descriptor_speed(config, objects, workspace, steps, warmup)
     models = [load_object_model(name, workspace) for name in objects]
-    data = load_objects(objects, models, workspace, config, VirtualPatchConfig(), progress=False)
+    data = load_objects(objects, models, workspace, config, patch_config, progress=False)
     torch.manual_seed(config.seed)
-    net = ContactLocalizationNet(config.network)
-    runner = StepRunner(net, data, config, torch.device("cpu"), None)
+    device_, autocast_dtype = device_and_autocast(config.precision, device)
+    net = ContactLocalizationNet(config.network).to(device_)
+    runner = StepRunner(net, data, config, device_, autocast_dtype)
     rng = np.random.default_rng(config.seed)
     plan = plan_epoch(data, config.stage1, config.batch_size, rng, use_real=False)
     optimizer, scheduler = make_optimizer(net, config.stage1, config, len(plan))
@@ -80,6 +90,8 @@ def measure_training_speed(
     for i, (obj_index, entries) in enumerate(plan[: warmup + steps]):
         tick, cpu_tick = time.perf_counter(), time.process_time()
         runner.step(obj_index, entries, rng, 1.0, optimizer, scheduler)
+        if device_.type == "cuda":
+            torch.cuda.synchronize(device_)
         if i >= warmup:
             wall.append(time.perf_counter() - tick)
             cpu.append(time.process_time() - cpu_tick)
@@ -91,6 +103,46 @@ def measure_training_speed(
         "parameters": count_parameters(net),
         "batch_size": config.batch_size,
         "block_refresh_every": config.block_refresh_every,
+        "device": str(device_),
+        "precision": "bf16" if autocast_dtype is not None else "fp32",
+        "threads": torch.get_num_threads(),
+        "load_average": list(os.getloadavg()),
+        "cpu_count": os.cpu_count(),
+    }
+    return SpeedResult(np.array(wall), np.array(cpu), np.array(sizes), info)
+
+
+def _descriptor_speed(
+    config: DescriptorTrainConfig, objects: list[str], workspace: str | Path | None, steps: int, warmup: int
+) -> SpeedResult:
+    """measure_training_speed for the anchor-descriptor network (its virtual contacts are made if missing)."""
+    from yoto.network.descriptor import DescriptorNet
+    from yoto.training.descriptor_train import DescriptorStep, load_object_sets
+    from yoto.training.descriptor_train import plan_epoch as plan_descriptor_epoch
+
+    models = [load_object_model(name, workspace) for name in objects]
+    device = torch.device("cpu")
+    sets = load_object_sets(models, {}, {}, config, workspace, device, progress=False)
+    torch.manual_seed(config.seed)
+    net = DescriptorNet(config.network)
+    step = DescriptorStep(net, sets, config, device)
+    rng = np.random.default_rng(config.seed)
+    plan = plan_descriptor_epoch(sets, config.stage1, config.batch_size, rng, use_real=False)
+    optimizer, scheduler = make_optimizer(net, config.stage1, config, len(plan))
+    wall, cpu, sizes = [], [], []
+    for i, (obj_index, entries) in enumerate(plan[: warmup + steps]):
+        tick, cpu_tick = time.perf_counter(), time.process_time()
+        step(obj_index, entries, 1.0, rng, optimizer, scheduler)
+        if i >= warmup:
+            wall.append(time.perf_counter() - tick)
+            cpu.append(time.process_time() - cpu_tick)
+            sizes.append(len(entries))
+    info = {
+        **run_info(),
+        "objects": list(objects),
+        "anchors": [len(o.anchors) for o in sets],
+        "parameters": count_parameters(net),
+        "batch_size": config.batch_size,
         "threads": torch.get_num_threads(),
         "load_average": list(os.getloadavg()),
         "cpu_count": os.cpu_count(),

@@ -8,7 +8,7 @@ import torch
 from yoto.errors import InputError
 from yoto.network.model import ContactLocalizationNet
 from yoto.training.batches import Entry, collate
-from yoto.training.config import StageConfig, TrainConfig
+from yoto.training.config import AnyTrainConfig, StageConfig, TrainConfig
 from yoto.training.data import ObjectData, draw_patch
 from yoto.training.losses import localization_loss
 
@@ -24,10 +24,10 @@ def device_and_autocast(precision: str, device: str | None) -> tuple[torch.devic
 
 
 def make_optimizer(
-    net: ContactLocalizationNet, stage: StageConfig, config: TrainConfig, total_steps: int
+    net: torch.nn.Module, stage: StageConfig, config: AnyTrainConfig, total_steps: int
 ) -> tuple[torch.optim.AdamW, torch.optim.lr_scheduler.OneCycleLR]:
-    """AdamW with weight decay on weight matrices only, the encoder at its own learning rate, under a OneCycle
-    schedule of `total_steps` steps."""
+    """AdamW with weight decay on weight matrices only, the encoder (parameters named encoder.*) at its own learning
+    rate, under a OneCycle schedule of `total_steps` steps."""
     groups: dict[str, list[torch.nn.Parameter]] = {
         "encoder_decay": [],
         "encoder_plain": [],

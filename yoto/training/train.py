@@ -1,5 +1,8 @@
 """Two-stage training of the localization network (paper Sec. 3.3, App. C.2): `train(config, objects, ...)`.
 
+`train` owns the run folder for both networks; the anchor-descriptor network's (`cpu` preset) stages run in
+yoto.training.descriptor_train, the point network's (`paper`, `cpu-points`) below.
+
 Stage 1 learns from the virtual patches of every object; stage 2 (when contact pairs with ground truth are
 given) fine-tunes on virtual patches plus those "real" contacts, over-sampled and weighted up, at lower
 learning rates. One network serves all the objects: each step draws one object's patches and scores them
@@ -41,8 +44,16 @@ from yoto.objects.build import load_object_model
 from yoto.objects.model import ObjectModel
 from yoto.patches.virtual import VirtualPatchConfig
 from yoto.training.batches import epoch_batch_count, plan_epoch
-from yoto.training.config import StageConfig, TrainConfig
-from yoto.training.data import ContactSample, ObjectData, load_contact_samples, load_objects, pair_files_digest
+from yoto.training.config import AnyTrainConfig, DescriptorTrainConfig, StageConfig, TrainConfig
+from yoto.training.data import (
+    LabelledContact,
+    ObjectData,
+    contact_samples,
+    load_labelled_contacts,
+    load_objects,
+    pair_files_digest,
+)
+from yoto.training.descriptor_train import train_descriptor
 from yoto.training.export import localizer_checkpoint
 from yoto.training.logs import log_epoch, plot_curves, write_logs
 from yoto.training.state import TrainingState
@@ -57,7 +68,7 @@ RUN_FILES = ("model.pt", "model_stage1.pt", "state.pt", "log.jsonl", "log.csv", 
 
 
 def train(
-    config: TrainConfig,
+    config: AnyTrainConfig,
     objects: list[str],
     workspace: str | Path | None = None,
     run_dir: str | Path | None = None,
@@ -73,12 +84,13 @@ def train(
 ) -> Path:
     """Train (or keep, or resume) the localization network on `objects`; returns the checkpoint path.
 
+    config: a point-network config (`paper`, `cpu-points`) or the anchor-descriptor network's (`cpu`).
     objects: object names in the workspace (built-in objects are built on first use) or model files; their
-    virtual patches are generated with `patch_config` if missing. real_pairs_dir: contact pairs with ground
-    truth for stage 2 (stage 2 runs only with them). val_pairs_dir: held-out pairs validated every epoch
-    (never the fine-tuning ones). max_steps: stop after this many steps in all (tests, speed checks); the
-    result is then not a finished run and no model.pt is written. pair_objects: pair-file object name ->
-    trained object name, for training a model of a scan with contacts recorded on the real object.
+    virtual patches (or contacts: `config.virtual`) are generated with `patch_config` if missing. real_pairs_dir:
+    contact pairs with ground truth for stage 2 (stage 2 runs only with them). val_pairs_dir: held-out pairs
+    validated every epoch (never the fine-tuning ones). max_steps: stop after this many steps in all (tests, speed
+    checks); the result is then not a finished run and no model.pt is written. pair_objects: pair-file object name
+    -> trained object name, for training a model of a scan with contacts recorded on the real object.
     """
     if not objects:
         raise InputError("name at least one object to train on")
@@ -93,6 +105,21 @@ def train(
         log.info("%s: up to date, kept (pass --overwrite to retrain)", run_dir / "model.pt")
         return run_dir / "model.pt"
     run_dir.mkdir(parents=True, exist_ok=True)
+    if isinstance(config, DescriptorTrainConfig):
+        return train_descriptor(
+            config,
+            models,
+            run_dir,
+            identity,
+            contacts.real,
+            contacts.val,
+            contacts.real_digest,
+            workspace,
+            resume,
+            device,
+            progress,
+            max_steps,
+        )
 
     run = _start_run(config, objects, models, contacts, workspace, patch_config, device, run_dir, identity, progress)
     resumed = _resume(run, run_dir / "state.pt") if resume else None
@@ -109,8 +136,8 @@ def train(
 class _Contacts:
     """Contacts with ground truth by object name: for stage 2 (`real`) and for validation (`val`)."""
 
-    real: dict[str, list[ContactSample]]
-    val: dict[str, list[ContactSample]]
+    real: dict[str, list[LabelledContact]]
+    val: dict[str, list[LabelledContact]]
     real_digest: str | None  # of the pair files (None: no stage 2)
     val_digest: str | None
 
@@ -121,14 +148,14 @@ def _load_contacts(
     val_pairs_dir: str | Path | None,
     pair_objects: dict[str, str] | None,
 ) -> _Contacts:
-    real: dict[str, list[ContactSample]] = {}
-    val: dict[str, list[ContactSample]] = {}
+    real: dict[str, list[LabelledContact]] = {}
+    val: dict[str, list[LabelledContact]] = {}
     real_files: list[Path] = []
     val_files: list[Path] = []
     if real_pairs_dir is not None:
-        real, real_files = load_contact_samples([real_pairs_dir], models, pair_objects)
+        real, real_files = load_labelled_contacts([real_pairs_dir], models, pair_objects)
     if val_pairs_dir is not None:
-        val, val_files = load_contact_samples([val_pairs_dir], models, pair_objects)
+        val, val_files = load_labelled_contacts([val_pairs_dir], models, pair_objects)
     if real_files and val_files:
         overlap = {pair_files_digest([p]) for p in real_files} & {pair_files_digest([p]) for p in val_files}
         if overlap:
@@ -142,7 +169,7 @@ def _load_contacts(
 
 
 def _identity(
-    config: TrainConfig, models: list[ObjectModel], patch_config: VirtualPatchConfig, contacts: _Contacts
+    config: AnyTrainConfig, models: list[ObjectModel], patch_config: VirtualPatchConfig, contacts: _Contacts
 ) -> dict[str, Any]:
     """What decides the run's result (run.json): a run folder holding another identity is not reused."""
     return json.loads(
@@ -150,7 +177,7 @@ def _identity(
             {
                 "train_config": config.to_dict(),
                 "objects": [{"name": m.name, "fingerprint": m.fingerprint} for m in models],
-                "patch_config": asdict(patch_config),
+                "patch_config": asdict(patch_config) if isinstance(config, TrainConfig) else None,
                 "real_pairs": contacts.real_digest,
                 "val_pairs": contacts.val_digest,
             }
@@ -351,8 +378,8 @@ def _start_run(
     net = ContactLocalizationNet(config.network).to(device_)
     data = load_objects(objects, models, workspace, config, patch_config, progress)
     for obj in data:
-        obj.real_train = contacts.real.get(obj.name, [])
-        obj.real_val = contacts.val.get(obj.name, [])
+        obj.real_train = contact_samples(contacts.real.get(obj.name, []), obj.model)
+        obj.real_val = contact_samples(contacts.val.get(obj.name, []), obj.model)
     use_real = any(obj.real_train for obj in data)
     return _Run(
         config=config,

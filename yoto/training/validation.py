@@ -106,7 +106,8 @@ def evaluate_set(
                 copies = [rotated_copies(p, n, rotations) for p, n in zip(points, normals, strict=True)]
                 points = np.concatenate([c[0] for c in copies])
                 normals = np.concatenate([c[1] for c in copies])
-            features = net.encode(torch.from_numpy(points), torch.from_numpy(normals))
+            device = block_features.device
+            features = net.encode(torch.from_numpy(points).to(device), torch.from_numpy(normals).to(device))
             features = features.reshape(-1, rotations, features.shape[-1])
             rankings.append(rank_hypotheses(net, features, block_features, block_tensors, config.hypotheses))
     ranking = {key: np.concatenate([r[key] for r in rankings]) for key in rankings[0]}
