@@ -8,7 +8,6 @@ kept in a small in-memory cache keyed by the model's fingerprint.
 
 from __future__ import annotations
 
-import threading
 import time
 from dataclasses import dataclass
 
@@ -17,6 +16,7 @@ import numpy as np
 from yoto.geometry import tangent_basis
 from yoto.network.polar import PolarGrid, press_maps
 from yoto.network.presets import AnchorNetConfig
+from yoto.objects.cache import ModelCache
 from yoto.objects.model import ObjectModel
 from yoto.pointcloud import voxel_downsample
 from yoto.raycast import MeshRaycaster
@@ -104,20 +104,9 @@ def make_anchor_set(model: ObjectModel, config: AnchorNetConfig) -> AnchorSet:
     )
 
 
-_CACHE: dict[tuple[str, AnchorNetConfig], AnchorSet] = {}
-_CACHE_LOCK = threading.Lock()
-_CACHE_SIZE = 8
+_CACHE: ModelCache[AnchorNetConfig, AnchorSet] = ModelCache(make_anchor_set, size=8)
 
 
 def anchor_set(model: ObjectModel, config: AnchorNetConfig) -> AnchorSet:
     """The cached anchors of a model (keyed by its fingerprint and the network config)."""
-    key = (model.fingerprint, config)
-    with _CACHE_LOCK:
-        cached = _CACHE.get(key)
-    if cached is None:
-        cached = make_anchor_set(model, config)
-        with _CACHE_LOCK:
-            if len(_CACHE) >= _CACHE_SIZE:
-                _CACHE.pop(next(iter(_CACHE)))
-            _CACHE[key] = cached
-    return cached
+    return _CACHE.get(model, config)

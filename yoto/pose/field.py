@@ -13,13 +13,13 @@ the model's fingerprint and the config), like the matched filter's anchor maps.
 
 from __future__ import annotations
 
-import threading
 import time
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
 
+from yoto.objects.cache import ModelCache
 from yoto.objects.model import ObjectModel
 
 
@@ -125,20 +125,9 @@ def _signed_distance(model: ObjectModel, nodes: np.ndarray) -> np.ndarray:
     return distance
 
 
-_CACHE: dict[tuple[str, FieldConfig], SurfaceField] = {}
-_CACHE_LOCK = threading.Lock()
-_CACHE_SIZE = 4
+_CACHE: ModelCache[FieldConfig, SurfaceField] = ModelCache(build_surface_field, size=4)
 
 
 def surface_field(model: ObjectModel, config: FieldConfig = FieldConfig()) -> SurfaceField:
     """The cached surface distance field of a model (built on first use)."""
-    key = (model.fingerprint, config)
-    with _CACHE_LOCK:
-        cached = _CACHE.get(key)
-    if cached is None:
-        cached = build_surface_field(model, config)
-        with _CACHE_LOCK:
-            if len(_CACHE) >= _CACHE_SIZE:
-                _CACHE.pop(next(iter(_CACHE)))
-            _CACHE[key] = cached
-    return cached
+    return _CACHE.get(model, config)

@@ -28,7 +28,6 @@ per-query pair sets small instead.
 
 from __future__ import annotations
 
-import threading
 import time
 from dataclasses import dataclass
 
@@ -36,6 +35,7 @@ import numpy as np
 
 from yoto.contacts import SIDES, ContactEstimate, WorldContact
 from yoto.geometry import tangent_basis
+from yoto.objects.cache import ModelCache
 from yoto.objects.model import ObjectModel
 from yoto.pointcloud import voxel_downsample
 from yoto.pose.solver import MIN_CONTACT_SEPARATION_M, BatchSolution, direction_angles, solve_poses
@@ -158,23 +158,12 @@ def build_surface_samples(model: ObjectModel, config: SampleConfig = SampleConfi
     return SurfaceSamples(samples, normals, shapes, spacing, time.perf_counter() - start)
 
 
-_CACHE: dict[tuple[str, SampleConfig], SurfaceSamples] = {}
-_CACHE_LOCK = threading.Lock()
-_CACHE_SIZE = 4
+_CACHE: ModelCache[SampleConfig, SurfaceSamples] = ModelCache(build_surface_samples, size=4)
 
 
 def surface_samples(model: ObjectModel, config: SampleConfig = SampleConfig()) -> SurfaceSamples:
     """The cached search samples of a model (built on first use)."""
-    key = (model.fingerprint, config)
-    with _CACHE_LOCK:
-        cached = _CACHE.get(key)
-    if cached is None:
-        cached = build_surface_samples(model, config)
-        with _CACHE_LOCK:
-            if len(_CACHE) >= _CACHE_SIZE:
-                _CACHE.pop(next(iter(_CACHE)))
-            _CACHE[key] = cached
-    return cached
+    return _CACHE.get(model, config)
 
 
 @dataclass

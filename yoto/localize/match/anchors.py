@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import threading
 import time
 from dataclasses import dataclass
 from functools import cached_property
@@ -13,6 +12,7 @@ from scipy.spatial import cKDTree
 from yoto.geometry import tangent_basis
 from yoto.localize.match.config import AnchorConfig
 from yoto.localize.match.rings import RingDescriptors, RingGrid
+from yoto.objects.cache import ModelCache
 from yoto.objects.model import ObjectModel
 from yoto.pointcloud import voxel_downsample
 from yoto.raycast import MeshRaycaster
@@ -127,27 +127,15 @@ def build_anchor_maps(model: ObjectModel, config: AnchorConfig) -> AnchorMaps:
     )
 
 
-_CACHE: dict[tuple[str, AnchorConfig], AnchorMaps] = {}
-_CACHE_LOCK = threading.Lock()
-_CACHE_SIZE = 4
+_CACHE: ModelCache[AnchorConfig, AnchorMaps] = ModelCache(build_anchor_maps, size=4)
 
 
 def anchor_maps(model: ObjectModel, config: AnchorConfig) -> AnchorMaps:
     """The cached anchor maps of a model, keyed by its fingerprint and the anchor settings only (per-query
     settings such as the number of candidates do not rebuild them)."""
-    key = (model.fingerprint, config)
-    with _CACHE_LOCK:
-        cached = _CACHE.get(key)
-    if cached is None:
-        cached = build_anchor_maps(model, config)
-        with _CACHE_LOCK:
-            if len(_CACHE) >= _CACHE_SIZE:
-                _CACHE.pop(next(iter(_CACHE)))
-            _CACHE[key] = cached
-    return cached
+    return _CACHE.get(model, config)
 
 
 def clear_cache() -> None:
     """Forget every cached anchor map (they are rebuilt on the next query)."""
-    with _CACHE_LOCK:
-        _CACHE.clear()
+    _CACHE.clear()
