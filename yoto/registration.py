@@ -164,7 +164,7 @@ def point_to_plane_gauss_newton(
         anchor_now = np.einsum("kij,kj->ki", rotation, anchor_source[active]) + translation
         centres = np.zeros((count, 3)) if pivot_source is None else anchor_now
         magnitude = np.abs(r)
-        scale = np.maximum(config.surface_noise_m, 1.4826 * _row_medians(magnitude, use))
+        scale = np.maximum(config.surface_noise_m, 1.4826 * masked_row_medians(magnitude, use))
         weights = np.where(use, np.minimum(1.0, scale[:, None] / np.maximum(magnitude, 1e-12)), 0.0)
         weights /= config.surface_noise_m**2
         jacobian = _jacobian(p - centres[:, None, :], n)
@@ -207,7 +207,7 @@ def _jacobian(lever: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return jacobian
 
 
-def _row_medians(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+def masked_row_medians(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Median of each row's masked entries (0 for a row with none), without NaN warnings."""
     ordered = np.sort(np.where(mask, values, np.inf), axis=1)
     count = mask.sum(axis=1)

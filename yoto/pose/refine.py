@@ -26,6 +26,7 @@ from scipy import ndimage
 from yoto.geometry import se3_exp, se3_log
 from yoto.pointcloud import voxel_downsample
 from yoto.pose.field import SurfaceField
+from yoto.registration import masked_row_medians
 from yoto.sensor.spec import GELSIGHT_MINI
 from yoto.simulate.body import SensorBody
 
@@ -252,7 +253,7 @@ def refine_hypotheses(
             assert n is not None
             magnitude = np.abs(r)
             use = magnitude < config.max_distance_m
-            scale = np.maximum(config.surface_noise_m, 1.4826 * _masked_median(magnitude, use))
+            scale = np.maximum(config.surface_noise_m, 1.4826 * masked_row_medians(magnitude, use))
             w = np.where(use, np.minimum(1.0, scale[:, None] / np.maximum(magnitude, 1e-12)), 0.0)
             m = np.einsum("kji,kmj->kmi", A[:, :3, :3], n)  # the surface normal in the sensor frame
             J = np.zeros(q.shape[:2] + (18,))
@@ -291,13 +292,3 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         ],
         axis=-1,
     )
-
-
-def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Median of each row's masked entries (0 for a row with none)."""
-    ordered = np.sort(np.where(mask, values, np.inf), axis=1)
-    count = mask.sum(axis=1)
-    rows = np.arange(len(values))
-    low = ordered[rows, np.maximum(count - 1, 0) // 2]
-    high = ordered[rows, np.maximum(count, 1) // 2 - (count == 0)]
-    return np.where(count > 0, 0.5 * (low + high), 0.0)
