@@ -376,15 +376,8 @@ class DescriptorRun:
                 }
                 self.history.append(record)
                 log_descriptor_epoch(record)
-                stage_done = epoch + 1 == stage.epochs
-                TrainingState(
-                    identity=self.identity,
-                    stage_index=stage_index + 1 if stage_done else stage_index,
-                    epoch=0 if stage_done else epoch + 1,
-                    net=self.net.state_dict(),
-                    optimizer=optimizer.state_dict(),
-                    scheduler=scheduler.state_dict(),
-                    history=self.history,
+                TrainingState.after_epoch(
+                    self.identity, stage_index, epoch, stage.epochs, self.net, optimizer, scheduler, self.history
                 ).save(self.run_dir / "state.pt")
                 write_logs(self.run_dir, self.history)
             if name == "stage1" and len(self.stages) > 1 and not (self.run_dir / "model_stage1.pt").exists():

@@ -30,6 +30,30 @@ class TrainingState:
     scheduler: dict[str, Any]  # learning-rate schedule of the stage
     history: list[dict[str, Any]]  # one record per finished epoch (log.jsonl)
 
+    @classmethod
+    def after_epoch(
+        cls,
+        identity: dict[str, Any],
+        stage_index: int,
+        epoch: int,
+        stage_epochs: int,
+        net: torch.nn.Module,
+        optimizer: torch.optim.Optimizer,
+        scheduler: Any,
+        history: list[dict[str, Any]],
+    ) -> TrainingState:
+        """The state after `epoch` (0-based) of stage `stage_index` finished; the stage's last epoch moves it on."""
+        stage_done = epoch + 1 == stage_epochs
+        return cls(
+            identity=identity,
+            stage_index=stage_index + 1 if stage_done else stage_index,
+            epoch=0 if stage_done else epoch + 1,
+            net=net.state_dict(),
+            optimizer=optimizer.state_dict(),
+            scheduler=scheduler.state_dict(),
+            history=history,
+        )
+
     def save(self, path: str | Path) -> Path:
         return save_torch_atomic(
             path,
