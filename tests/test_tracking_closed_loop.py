@@ -180,3 +180,21 @@ def test_a_registration_the_filter_does_not_expect_counts_less(builtin_models, f
         moved[label] = instant.correction_m
     assert 2e-4 < moved["plain"] < 3e-3
     assert moved["robust"] < 0.85 * moved["plain"]
+
+
+def test_a_touch_of_low_confidence_is_tracked_with_a_warning(builtin_models, fruit_trajectory, tmp_path, capsys):
+    model = builtin_models["fruit"]
+    model_path = model.save(tmp_path / "fruit.npz")
+    folder = write_trajectory(fruit_trajectory, model, tmp_path / "traj")
+    truth = read_tum(folder / "object_true.tum")
+    T_world_mesh = truth.T_world_frame[np.searchsorted(truth.timestamps_s, fruit_trajectory.touch_time_s)]
+    for confidence, warned in ((0.1, True), (0.9, False)):
+        pose = tmp_path / f"touch_{confidence}.pose.json"
+        pose.write_text(json.dumps({"T_world_object": T_world_mesh.tolist(), "confidence": confidence}))
+        args = ["track", str(folder / "touch.json"), "--left", str(folder / "left.tum"), "--right"]
+        args += [str(folder / "right.tum"), "--model", str(model_path), "--pose", str(pose), "--open-loop"]
+        args += ["--out", str(tmp_path / f"object_{confidence}.tum")]
+        assert main(args) == 0
+        out = capsys.readouterr().out
+        assert (f"the touch's pose has confidence {confidence:.2f}" in out) is warned
+        assert (tmp_path / f"object_{confidence}.tum").exists()

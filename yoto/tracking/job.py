@@ -84,20 +84,25 @@ def read_tactile(job: TrackJob) -> dict[str, TactileStream]:
     }
 
 
-def touch_pose(job: TrackJob, pair: ContactPair, model: ObjectModel) -> tuple[np.ndarray, str]:
-    """The touch's T_world_object (canonical frame) and where it came from."""
+def touch_pose(job: TrackJob, pair: ContactPair, model: ObjectModel) -> tuple[np.ndarray, str, float | None]:
+    """The touch's T_world_object (canonical frame), where it came from, and its confidence (None if unknown)."""
     if job.pose_result is not None:
         payload = read_json(job.pose_result)
         if not isinstance(payload, dict) or "T_world_object" not in payload:
             raise InputError("not a pose result (no 'T_world_object')", job.pose_result)
         T_world_mesh = validate_transform(payload["T_world_object"], "T_world_object", job.pose_result)
-        return T_world_mesh @ model.T_mesh_object, f"pose result {job.pose_result.name}"
+        confidence = payload.get("confidence")
+        return (
+            T_world_mesh @ model.T_mesh_object,
+            f"pose result {job.pose_result.name}",
+            float(confidence) if isinstance(confidence, (int, float)) else None,
+        )
     from yoto.localize import make_localizer
     from yoto.pose import estimate_pose
 
     estimate = estimate_pose(pair, model, make_localizer(job.method, job.checkpoint))
     source = f"yoto pose ({job.method}), confidence {estimate.confidence:.2f}"
-    return estimate.T_world_object, source
+    return estimate.T_world_object, source, estimate.confidence
 
 
 def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOutcome:
@@ -115,7 +120,12 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
             f"the sensor streams never come closer than {mismatch * 1e3:.1f} mm (position plus 50 mm per radian) to "
             "the pair file's sensor poses: are they the same recording, in the same world frame?"
         )
-    T_world_object, pose_source = touch_pose(job, pair, model)
+    T_world_object, pose_source, confidence = touch_pose(job, pair, model)
+    if confidence is not None and confidence < config.min_touch_confidence:
+        warnings.append(
+            f"the touch's pose has confidence {confidence:.2f}: it is likely wrong, and so is everything tracked from "
+            "it; touch again (the pose result's next_touch says where) before relying on the track"
+        )
     touch = touch_from_pair(pair, T_world_object, time_s, time_source)
     touch.mismatch_m = mismatch
     result = track(touch, streams, model, tactile or None, config)

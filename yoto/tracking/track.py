@@ -113,6 +113,7 @@ class TrackConfig:
     fusion: FusionConfig = FusionConfig()
     correction: CorrectionConfig = CorrectionConfig()
     touch_mismatch_warning_m: float = 0.005  # warn when the streams never come this close to the pair's sensor poses
+    min_touch_confidence: float = 0.5  # warn when the touch's pose is less likely than this to be right
 
 
 @dataclass
