@@ -87,6 +87,25 @@ def read_json(path: str | Path) -> Any:
         raise InputError(f"not a valid JSON file ({exc})", path) from exc
 
 
+def settings_changed(
+    out_dir: Path, stored: dict[str, Any] | None, settings: dict[str, Any], what: str, overwrite: bool
+) -> bool:
+    """Whether a resumable output folder was made with other settings than `settings` (its `stored` ones).
+
+    Refused unless `overwrite`, naming the settings that differ: a folder never mixes two runs' outputs.
+    """
+    if stored is None or stored == settings:
+        return False
+    if not overwrite:
+        changed = sorted(key for key in settings if stored.get(key) != settings[key])
+        raise InputError(
+            f"this folder holds {what} simulated with other settings ({', '.join(changed)} differ); pass "
+            "--overwrite to replace them, or choose another --out",
+            out_dir,
+        )
+    return True
+
+
 def save_npz_atomic(path: str | Path, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> Path:
     """Save arrays and a JSON metadata dict (stored as the `meta_json` entry) into one npz file."""
     buffer = io.BytesIO()

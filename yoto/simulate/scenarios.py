@@ -40,7 +40,7 @@ from yoto.geometry import (
     rotation_angle_rad,
     transform_points,
 )
-from yoto.io import read_json, write_json_atomic
+from yoto.io import read_json, settings_changed, write_json_atomic
 from yoto.objects.model import ObjectModel
 from yoto.simulate.press import (
     REJECTION_REASONS,
@@ -385,16 +385,8 @@ def write_pairs(
             "--overwrite to replace them, or choose another --out",
             out_dir,
         )
-    if stored is not None and stored != settings:
-        if overwrite:
-            _remove_pairs(out_dir, first_index=count)
-        else:
-            changed = sorted(key for key in settings if stored.get(key) != settings[key])
-            raise InputError(
-                f"this folder holds pairs simulated with other settings ({', '.join(changed)} differ); pass "
-                "--overwrite to replace them, or choose another --out",
-                out_dir,
-            )
+    if settings_changed(out_dir, stored, settings, "pairs", overwrite):
+        _remove_pairs(out_dir, first_index=count)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_json_atomic(settings_path, settings)
 

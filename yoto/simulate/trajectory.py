@@ -51,7 +51,7 @@ from yoto.geometry import (
     so3_exp,
     so3_log,
 )
-from yoto.io import read_json, write_json_atomic, write_ply_points
+from yoto.io import read_json, settings_changed, write_json_atomic, write_ply_points
 from yoto.objects.model import ObjectModel
 from yoto.simulate.gel import bias_field, gel_surface, reconstruct_points
 from yoto.simulate.press import SIMULATOR_VERSION
@@ -546,13 +546,7 @@ def write_trajectories(
     settings = trajectory_settings(model, seed, config)
     settings_path = out_dir / FOLDER_SETTINGS_FILE
     stored = read_json(settings_path) if settings_path.exists() else None
-    if stored is not None and stored != settings and not overwrite:
-        changed = sorted(key for key in settings if stored.get(key) != settings[key])
-        raise InputError(
-            f"this folder holds trajectories simulated with other settings ({', '.join(changed)} differ); pass "
-            "--overwrite to replace them, or choose another --out",
-            out_dir,
-        )
+    settings_changed(out_dir, stored, settings, "trajectories", overwrite)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_json_atomic(settings_path, settings)
     report = TrajectoryReport(out_dir=out_dir)
