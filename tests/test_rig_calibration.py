@@ -181,3 +181,17 @@ def test_object_calibration_from_beads(tmp_path, rng, builtin_models):
     few = BeadPicks(["B0", "B1"], picks.foot_mesh[:2], picks.bead_radius_m, picks_file)
     with pytest.raises(InputError, match=r"beads.json: 2 beads"):
         calibrate_object(open_recording(take), few, vertices, faces, object_name="figurine", object_body="Object")
+
+
+def test_calibration_files_of_another_kind_or_version_are_refused_naming_the_file(tmp_path):
+    from yoto.rig.beads import load_object_calibration
+
+    path = tmp_path / "rig.json"
+    path.write_text('{"format": "yoto-object-calibration", "format_version": 1}')
+    with pytest.raises(InputError, match=r"rig.json.*not a rig calibration.*make one with `yoto rig calibrate-rig`"):
+        load_rig_calibration(path)
+    with pytest.raises(InputError, match="object calibration has no 'object'"):
+        load_object_calibration(path)
+    path.write_text('{"format": "yoto-rig-calibration", "format_version": 7}')
+    with pytest.raises(InputError, match="rig calibration version 7 is not supported"):
+        load_rig_calibration(path)

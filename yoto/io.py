@@ -106,6 +106,24 @@ def settings_changed(
     return True
 
 
+def read_json_format(
+    path: str | Path, format_name: str, version: int, what: str, keys: tuple[str, ...] = (), how_to_make: str = ""
+) -> dict[str, Any]:
+    """A JSON file of one of YOTO's versioned formats (`"format"`, `"format_version"`), with the `keys` it needs;
+    errors name the file, the `what` it should be and, where given, the command that makes one."""
+    payload = read_json(path)
+    if not isinstance(payload, dict) or payload.get("format") != format_name:
+        found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
+        hint = f"; make one with `{how_to_make}`" if how_to_make else ""
+        raise InputError(f"not a {what} (format '{found}', expected '{format_name}'){hint}", path)
+    if payload.get("format_version") != version:
+        raise InputError(f"{what} version {payload.get('format_version')} is not supported", path)
+    for key in keys:
+        if key not in payload:
+            raise InputError(f"{what} has no '{key}'", path)
+    return payload
+
+
 def save_npz_atomic(path: str | Path, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> Path:
     """Save arrays and a JSON metadata dict (stored as the `meta_json` entry) into one npz file."""
     buffer = io.BytesIO()

@@ -25,7 +25,7 @@ import numpy as np
 
 from yoto.errors import DegenerateGeometryError, InputError
 from yoto.geometry import make_transform, normalize, procrustes_rotation, transform_points, validate_transform
-from yoto.io import read_json, write_json_atomic
+from yoto.io import read_json, read_json_format, write_json_atomic
 from yoto.raycast import MeshRaycaster
 from yoto.rig.streams import Recording
 from yoto.rig.timeline import static_segments
@@ -84,19 +84,14 @@ class ObjectCalibration:
 
 def load_object_calibration(path: str | Path) -> ObjectCalibration:
     path = Path(path)
-    payload = read_json(path)
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT_NAME:
-        found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
-        raise InputError(
-            f"not an object calibration (format '{found}', expected '{FORMAT_NAME}'); make one with "
-            "`yoto rig calibrate-object`",
-            path,
-        )
-    if payload.get("format_version") != FORMAT_VERSION:
-        raise InputError(f"object calibration version {payload.get('format_version')} is not supported", path)
-    for key in ("object", "object_body", "T_objectbody_mesh"):
-        if key not in payload:
-            raise InputError(f"object calibration has no '{key}'", path)
+    payload = read_json_format(
+        path,
+        FORMAT_NAME,
+        FORMAT_VERSION,
+        "object calibration",
+        ("object", "object_body", "T_objectbody_mesh"),
+        "yoto rig calibrate-object",
+    )
     return ObjectCalibration(
         str(payload["object"]),
         str(payload["object_body"]),

@@ -30,7 +30,7 @@ from yoto.geometry import (
     rotation_between,
     validate_transform,
 )
-from yoto.io import read_json, write_json_atomic
+from yoto.io import read_json, read_json_format, write_json_atomic
 from yoto.rig.streams import Recording
 from yoto.rig.timeline import PoseStream, static_segments
 
@@ -122,19 +122,14 @@ class RigCalibration:
 def load_rig_calibration(path: str | Path) -> RigCalibration:
     """Read a rig calibration file; errors name the file."""
     path = Path(path)
-    payload = read_json(path)
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT_NAME:
-        found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
-        raise InputError(
-            f"not a rig calibration (format '{found}', expected '{FORMAT_NAME}'); make one with "
-            "`yoto rig calibrate-rig`",
-            path,
-        )
-    if payload.get("format_version") != FORMAT_VERSION:
-        raise InputError(f"rig calibration version {payload.get('format_version')} is not supported", path)
-    for key in ("name", "rig_body", "T_rig_sensor"):
-        if key not in payload:
-            raise InputError(f"rig calibration has no '{key}'", path)
+    payload = read_json_format(
+        path,
+        FORMAT_NAME,
+        FORMAT_VERSION,
+        "rig calibration",
+        ("name", "rig_body", "T_rig_sensor"),
+        "yoto rig calibrate-rig",
+    )
     return RigCalibration(
         name=str(payload["name"]),
         rig_body=str(payload["rig_body"]),

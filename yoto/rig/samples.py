@@ -22,7 +22,7 @@ import numpy as np
 from yoto.contacts import TactileContact, validate_tactile_points
 from yoto.errors import InputError
 from yoto.geometry import validate_transform
-from yoto.io import read_json, read_ply_points, write_json_atomic
+from yoto.io import read_json, read_json_format, read_ply_points, write_json_atomic
 
 FORMAT_NAME = "yoto-labelled-contact"
 FORMAT_VERSION = 1
@@ -75,11 +75,7 @@ def write_labelled_contact(
 def read_labelled_contact(path: str | Path) -> LabelledContact:
     """Read a labelled contact and its tactile cloud; errors name the file."""
     path = Path(path)
-    payload = read_json(path)
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT_NAME:
-        raise InputError(f"not a labelled contact file (format '{FORMAT_NAME}')", path)
-    if payload.get("format_version") != FORMAT_VERSION:
-        raise InputError(f"labelled contact version {payload.get('format_version')} is not supported", path)
+    payload = read_json_format(path, FORMAT_NAME, FORMAT_VERSION, "labelled contact", how_to_make="yoto rig label")
     contact, truth = payload.get("contact"), payload.get("ground_truth")
     if not isinstance(contact, dict) or "points" not in contact or not isinstance(truth, dict):
         raise InputError("a labelled contact needs 'contact' (points, T_world_sensor) and 'ground_truth'", path)
