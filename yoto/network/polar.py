@@ -19,15 +19,11 @@ from functools import cached_property
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
-from yoto.contacts import contact_in_sensor
-from yoto.errors import DegenerateGeometryError
-from yoto.geometry import tangent_basis
 from yoto.network.presets import AnchorNetConfig
 from yoto.sensor.spec import GELSIGHT_MINI
+from yoto.tactile_image import tactile_height_image
 
-X_AXIS = np.array([1.0, 0.0, 0.0])
 MIN_PLANE_CELLS = 6  # fewer shared cells cannot support an offset-and-tilt fit (offset only then)
 FREE_CLEARANCE_M = 0.0005  # cells this close to the contact are not judged free (its rim is uncertain)
 FREE_MARGIN_M = 0.0001  # unseen surface may reach this far into the gel without contradicting the contact ...
@@ -82,16 +78,6 @@ class ContactPolarMap:
         return np.stack([np.where(self.covered, self.heights_m / height_unit_m, 0.0), self.covered]).astype(np.float32)
 
 
-def tactile_spacing_m(local: np.ndarray, samples: int = 512) -> float:
-    """Median in-plane distance between neighbouring tactile points near the contact centre (the cloud's resolution)."""
-    radial = local[:, 0] ** 2 + local[:, 1] ** 2
-    count = min(4 * samples, len(local))
-    near = np.argpartition(radial, count - 1)[:count]
-    near = near[np.argsort(radial[near])]
-    distances, _ = cKDTree(local[near, :2]).query(local[near[:samples], :2], k=2)
-    return float(np.median(distances[:, 1]))
-
-
 def contact_polar_map(
     points_sensor: np.ndarray,
     grid: PolarGrid,
@@ -108,52 +94,19 @@ def contact_polar_map(
     its centre are; its height is read bilinearly. A cell is free when it lies over the pad (`pad_size_m`, x and y
     extents, centred on the sensor axis) and no pixel within FREE_CLEARANCE_M of it holds points.
     """
-    centre, normal = contact_in_sensor(points_sensor)
-    u, v = tangent_basis(-normal, reference=X_AXIS)
-    basis = np.stack([u, v, -normal], axis=1)
-    local = (points_sensor - centre) @ basis
-    pixel = max(pixel_m, 1.5 * tactile_spacing_m(local))
-    half = grid.radius_m + 2.0 * pixel
-    side = int(np.ceil(2.0 * half / pixel))
-    ix = np.floor((local[:, 0] + half) / pixel).astype(np.int64)
-    iy = np.floor((local[:, 1] + half) / pixel).astype(np.int64)
-    inside = (ix >= 0) & (ix < side) & (iy >= 0) & (iy < side)
-    if not inside.any():
-        raise DegenerateGeometryError("the tactile cloud has no points around its contact centre")
-    key = ix[inside] * side + iy[inside]
-    sums = np.bincount(key, weights=local[inside, 2], minlength=side * side).reshape(side, side)
-    counts = np.bincount(key, minlength=side * side).reshape(side, side).astype(np.float64)
-    filled = counts > 0
-    holes = ndimage.binary_closing(filled) & ~filled
-    if holes.any():  # a hole's height: the mean of the points in its 3 x 3 neighbourhood
-        sums = np.where(holes, ndimage.uniform_filter(sums, 3, mode="constant"), sums)
-        counts = np.where(holes, ndimage.uniform_filter(counts, 3, mode="constant"), counts)
-        filled |= holes
-    heights = np.where(filled, sums / np.maximum(counts, 1e-12), 0.0)
-    mask = ndimage.binary_erosion(filled, iterations=erode_px) if erode_px > 0 else filled
-    # Bilinear read at the cell centres; a cell counts when its four pixels are all in the mask.
-    fx = (grid.centres[..., 0] + half) / pixel - 0.5
-    fy = (grid.centres[..., 1] + half) / pixel - 0.5
-    x0 = np.clip(np.floor(fx).astype(np.int64), 0, side - 2)
-    y0 = np.clip(np.floor(fy).astype(np.int64), 0, side - 2)
-    wx, wy = np.clip(fx - x0, 0.0, 1.0), np.clip(fy - y0, 0.0, 1.0)
-    sampled = np.zeros(fx.shape)
-    covered = np.ones(fx.shape, dtype=bool)
-    for dx, dy, weight in ((0, 0, (1 - wx) * (1 - wy)), (1, 0, wx * (1 - wy)), (0, 1, (1 - wx) * wy), (1, 1, wx * wy)):
-        sampled += heights[x0 + dx, y0 + dy] * weight
-        covered &= mask[x0 + dx, y0 + dy]
+    image = tactile_height_image(points_sensor, grid.radius_m, pixel_m, erode_px)
+    centre, normal, basis, pixel = image.centre_sensor, image.normal_sensor, image.basis_sensor, image.pixel_m
+    x, y = grid.centres[..., 0], grid.centres[..., 1]
+    sampled, covered = image.sample(x, y, image.mask)
     # Free cells: over the pad (where the cell's line along the map's z meets the gel plane z_sensor = 0) and away
     # from every pixel the contact filled.
     clearance = int(np.ceil(FREE_CLEARANCE_M / pixel))
-    near = ndimage.binary_dilation(filled, iterations=clearance) if clearance > 0 else filled
-    nearest_x = np.clip(np.rint(fx).astype(np.int64), 0, side - 1)
-    nearest_y = np.clip(np.rint(fy).astype(np.int64), 0, side - 1)
-    x, y = grid.centres[..., 0], grid.centres[..., 1]
+    near = ndimage.binary_dilation(image.filled, iterations=clearance) if clearance > 0 else image.filled
     gel = -(centre[2] + basis[2, 0] * x + basis[2, 1] * y) / basis[2, 2]
     on_gel = centre[:, None, None] + basis[:, 0, None, None] * x + basis[:, 1, None, None] * y
     on_gel = on_gel + basis[:, 2, None, None] * gel
     on_pad = (np.abs(on_gel[0]) <= pad_size_m[0] / 2) & (np.abs(on_gel[1]) <= pad_size_m[1] / 2)
-    free = on_pad & ~near[nearest_x, nearest_y]
+    free = on_pad & ~near[image.pixel_of(x, y)]
     # A sensor may report only the deeper part of a contact: surface pressing the gel less deep than the cloud's
     # shallowest points may lie where nothing was reported.
     shallowest = float(np.quantile(-points_sensor[:, 2], FREE_MARGIN_QUANTILE))

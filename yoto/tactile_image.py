@@ -1,0 +1,107 @@
+"""A tactile cloud as a height image in the contact's own tangent frame: what the matched filter and the `cpu`
+network both read a contact from.
+
+The frame: origin at the contact centre, x and y tangent (x as close to the sensor's x as it gets), z into the
+object (-normal). Pixels hold the mean height of their points; single empty pixels inside the contact are filled
+from their neighbours (sparse clouds from other programs must not punch holes that the rim erosion would widen).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from yoto.contacts import contact_in_sensor
+from yoto.errors import DegenerateGeometryError
+from yoto.geometry import tangent_basis
+
+X_AXIS = np.array([1.0, 0.0, 0.0])
+
+
+def tactile_spacing_m(local: np.ndarray, samples: int = 512) -> float:
+    """Median in-plane distance between neighbouring tactile points (the cloud's own resolution), measured on the
+    `samples` points nearest the contact centre, their neighbours found among the 4 x `samples` nearest."""
+    radial = local[:, 0] ** 2 + local[:, 1] ** 2
+    near = np.argpartition(radial, min(4 * samples, len(local)) - 1)[: 4 * samples]
+    near = near[np.argsort(radial[near])]
+    distances, _ = cKDTree(local[near, :2]).query(local[near[:samples], :2], k=2)
+    return float(np.median(distances[:, 1]))
+
+
+@dataclass
+class TactileHeightImage:
+    """The tactile cloud as a height image in its local frame (x, y tangent; height into the object)."""
+
+    centre_sensor: np.ndarray  # (3,) contact centre
+    normal_sensor: np.ndarray  # (3,) outward normal
+    basis_sensor: np.ndarray  # (3, 3) columns u, v, z' (= -normal) of the local frame
+    heights: np.ndarray  # (S, S) mean height per pixel
+    filled: np.ndarray  # (S, S) pixels holding points
+    mask: np.ndarray  # (S, S) pixels trusted as object surface (filled, rim eroded)
+    pixel_m: float
+    half_m: float  # the image spans [-half, half] in x and y
+
+    def sample(self, x: np.ndarray, y: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Bilinear heights at local (x, y) and whether all four pixels are in `mask`."""
+        side = len(self.heights)
+        fx = (x + self.half_m) / self.pixel_m - 0.5
+        fy = (y + self.half_m) / self.pixel_m - 0.5
+        x0 = np.clip(np.floor(fx).astype(np.int64), 0, side - 2)
+        y0 = np.clip(np.floor(fy).astype(np.int64), 0, side - 2)
+        wx = np.clip(fx - x0, 0.0, 1.0)
+        wy = np.clip(fy - y0, 0.0, 1.0)
+        corners = (
+            (x0, y0, (1 - wx) * (1 - wy)),
+            (x0 + 1, y0, wx * (1 - wy)),
+            (x0, y0 + 1, (1 - wx) * wy),
+            (x0 + 1, y0 + 1, wx * wy),
+        )
+        heights = np.zeros(np.shape(wx))
+        for i, j, w in corners:
+            heights += self.heights[i, j] * w
+        inside = np.logical_and.reduce([mask[i, j] for i, j, _ in corners])
+        return heights, inside
+
+    def pixel_of(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The pixel (row, column) nearest each local (x, y), clipped to the image."""
+        side = len(self.heights)
+        i = np.clip(np.rint((x + self.half_m) / self.pixel_m - 0.5).astype(np.int64), 0, side - 1)
+        j = np.clip(np.rint((y + self.half_m) / self.pixel_m - 0.5).astype(np.int64), 0, side - 1)
+        return i, j
+
+
+def tactile_height_image(
+    points_sensor: np.ndarray, radius_m: float, pixel_m: float, erode_px: int
+) -> TactileHeightImage:
+    """The height image of a tactile cloud (N, 3; sensor frame, metres) over a disc of `radius_m` (plus two pixels).
+
+    Pixels are `pixel_m`, or 1.5 x the cloud's own point spacing when it is sparser; the mask is the filled pixels
+    with the rim eroded by `erode_px` (at the rim the gel, not the object, shapes the surface).
+    """
+    centre, normal = contact_in_sensor(points_sensor)
+    u, v = tangent_basis(-normal, reference=X_AXIS)
+    basis = np.stack([u, v, -normal], axis=1)
+    local = (points_sensor - centre) @ basis
+    pixel = max(pixel_m, 1.5 * tactile_spacing_m(local))
+    half = radius_m + 2.0 * pixel
+    side = int(np.ceil(2.0 * half / pixel))
+    ix = np.floor((local[:, 0] + half) / pixel).astype(np.int64)
+    iy = np.floor((local[:, 1] + half) / pixel).astype(np.int64)
+    inside = (ix >= 0) & (ix < side) & (iy >= 0) & (iy < side)
+    if not inside.any():
+        raise DegenerateGeometryError("the tactile cloud has no points around its contact centre")
+    key = ix[inside] * side + iy[inside]
+    sums = np.bincount(key, weights=local[inside, 2], minlength=side * side).reshape(side, side)
+    counts = np.bincount(key, minlength=side * side).reshape(side, side).astype(np.float64)
+    filled = counts > 0
+    holes = ndimage.binary_closing(filled) & ~filled
+    if holes.any():  # a hole's height: the mean of the points in its 3 x 3 neighbourhood
+        sums = np.where(holes, ndimage.uniform_filter(sums, 3, mode="constant"), sums)
+        counts = np.where(holes, ndimage.uniform_filter(counts, 3, mode="constant"), counts)
+        filled = filled | holes
+    heights = np.where(filled, sums / np.maximum(counts, 1e-12), 0.0)
+    mask = ndimage.binary_erosion(filled, iterations=erode_px) if erode_px > 0 else filled
+    return TactileHeightImage(centre, normal, basis, heights, filled, mask, pixel, half)
