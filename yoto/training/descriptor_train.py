@@ -45,7 +45,7 @@ from yoto.provenance import versions
 from yoto.training.config import DescriptorTrainConfig, StageConfig
 from yoto.training.data import LabelledContact, split_virtual
 from yoto.training.logs import log_descriptor_epoch, plot_descriptor_curves, write_logs
-from yoto.training.state import TrainingState
+from yoto.training.state import TrainingState, resume_stage
 from yoto.training.step import device_and_autocast, make_optimizer
 from yoto.training.virtual_contacts import virtual_contacts
 
@@ -339,12 +339,7 @@ class DescriptorRun:
             use_real = name == "stage2"
             steps_per_epoch = epoch_batch_count(self.objects, stage, self.config.batch_size, use_real)
             optimizer, scheduler = make_optimizer(self.net, stage, self.config, steps_per_epoch * stage.epochs)
-            first_epoch = 0
-            if resumed is not None and stage_index == resumed.stage_index and resumed.epoch > 0:
-                first_epoch = resumed.epoch
-                optimizer.load_state_dict(resumed.optimizer)
-                scheduler.load_state_dict(resumed.scheduler)
-            for epoch in range(first_epoch, stage.epochs):
+            for epoch in range(resume_stage(resumed, stage_index, optimizer, scheduler), stage.epochs):
                 rng = np.random.default_rng([self.config.seed, stage_index, epoch])
                 torch.manual_seed(self.config.seed * 1_000_003 + stage_index * 10_007 + epoch)
                 plan = plan_epoch(self.objects, stage, self.config.batch_size, rng, use_real)

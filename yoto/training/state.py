@@ -79,3 +79,13 @@ class TrainingState:
             return cls(**{f.name: payload[f.name] for f in fields(cls)})
         except KeyError as exc:
             raise InputError(f"an incomplete training state (no {exc})", path) from exc
+
+
+def resume_stage(resumed: TrainingState | None, stage_index: int, optimizer: Any, scheduler: Any) -> int:
+    """The first epoch of stage `stage_index` to train: mid-stage in a resumed run, with its optimizer and
+    learning-rate schedule restored; 0 otherwise."""
+    if resumed is None or stage_index != resumed.stage_index or resumed.epoch == 0:
+        return 0
+    optimizer.load_state_dict(resumed.optimizer)
+    scheduler.load_state_dict(resumed.scheduler)
+    return resumed.epoch

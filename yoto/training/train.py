@@ -56,7 +56,7 @@ from yoto.training.data import (
 from yoto.training.descriptor_train import train_descriptor
 from yoto.training.export import localizer_checkpoint
 from yoto.training.logs import log_epoch, plot_curves, write_logs
-from yoto.training.state import TrainingState
+from yoto.training.state import TrainingState, resume_stage
 from yoto.training.step import StepRunner, device_and_autocast, make_optimizer
 from yoto.training.validation import EvalSet, make_eval_sets, validate
 from yoto.workspace import runs_dir
@@ -260,12 +260,7 @@ class _Run:
             name, stage = self.stages[stage_index]
             steps_per_epoch = epoch_batch_count(self.data, stage, self.config.batch_size, name == "stage2")
             optimizer, scheduler = make_optimizer(self.net, stage, self.config, steps_per_epoch * stage.epochs)
-            first_epoch = 0
-            if resumed is not None and stage_index == resumed.stage_index and resumed.epoch > 0:
-                first_epoch = resumed.epoch
-                optimizer.load_state_dict(resumed.optimizer)
-                scheduler.load_state_dict(resumed.scheduler)
-            for epoch in range(first_epoch, stage.epochs):
+            for epoch in range(resume_stage(resumed, stage_index, optimizer, scheduler), stage.epochs):
                 totals = self.train_epoch(stage_index, epoch, optimizer, scheduler, max_steps)
                 if totals is None:
                     return False
