@@ -122,6 +122,17 @@ class GaussNewtonConfig:
     # iterations: a start that needs no translation is not rotated); each pose of a batch stops on its own
 
 
+# Refining a localizer's candidate from where the candidate put the sensor: a few iterations, the start as a
+# weak prior (the matched filter's and the `cpu` network's fine stages).
+CANDIDATE_REFINEMENT = GaussNewtonConfig(
+    iterations=8,
+    max_distance_m=0.002,
+    surface_noise_m=0.00003,
+    prior_rotation_rad=float(np.radians(10.0)),
+    prior_translation_m=0.003,
+)
+
+
 def point_to_plane_gauss_newton(
     surface: SurfaceCloud,
     points_source: np.ndarray,

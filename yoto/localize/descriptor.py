@@ -15,7 +15,7 @@ Per contact (docs/network.md):
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -39,7 +39,7 @@ from yoto.network.polar import (
 )
 from yoto.network.presets import AnchorNetConfig
 from yoto.objects.model import ObjectModel
-from yoto.registration import GaussNewtonConfig, point_to_plane_gauss_newton, truncated_plane_fit
+from yoto.registration import CANDIDATE_REFINEMENT, GaussNewtonConfig, point_to_plane_gauss_newton, truncated_plane_fit
 
 MIN_COVERED_CELLS = 8  # a contact covering fewer polar cells leaves nothing to match
 
@@ -57,15 +57,7 @@ class DescriptorLocalizerConfig:
     fine_stage: bool = True  # fit the shortlisted anchors (False, an ablation: the best anchors by score alone)
     refine: bool = True  # refine the fits by ICP and rank them by its residual (False, an ablation: by the fit)
     icp_points: int = 300  # tactile points used by the per-candidate ICP
-    icp: GaussNewtonConfig = field(
-        default_factory=lambda: GaussNewtonConfig(
-            iterations=8,
-            max_distance_m=0.002,
-            surface_noise_m=0.00003,
-            prior_rotation_rad=float(np.radians(10.0)),
-            prior_translation_m=0.003,
-        )
-    )  # the per-candidate point-to-plane ICP, its start as a weak prior
+    icp: GaussNewtonConfig = CANDIDATE_REFINEMENT  # the per-candidate point-to-plane ICP, its start as a weak prior
     residual_tau_m: float = 0.0005  # truncation of the ranking residual
     belief: BeliefConfig = BeliefConfig()  # distinct candidates and their beliefs from the ranking residuals ...
     score_weight: float = 0.0  # ... times exp(weight x the network's logit) (0: the residuals alone)

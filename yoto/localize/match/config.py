@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
-import numpy as np
+from dataclasses import dataclass, replace
 
 from yoto.errors import InputError
 from yoto.localize.ranking import BeliefConfig
-from yoto.registration import GaussNewtonConfig
+from yoto.registration import CANDIDATE_REFINEMENT, GaussNewtonConfig
 from yoto.sensor.spec import GELSIGHT_MINI
 
 
@@ -56,15 +54,8 @@ class MatchConfig:
     pad_size_m: tuple[float, float] = GELSIGHT_MINI.pad_size_m  # sensed area of the gel (x, y extents)
     refine_candidates: int = 20  # best matched-filter candidates refined by ICP
     icp_points: int = 60  # tactile points used by the per-candidate ICP
-    icp: GaussNewtonConfig = field(
-        default_factory=lambda: GaussNewtonConfig(
-            iterations=5,
-            max_distance_m=0.002,
-            surface_noise_m=0.00003,
-            prior_rotation_rad=float(np.radians(10.0)),
-            prior_translation_m=0.003,
-        )
-    )  # the per-candidate point-to-plane ICP, its start as a weak prior
+    icp: GaussNewtonConfig = replace(CANDIDATE_REFINEMENT, iterations=5)  # the per-candidate point-to-plane ICP, on
+    # few points (the best are polished below), its start as a weak prior
     polish_candidates: int = 3  # the best distinct candidates after ICP are refined again ...
     polish_points: int = 300  # ... on this many tactile points ...
     polish_iterations: int = 8  # ... for this many more iterations
