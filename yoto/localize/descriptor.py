@@ -14,7 +14,6 @@ Per contact (docs/network.md):
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,7 +24,7 @@ from scipy.spatial import cKDTree
 from yoto.contacts import ContactEstimate, validate_tactile_points
 from yoto.errors import DegenerateGeometryError
 from yoto.geometry import so3_exp
-from yoto.localize.network import UnknownObjectWarning
+from yoto.localize.network import is_trained_object
 from yoto.localize.ranking import BeliefConfig, rank_registrations
 from yoto.network.anchors import AnchorSet, anchor_set
 from yoto.network.checkpoint import LocalizerCheckpoint
@@ -103,16 +102,7 @@ class DescriptorLocalizer:
         cached = self._cache.get(model.fingerprint)
         if cached is not None:
             return cached
-        trained = model.fingerprint in self.trained_objects
-        if not trained:
-            names = sorted(set(self.trained_objects.values()))
-            warnings.warn(
-                f"object {model.name!r} ({model.fingerprint}) is not one this localizer was trained on "
-                f"({', '.join(names) or 'unknown'}): its anchors are described by the shared network, but expect "
-                "lower accuracy; train on it with `yoto train --objects ...`",
-                UnknownObjectWarning,
-                stacklevel=3,
-            )
+        trained = is_trained_object(model, self.trained_objects, "its anchors are described by the shared network")
         anchors = anchor_set(model, self.network)
         descriptors = self.net.encode_many(torch.from_numpy(anchors.network_inputs(self.network)))
         neighbours = cKDTree(anchors.points_object).query_ball_point(anchors.points_object, self.config.nms_radius_m)

@@ -48,6 +48,23 @@ class UnknownObjectWarning(UserWarning):
     """The object was not among the checkpoint's training objects."""
 
 
+def is_trained_object(model: ObjectModel, trained_objects: dict[str, str], fallback: str) -> bool:
+    """Whether the localizer was trained on this very model build (`trained_objects`: fingerprint -> name); warns
+    (UnknownObjectWarning) when not, saying what the localizer does instead (`fallback`)."""
+    if model.fingerprint in trained_objects:
+        return True
+    names = sorted(set(trained_objects.values()))
+    warnings.warn(
+        f"object {model.name!r} ({model.fingerprint}) is not one this localizer was trained on "
+        f"({', '.join(names) or 'unknown'}): "
+        + ("a model of that name but another build (rebuilt, other points or blocks); " if model.name in names else "")
+        + f"{fallback}, but expect lower accuracy; train on it with `yoto train --objects ...`",
+        UnknownObjectWarning,
+        stacklevel=4,
+    )
+    return False
+
+
 def checkpoint_path(path: str | Path | None) -> Path:
     """`path`, or the shipped default weights when None (InputError saying how to train them if absent)."""
     if path is not None:
@@ -140,19 +157,7 @@ class NetworkLocalizer:
         cached = self._cache.get(model.fingerprint)
         if cached is not None:
             return cached
-        trained = model.fingerprint in self.trained_objects
-        if not trained:
-            names = sorted(set(self.trained_objects.values()))
-            same_name = model.name in names
-            warnings.warn(
-                f"object {model.name!r} ({model.fingerprint}) is not one this localizer was trained on "
-                f"({', '.join(names) or 'unknown'}): "
-                + ("a model of that name but another build (rebuilt, other points or blocks); " if same_name else "")
-                + "its blocks are encoded by the shared encoder, but expect lower accuracy; train on it with "
-                "`yoto train --objects ...`",
-                UnknownObjectWarning,
-                stacklevel=3,
-            )
+        trained = is_trained_object(model, self.trained_objects, "its blocks are encoded by the shared encoder")
         blocks = make_block_set(model, self.config)
         tensors = blocks.tensors()
         with torch.inference_mode():
