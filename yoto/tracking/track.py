@@ -51,7 +51,7 @@ from yoto.geometry import (
 )
 from yoto.objects.model import ObjectModel
 from yoto.pointcloud import voxel_downsample
-from yoto.registration import GaussNewtonConfig, point_to_plane_gauss_newton, truncated_plane_fit
+from yoto.registration import GaussNewtonConfig, plane_distances, point_to_plane_gauss_newton, truncated_plane_fit
 from yoto.tracking.fusion import (
     FusionConfig,
     SensorPoses,
@@ -61,7 +61,6 @@ from yoto.tracking.fusion import (
     smooth_stream,
     stream_jitter,
 )
-from yoto.tracking.register import ContactGeometry, DepthErrorModel, contact_geometry, joint_systematic_covariance
 from yoto.tracking.streams import TactileStream
 from yoto.trajectory import PoseStream
 
@@ -86,10 +85,9 @@ class CorrectionConfig:
     registration_prior_translation_m: float = 0.003  # registration (keeps free directions put)
     pixel_noise_m: float = 4e-5  # 1-sigma error of a tactile point that is new in every frame (camera noise, and
     # what registering a frame adds: its mask edge, its sampling)
-    depth_errors: DepthErrorModel = DepthErrorModel()  # a reconstruction's smooth depth errors, the same from frame
-    # to frame (calibration, lighting): they bias a frame's registration, most where the contact's shape is weak
-    bias_travel_m: float = 1.0  # that bias is fixed on the pad (the contact slides millimetres on it along a path):
-    # it changes fully over this much travel
+    bias_points: float = 3.0  # the error a contact's points share from frame to frame (calibration, lighting,
+    bias_noise_m: float = 3e-5  # integration drift) is smooth over the patch: as if this many points had this error
+    bias_travel_m: float = 0.1  # that shared error changes as the contact slides: fully over this much travel
     inlier_distance_m: float = 0.0003  # a registered point this close to the surface lies on it
     min_inlier_fraction: float = 0.5  # a frame with fewer of its points on the surface after registration is unusable
     innovation_bound: float = 12.6  # a registration whose normalized innovation squared exceeds this (chi-square,
@@ -405,19 +403,17 @@ class _Corrector:
         self.covariance = transition @ self.covariance @ transition.T + noise
         self.last_time, self.last_sensors = now_s, sensors
 
-    def _geometry(self, points: tuple[np.ndarray, np.ndarray, np.ndarray], correction: np.ndarray) -> ContactGeometry:
-        """What one contact's registered points tell (`register.contact_geometry`); `points`: its points in the
-        predicted object frame, in the sensor frame, and the sensor axis in the predicted object frame."""
-        points_predicted, points_sensor, axis = points
+    def _information(self, points_object: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Gauss-Newton normal matrices (6, 6) of one contact's registered points (object frame, rotation about the
+        origin), for the noise new in every frame (all points, `pixel_noise_m`) and for the shared bias
+        (`bias_points` points of `bias_noise_m`)."""
         c = self.config.correction
-        return contact_geometry(
-            self.model,
-            transform_points(correction, points_predicted),
-            points_sensor,
-            correction[:3, :3] @ axis,
-            c.max_distance_m,
-            c.depth_errors,
-        )
+        _, matched, _, normals = plane_distances(self.model, points_object, c.max_distance_m)
+        jacobian = np.concatenate([np.cross(points_object, normals), normals], axis=1)[matched]
+        if len(jacobian) == 0:
+            return np.zeros((6, 6)), np.zeros((6, 6))
+        normal = jacobian.T @ jacobian
+        return normal / c.pixel_noise_m**2, normal * (c.bias_points / len(jacobian)) / c.bias_noise_m**2
 
     def _register(self, points: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, float]]:
         """The correction T_object_predicted bringing the sides' points (predicted object frame) onto the surface,
@@ -459,16 +455,13 @@ class _Corrector:
         self._predict(sensors, instant_s)
         predicted = fuse_object_poses(sensors, self.grasps)[0]
         points_predicted: dict[str, np.ndarray] = {}
-        sampled: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # side -> (predicted, sensor, axis)
         pose_noise: dict[str, np.ndarray] = {}
         for row, (side, (_, points)) in enumerate(clouds.items()):
             if not sensors.covered[side][row]:
                 unusable[side] = "no sensor pose at the frame's time"
                 continue
             T_predicted_sensor = invert_transform(predicted[row]) @ sensors.T_world_sensor[side][row]
-            samples = contact_samples(points, c)
-            points_predicted[side] = transform_points(T_predicted_sensor, samples)
-            sampled[side] = (points_predicted[side], samples, T_predicted_sensor[:3, 2])
+            points_predicted[side] = transform_points(T_predicted_sensor, contact_samples(points, c))
             pose_noise[side] = self._pose_noise(side, T_predicted_sensor)
 
         record = Correction(timestamp_s=instant_s, used=(), unusable=unusable)
@@ -485,8 +478,7 @@ class _Corrector:
                 for side in points_predicted:
                     unusable[side] = f"bad fit ({fractions[side]:.0%} of points on the surface)"
             else:
-                geometry = {side: self._geometry(sampled[side], correction) for side in points_predicted}
-                refused = self._update(geometry, pose_noise, correction)
+                refused = self._update(points_predicted, pose_noise, correction)
                 for side in points_predicted if refused else ():
                     unusable[side] = refused
                 if not refused:
@@ -511,7 +503,7 @@ class _Corrector:
         )
 
     def _update(
-        self, geometry: dict[str, ContactGeometry], pose_noise: dict[str, np.ndarray], correction: np.ndarray
+        self, points_predicted: dict[str, np.ndarray], pose_noise: dict[str, np.ndarray], correction: np.ndarray
     ) -> str:
         """Kalman update with the registration's twist z = error + bias + noise (information form), then the new
         grasps, slip rate and bias. Each contact's information is discounted by its sensor's pose jitter,
@@ -519,15 +511,15 @@ class _Corrector:
         or "" when it was applied."""
         c = self.config.correction
         twist = twist_of_pose(correction)
-        white = np.zeros((6, 6))
-        for side, contact in geometry.items():
-            per_frame = contact.normal_matrix / c.pixel_noise_m**2
+        white, shared = np.zeros((6, 6)), np.zeros((6, 6))
+        for side, side_points in points_predicted.items():
+            per_frame, bias = self._information(transform_points(correction, side_points))
             white += per_frame @ np.linalg.inv(np.eye(6) + pose_noise[side] @ per_frame)
+            shared += bias
         covariance = self.covariance.copy()
-        if self.bias_covariance is None:  # the bias's size in each direction, from the first frames' shape
-            prior = np.diag([c.registration_prior_rotation_rad**-2] * 3 + [c.registration_prior_translation_m**-2] * 3)
-            bias = joint_systematic_covariance(list(geometry.values()), prior * c.surface_noise_m**2)
-            self.bias_covariance = bias + 1e-12 * np.eye(6)  # (a floor: the filter inverts it)
+        if self.bias_covariance is None:  # the bias's size in each direction, from the first contact's shape
+            weak = np.diag([c.registration_prior_rotation_rad**-2] * 3 + [c.registration_prior_translation_m**-2] * 3)
+            self.bias_covariance = np.linalg.inv(shared + weak)
             covariance[12:, 12:] = self.bias_covariance
         observe = np.hstack([np.eye(6), np.zeros((6, 6)), np.eye(6)])  # z = error + bias
         # A registration further from the prediction than the filter expects (normalized innovation squared above
