@@ -197,14 +197,14 @@ def test_trajectory_folders_resume_and_refuse_mixed_settings(builtin_models, tmp
 
 
 def test_a_registration_the_filter_does_not_expect_counts_less(builtin_models, fruit_trajectory):
-    """One mid-motion instant whose clouds contradict the prediction (each shifted 1 mm along its sensor's axis,
-    under the 3 mm a frame may correct): the robust update follows it less than a plain Kalman update."""
+    """One mid-motion instant whose clouds contradict the prediction (each shifted 0.7 mm along its sensor's axis,
+    under the 3 mm / 3 deg a frame may correct): the robust update follows it less than a plain Kalman update."""
     trajectory, model = fruit_trajectory, builtin_models["fruit"]
     shifted = dataclasses.replace(
         trajectory, tactile={side: list(frames) for side, frames in trajectory.tactile.items()}
     )
     index = len(shifted.tactile["left"]) // 2
-    for side, offset in (("left", [0.0, 0.0, 0.001]), ("right", [0.0, 0.0, -0.001])):
+    for side, offset in (("left", [0.0, 0.0, 0.0007]), ("right", [0.0, 0.0, -0.0007])):
         frame = shifted.tactile[side][index]
         shifted.tactile[side][index] = dataclasses.replace(frame, points_sensor=frame.points_sensor + offset)
     touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
