@@ -95,8 +95,8 @@ def test_closed_loop_corrects_the_slip_the_open_loop_keeps(builtin_models, fruit
 @pytest.mark.parametrize("noise_scale", [0.7, 1.5])
 def test_a_bias_fixed_on_the_pad_is_not_taken_for_slip_along_a_long_path(builtin_models, noise_scale):
     """A reconstruction's smooth depth errors (scale error, bias field) stay on the sensor's pad for the whole
-    trajectory, and registering frames taken at the true pose settles off it by them (along a direction the tool's
-    contacts pin weakly). A filter that lets that bias wander with the sensors' travel (fully over 0.1 m, as it
+    trajectory, and a registration of frames taken at the true pose settles off it by them, frame after frame the
+    same way. A filter that lets that bias wander with the sensors' travel (fully over 0.1 m, as it
     once did) takes it for slip along a 200 mm path: 0.46-0.51 deg of drift here at 0.7x-1.5x the default
     reconstruction errors; kept as the bias it is, the drift stays near 0.1 deg."""
     model = builtin_models["tool"]
