@@ -87,7 +87,8 @@ class CorrectionConfig:
     # what registering a frame adds: its mask edge, its sampling)
     bias_points: float = 3.0  # the error a contact's points share from frame to frame (calibration, lighting,
     bias_noise_m: float = 3e-5  # integration drift) is smooth over the patch: as if this many points had this error
-    bias_travel_m: float = 0.1  # that shared error changes as the contact slides: fully over this much travel
+    bias_travel_m: float = 1.0  # that shared error is fixed on the pad (calibration, lighting) and changes only as
+    # the contact slides over it, millimetres along a path: fully over this much travel of the sensors
     inlier_distance_m: float = 0.0003  # a registered point this close to the surface lies on it
     min_inlier_fraction: float = 0.5  # a frame with fewer of its points on the surface after registration is unusable
     innovation_bound: float = 12.6  # a registration whose normalized innovation squared exceeds this (chi-square,
