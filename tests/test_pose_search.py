@@ -112,7 +112,7 @@ def test_search_finds_the_truth_where_the_candidates_are_wrong(box, rng):
         side: [ContactEstimate(np.array([-0.06, 0.0, 0.0]), np.array([-1.0, 0, 0]), probability=0.9)] for side in world
     }
     matches = search_poses(box, world, shapes, wrong)
-    T = matches.solution.T_world_object
+    T = matches.T_world_object
     translation = np.linalg.norm(T[:, :3, 3] - T_world_object[:3, 3], axis=1)
     cos_angle = (np.einsum("kij,ij->k", T[:, :3, :3], T_world_object[:3, :3]) - 1) / 2
     near = (translation < 0.004) & (cos_angle > np.cos(np.radians(4.0)))

@@ -11,11 +11,13 @@ world) into the surface's frame, written `T_surface_source`, batched as (K, 4, 4
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 from scipy.spatial import cKDTree
+from threadpoolctl import ThreadpoolController
 
 from yoto.geometry import so3_exp, so3_log
 
@@ -33,6 +35,19 @@ class SurfaceCloud(Protocol):
 
     @property
     def kdtree(self) -> cKDTree: ...
+
+
+def one_blas_thread():
+    """A context in which BLAS runs on one thread: what the localizers and the pose stage compute are many small
+    matrix products, and BLAS threads wait for one another (on a busy 2-core machine a product that took 2 ms on
+    one thread took 50 ms on two; the pose stage ran at half its speed)."""
+    return _blas_libraries().limit(limits=1, user_api="blas")
+
+
+@functools.cache
+def _blas_libraries() -> ThreadpoolController:
+    """The BLAS libraries numpy and scipy loaded (found once, on first use)."""
+    return ThreadpoolController()
 
 
 def _transform_batch(T_surface_source: np.ndarray, points_source: np.ndarray) -> np.ndarray:

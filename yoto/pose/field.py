@@ -72,7 +72,7 @@ class SurfaceField:
         step_y = along_z[1::2] - along_z[0::2]  # (2, N) over dx
         along_y = along_z[0::2] + fy * step_y
         gx = along_y[1] - along_y[0]
-        distance = np.where(inside, along_y[0] + fx * gx, self.band_m).astype(np.float64)
+        distance = np.where(inside, (along_y[0] + fx * gx).astype(np.float64), self.band_m)
         if not with_gradient:
             return distance.reshape(shape), None
         gy = step_y[0] + fx * (step_y[1] - step_y[0])

@@ -64,6 +64,7 @@ from yoto.pose.refine import (
 )
 from yoto.pose.search import LocalShape, SearchConfig, contact_shape, search_poses
 from yoto.pose.solver import PoseSolution, solve_pose, solve_poses
+from yoto.registration import one_blas_thread
 
 
 @dataclass(frozen=True)
@@ -203,9 +204,7 @@ def _seeds(
     matches); the localizers' top pair is always among them, fitting or not, so there is a pose to verify. Of the
     matches in one pose cell only the one whose key fits best is kept."""
     matches = search_poses(model, world, shapes, candidates, config.search_config, samples=search)
-    matches_T = matches.solution.T_world_object[
-        _best_per_cell(matches.solution.T_world_object, -matches.mismatch, config)
-    ]
+    matches_T = matches.T_world_object[_best_per_cell(matches.T_world_object, -matches.mismatch, config)]
     left, right = candidates["left"][0], candidates["right"][0]
     top = solve_poses(
         left.p_object[None],
@@ -287,7 +286,20 @@ def pose_from_candidates(
     confidence_model: ConfidenceModel | None = None,
 ) -> PoseEstimate:
     """The pose stage proper, from localized candidates. `latency_ms` holds `pose` (this stage's own time) and
-    `next_touch` when one was computed."""
+    `next_touch` when one was computed. BLAS runs on one thread (`registration.one_blas_thread`)."""
+    with one_blas_thread():
+        return _pose_from_candidates(pair, model, candidates, world, config, method, confidence_model)
+
+
+def _pose_from_candidates(
+    pair: ContactPair,
+    model: ObjectModel,
+    candidates: dict[str, list[ContactEstimate]],
+    world: dict[str, WorldContact],
+    config: PoseConfig,
+    method: str,
+    confidence_model: ConfidenceModel | None,
+) -> PoseEstimate:
     tick = time.perf_counter()
     if not config.joint_selection:
         candidates = {side: found[:1] for side, found in candidates.items()}

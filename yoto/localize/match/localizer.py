@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
-from threadpoolctl import ThreadpoolController
 
 from yoto.contacts import ContactEstimate, validate_tactile_points
 from yoto.errors import DegenerateGeometryError
@@ -18,7 +16,7 @@ from yoto.localize.match.rings import contact_rings, ring_distances
 from yoto.localize.match.scores import free_space_penalty, free_space_violation, plane_costs
 from yoto.localize.ranking import rank_registrations
 from yoto.objects.model import ObjectModel
-from yoto.registration import point_to_plane_gauss_newton, truncated_plane_fit
+from yoto.registration import one_blas_thread, point_to_plane_gauss_newton, truncated_plane_fit
 
 Z_AXIS = np.array([0.0, 0.0, 1.0])
 MIN_CONTACT_CELLS = 3  # fewer covered cells leave nothing to match
@@ -143,7 +141,7 @@ class MatchLocalizer:
         The filter's matrix products are small: BLAS runs them on one thread. (Its threads wait for one another,
         and on a busy machine a product that takes 2 ms alone took 50 ms on two threads.)
         """
-        with _blas_threads().limit(limits=1, user_api="blas"):
+        with one_blas_thread():
             points_sensor = validate_tactile_points(points_sensor, None)
             return self.refine(self.hypotheses(points_sensor, model), model)
 
@@ -243,9 +241,3 @@ class _Ranked:
     indices: list[int]  # distinct registrations, best first
     probabilities: np.ndarray  # their beliefs
     p_object: np.ndarray  # (K, 3) every registration's contact location
-
-
-@functools.cache
-def _blas_threads() -> ThreadpoolController:
-    """The BLAS libraries numpy and scipy loaded (found once, on first use)."""
-    return ThreadpoolController()
