@@ -45,12 +45,16 @@ class MatchLocalizer:
     def prepare_object(self, model: ObjectModel) -> AnchorMaps:
         return anchor_maps(model, self.config.anchors)
 
-    def hypotheses(self, points_sensor: np.ndarray, model: ObjectModel) -> FilterHypotheses:
-        """The matched filter's shortlist: anchors, rolls, costs and poses (best first, NMS applied)."""
+    def image(self, points_sensor: np.ndarray, model: ObjectModel) -> ContactImage:
+        """The contact's height image at this filter's resolution and extent."""
+        return contact_image(points_sensor, anchor_maps(model, self.config.anchors).grid.radius_m, self.config)
+
+    def hypotheses(self, image: ContactImage, model: ObjectModel) -> FilterHypotheses:
+        """The matched filter's shortlist for a contact image: anchors, rolls, costs and poses (best first, NMS
+        applied)."""
         config = self.config
         anchors = anchor_maps(model, config.anchors)
         grid = anchors.grid
-        image = contact_image(points_sensor, grid.radius_m, config)
         contact = contact_maps(image, grid.centres, config.rolls, config)
         if contact.mask.sum(axis=1).max() < MIN_CONTACT_CELLS:
             raise DegenerateGeometryError(
@@ -141,9 +145,13 @@ class MatchLocalizer:
         The filter's matrix products are small: BLAS runs them on one thread. (Its threads wait for one another,
         and on a busy machine a product that takes 2 ms alone took 50 ms on two threads.)
         """
+        points_sensor = validate_tactile_points(points_sensor, None)
+        return self.localize_image(self.image(points_sensor, model), model)
+
+    def localize_image(self, image: ContactImage, model: ObjectModel) -> list[ContactEstimate]:
+        """`localize` from the contact's height image (`image`)."""
         with one_blas_thread():
-            points_sensor = validate_tactile_points(points_sensor, None)
-            return self.refine(self.hypotheses(points_sensor, model), model)
+            return self.refine(self.hypotheses(image, model), model)
 
     def refine(self, found: FilterHypotheses, model: ObjectModel) -> list[ContactEstimate]:
         """The filter's hypotheses refined by ICP, checked for free space, ranked and given beliefs.
