@@ -237,7 +237,12 @@ def _best_per_cell(T_world_object: np.ndarray, score: np.ndarray, config: PoseCo
     translation = np.floor(T_world_object[:, :3, 3] / config.seed_distinct_m)
     rotation = np.floor(so3_log(T_world_object[:, :3, :3]) / config.seed_distinct_rad)
     order = np.argsort(-score, kind="stable")
-    _, first = np.unique(np.hstack([translation, rotation])[order].astype(np.int64), axis=0, return_index=True)
+    cells = np.hstack([translation, rotation])[order].astype(np.int64)
+    cells -= cells.min(axis=0, initial=0)
+    key = np.zeros(len(cells), dtype=np.int64)  # one integer per cell: a 1-D unique is far faster than rows'
+    for column, span in zip(cells.T, cells.max(axis=0, initial=0) + 1):
+        key = key * span + column
+    _, first = np.unique(key, return_index=True)
     return order[np.sort(first)]
 
 
