@@ -264,9 +264,14 @@ def refine_hypotheses(
             J[..., 9:12] = m
             weighted = np.swapaxes(J * w[..., None], 1, 2)
             block = weighted @ J
-            columns = np.r_[0:6, 6 + 6 * s : 12 + 6 * s]
-            hessian[:, columns[:, None], columns] += block
-            gradient[:, columns] += (weighted @ r[..., None])[..., 0]
+            side = slice(6 + 6 * s, 12 + 6 * s)  # this sensor's correction
+            hessian[:, :6, :6] += block[:, :6, :6]
+            hessian[:, :6, side] += block[:, :6, 6:]
+            hessian[:, side, :6] += block[:, 6:, :6]
+            hessian[:, side, side] += block[:, 6:, 6:]
+            g = (weighted @ r[..., None])[..., 0]
+            gradient[:, :6] += g[:, :6]
+            gradient[:, side] += g[:, 6:]
         step = -np.linalg.solve(hessian, gradient[:, :, None])[:, :, 0]
         deviation += step
         updates = se3_exp(step.reshape(count, 3, 6))
