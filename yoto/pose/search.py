@@ -259,9 +259,9 @@ def search_poses(
     separation = float(np.linalg.norm(offset))
     angles = direction_angles(offset, world["left"].n_world, world["right"].n_world)
     # Squared distances of all left x right pairs by one matrix product per chunk; the shell of the widest
-    # tolerance first, the exact per-pair tolerances on what falls in it. The key's cosines come from matrix
-    # products too (offset . n = pR . n - pL . n), and each part of the key is tested in turn, the cheapest
-    # first, on the pairs the parts before it kept.
+    # tolerance first, the exact per-pair tolerances on what falls in it. The separation comes from those squared
+    # distances and the key's cosines from dot products (offset . n = pR . n - pL . n, each location's own term
+    # computed once); each part of the key is tested in turn, on the pairs the parts before it kept.
     n_left, n_right = normalize(left.n_object), normalize(right.n_object)
     widest = float(np.hypot(config.distance_tolerance_m, left.blur_m.max(initial=0) + right.blur_m.max(initial=0)))
     low2, high2 = max(separation - widest, 0.0) ** 2, (separation + widest) ** 2
