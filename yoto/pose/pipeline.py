@@ -342,12 +342,15 @@ def _pose_from_candidates(
         for side in SIDES
     }
     searched = config.search == "always"
-    seeds = _seeds(model, world, shapes, candidates, config, search=searched)
     refined = None
-    if len(seeds):
-        refined = _verify_and_refine(
-            field, contacts, seeds, model.symmetry, config, config.candidates_screened, config.candidates_refined
-        )
+    # The candidates' pass, unless "auto" searches whatever it finds: `_decisive` needs `decisive_featured` contacts
+    # with features of their own, and without them the pass would be thrown away.
+    if config.search != "auto" or _featured(shapes) >= config.decisive_featured:
+        seeds = _seeds(model, world, shapes, candidates, config, search=searched)
+        if len(seeds):
+            refined = _verify_and_refine(
+                field, contacts, seeds, model.symmetry, config, config.candidates_screened, config.candidates_refined
+            )
     hypotheses = None if refined is None else group_hypotheses(refined, model.symmetry, config.hypotheses)
     if config.search == "auto" and not _decisive(hypotheses, shapes, config):
         searched = True
@@ -500,12 +503,16 @@ def _decisive(hypotheses: Hypotheses | None, shapes: dict[str, LocalShape], conf
     nine objects, no pair that passed was wrong."""
     if hypotheses is None or not len(hypotheses):
         return False
-    featured = sum(not featureless(shapes[side]) for side in SIDES)
     return bool(
         hypotheses.probability[0] >= config.decisive_probability
         and hypotheses.log_likelihood[0] >= config.decisive_log_likelihood
-        and featured >= config.decisive_featured
+        and _featured(shapes) >= config.decisive_featured
     )
+
+
+def _featured(shapes: dict[str, LocalShape]) -> int:
+    """How many of the two contacts have features of their own (are not `featureless`)."""
+    return sum(not featureless(shapes[side]) for side in SIDES)
 
 
 def _closed_form_estimate(
