@@ -50,7 +50,7 @@ def _blas_libraries() -> ThreadpoolController:
     return ThreadpoolController()
 
 
-def _transform_batch(T_surface_source: np.ndarray, points_source: np.ndarray) -> np.ndarray:
+def transform_batch(T_surface_source: np.ndarray, points_source: np.ndarray) -> np.ndarray:
     """(K, M, 3) points under each of K poses; `points_source` is (M, 3) shared or (K, M, 3)."""
     rotation, translation = T_surface_source[:, :3, :3], T_surface_source[:, :3, 3]
     return np.matmul(points_source, np.transpose(rotation, (0, 2, 1))) + translation[:, None, :]
@@ -184,7 +184,7 @@ def point_to_plane_gauss_newton(
         count = len(active)
         rotation, translation = poses[active, :3, :3], poses[active, :3, 3]
         source = points_source if np.ndim(points_source) == 2 else points_source[active]
-        p = _transform_batch(poses[active], source)
+        p = transform_batch(poses[active], source)
         facing = None if facing_source is None else (rotation @ facing_source)[:, None, :]
         r, use, _, n = plane_distances(surface, p, config.max_distance_m, facing)
         anchor_now = np.einsum("kij,kj->ki", rotation, anchor_source[active]) + translation

@@ -26,7 +26,7 @@ from scipy import ndimage
 from yoto.geometry import se3_exp, se3_log
 from yoto.pointcloud import voxel_downsample
 from yoto.pose.field import SurfaceField
-from yoto.registration import masked_row_medians
+from yoto.registration import masked_row_medians, transform_batch
 from yoto.sensor.spec import GELSIGHT_MINI
 from yoto.simulate.body import SensorBody
 
@@ -166,7 +166,7 @@ def evaluate_fit(
         T = T_object_world @ contact.T_world_sensor
         if corrections is not None:
             T = T @ se3_exp(corrections[:, contact.sensor])
-        q = _transform_points(T, np.vstack([contact.points_sensor, contact.free_sensor]))
+        q = transform_batch(T, np.vstack([contact.points_sensor, contact.free_sensor]))
         distance, _ = field.distance(q, with_gradient=False)
         count = len(contact.points_sensor)
         magnitude = np.abs(distance[:, :count])
@@ -197,7 +197,7 @@ def evaluate_offsets(
     score = np.zeros(len(T_object_world))
     for contact in thinned(contacts, config.verify_points):
         points = contact.points_sensor
-        q = _transform_points(T_object_world @ contact.T_world_sensor, points)
+        q = transform_batch(T_object_world @ contact.T_world_sensor, points)
         distance, _ = field.distance(q, with_gradient=False)
         centred = points[:, :2] - points[:, :2].mean(axis=0)
         design = np.column_stack([np.ones(len(points)), centred])
@@ -247,7 +247,7 @@ def refine_hypotheses(
         for contact in contacts:
             s = contact.sensor
             A = T_object_world @ contact.T_world_sensor @ corrections[:, s]  # object <- sensor
-            q = _transform_points(A, contact.points_sensor)
+            q = transform_batch(A, contact.points_sensor)
             r, n = field.distance(q)
             assert n is not None
             magnitude = np.abs(r)
@@ -283,11 +283,6 @@ def refine_hypotheses(
     rms, inliers, free = evaluate_fit(field, contacts, poses, twists, config)
     correction_cost = np.einsum("ksi,i,ksi->k", twists, calibration, twists)
     return Refined(poses, twists, rms, inliers, free, correction_cost, se3_log(start_inverse @ poses))
-
-
-def _transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(K, M, 3) the (M, 3) points under each of K poses (K, 4, 4)."""
-    return points @ np.swapaxes(T[:, :3, :3], 1, 2) + T[:, None, :3, 3]
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
