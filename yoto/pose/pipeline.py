@@ -50,6 +50,7 @@ from yoto.pose.hypotheses import (
     HypothesisConfig,
     group_hypotheses,
     is_ambiguous,
+    log_likelihoods,
     reported,
 )
 from yoto.pose.next_touch import NextTouch, NextTouchConfig, suggest_next_touch
@@ -266,9 +267,23 @@ def _verify_and_refine(
     chosen = np.argsort(-score, kind="stable")[:screened]
     short = replace(refine, iterations=refine.screen_iterations)
     first = refine_hypotheses(field, thinned(contacts, refine.screen_points), seeds[chosen], config.calibration, short)
-    grouped = group_hypotheses(first, symmetry, config.hypotheses)
-    best = grouped.member[:refined]
+    best = _best_distinct(first, symmetry, config.hypotheses, refined)
     return refine_hypotheses(field, contacts, first.T_world_object[best], config.calibration, refine)
+
+
+def _best_distinct(refined: Refined, symmetry: Symmetry, config: HypothesisConfig, count: int) -> np.ndarray:
+    """Indices of the best pose of each of the `count` most likely distinct hypotheses (`group_hypotheses`).
+
+    Grouping visits the poses from the most likely down, and whether a pose founds a hypothesis depends only on
+    the poses before it: the first `count` founders among the most likely few poses are the first `count` of all.
+    So the grouping runs on the most likely 4 x `count` poses first, and on all only when they hold fewer.
+    """
+    order = np.argsort(-log_likelihoods(refined, config), kind="stable")
+    subset = order[: 4 * count]
+    members = subset[group_hypotheses(refined.subset(subset), symmetry, config).member[:count]]
+    if len(members) < count and len(subset) < len(order):
+        members = group_hypotheses(refined, symmetry, config).member[:count]
+    return members
 
 
 def _contact_under_pose(
