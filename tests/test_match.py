@@ -238,3 +238,25 @@ def test_pose_command_defaults_to_the_matched_filter(builtin_models, tmp_path, r
     errors = [json.loads(path.with_suffix(".pose.json").read_text())["error"] for path in paths]
     good = [e["translation_mm"] < 2.0 and e["rotation_deg"] < 3.0 for e in errors]
     assert sum(good) >= 3, errors
+
+
+def test_two_contacts_localized_concurrently_as_one_by_one(builtin_models):
+    """A pair's two contacts on two threads at once give the candidates they give one after the other, and BLAS is
+    left as it was found (each thread's one-thread limit nests inside the pair's)."""
+    from threadpoolctl import threadpool_info
+
+    from yoto.pose.pipeline import localize_contacts
+
+    model = builtin_models["fruit"]
+    pair = PairSimulator(model).pair(seed=11, index=0).pair
+    localizer = make_localizer("match")
+    blas_before = [library["num_threads"] for library in threadpool_info() if library["user_api"] == "blas"]
+    alone, _, _ = localize_contacts(pair, model, localizer)
+    together, world, latency = localize_contacts(pair, model, localizer, concurrent=True)
+    for side in ("left", "right"):
+        assert len(together[side]) == len(alone[side])
+        for a, b in zip(alone[side], together[side], strict=True):
+            assert np.array_equal(a.p_object, b.p_object) and a.probability == b.probability
+    assert set(world) == {"left", "right"}
+    assert latency["localize_pair"] > 0
+    assert [library["num_threads"] for library in threadpool_info() if library["user_api"] == "blas"] == blas_before

@@ -112,7 +112,7 @@ def test_search_finds_the_truth_where_the_candidates_are_wrong(box, rng):
         side: [ContactEstimate(np.array([-0.06, 0.0, 0.0]), np.array([-1.0, 0, 0]), probability=0.9)] for side in world
     }
     matches = search_poses(box, world, shapes, wrong)
-    T = matches.solution.T_world_object
+    T = matches.T_world_object
     translation = np.linalg.norm(T[:, :3, 3] - T_world_object[:3, 3], axis=1)
     cos_angle = (np.einsum("kij,ij->k", T[:, :3, :3], T_world_object[:3, :3]) - 1) / 2
     near = (translation < 0.004) & (cos_angle > np.cos(np.radians(4.0)))
@@ -296,3 +296,20 @@ def test_fusing_the_next_touch_finds_a_truth_the_first_pair_missed(box, rng):
     fused = fuse_next_touch(pair, box, estimate, touch, "left", PoseConfig(), localizer=_KnownLocations(truth))
     translation, rotation = offset(fused)
     assert translation < 0.002 and rotation < np.radians(1.0)  # as refining a right hypothesis gives
+
+
+def test_best_distinct_hypotheses_from_the_most_likely_poses_as_from_all(rng):
+    """The pose stage groups only the most likely poses when they hold enough distinct hypotheses: the founders it
+    picks are those of grouping every pose (clusters of near-duplicates, tied scores, too few distinct ones)."""
+    from yoto.objects.symmetry import Symmetry
+    from yoto.pose.pipeline import _best_distinct
+
+    centres = [make_transform(R, rng.normal(size=3) * 0.02) for R in random_rotations(rng, 60)]
+    poses = np.array([centres[i] @ make_transform(np.eye(3), rng.normal(size=3) * 0.001) for i in range(60)] * 5)
+    rms = np.round(rng.uniform(2e-5, 2e-4, size=(len(poses), 2)), 5)  # rounded: many exact ties
+    refined = _refined(poses[rng.permutation(len(poses))], rms)
+    config = HypothesisConfig()
+    for count in (5, 40, 70):
+        expected = group_hypotheses(refined, Symmetry(), config).member[:count]
+        assert np.array_equal(_best_distinct(refined, Symmetry(), config, count), expected)
+    assert len(_best_distinct(refined, Symmetry(), config, 70)) == 60  # fewer distinct than asked: all of them

@@ -11,11 +11,13 @@ world) into the surface's frame, written `T_surface_source`, batched as (K, 4, 4
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 from scipy.spatial import cKDTree
+from threadpoolctl import ThreadpoolController
 
 from yoto.geometry import so3_exp, so3_log
 
@@ -35,7 +37,20 @@ class SurfaceCloud(Protocol):
     def kdtree(self) -> cKDTree: ...
 
 
-def _transform_batch(T_surface_source: np.ndarray, points_source: np.ndarray) -> np.ndarray:
+def one_blas_thread():
+    """A context in which BLAS runs on one thread: what the localizers and the pose stage compute are many small
+    matrix products, and BLAS threads wait for one another (on a busy 2-core machine a product that took 2 ms on
+    one thread took 50 ms on two; the pose stage ran at half its speed)."""
+    return _blas_libraries().limit(limits=1, user_api="blas")
+
+
+@functools.cache
+def _blas_libraries() -> ThreadpoolController:
+    """The BLAS libraries numpy and scipy loaded (found once, on first use)."""
+    return ThreadpoolController()
+
+
+def transform_batch(T_surface_source: np.ndarray, points_source: np.ndarray) -> np.ndarray:
     """(K, M, 3) points under each of K poses; `points_source` is (M, 3) shared or (K, M, 3)."""
     rotation, translation = T_surface_source[:, :3, :3], T_surface_source[:, :3, 3]
     return np.matmul(points_source, np.transpose(rotation, (0, 2, 1))) + translation[:, None, :]
@@ -169,7 +184,7 @@ def point_to_plane_gauss_newton(
         count = len(active)
         rotation, translation = poses[active, :3, :3], poses[active, :3, 3]
         source = points_source if np.ndim(points_source) == 2 else points_source[active]
-        p = _transform_batch(poses[active], source)
+        p = transform_batch(poses[active], source)
         facing = None if facing_source is None else (rotation @ facing_source)[:, None, :]
         r, use, _, n = plane_distances(surface, p, config.max_distance_m, facing)
         anchor_now = np.einsum("kij,kj->ki", rotation, anchor_source[active]) + translation

@@ -17,13 +17,13 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from yoto.contacts import ContactEstimate, contact_in_sensor, validate_tactile_points
 from yoto.errors import DegenerateGeometryError
 from yoto.geometry import tangent_basis
 from yoto.localize.match import AnchorConfig, AnchorMaps, MatchConfig, MatchLocalizer
 from yoto.objects.model import ObjectModel
+from yoto.tactile_image import tactile_spacing_m
 
 
 @dataclass(frozen=True)
@@ -40,17 +40,15 @@ class ScaleConfig:
 
 def contact_area_m2(points_sensor: np.ndarray, pixel_m: float) -> float:
     """Area the tactile cloud covers in its own tangent plane: occupied pixels of at least the cloud's spacing."""
-    _, normal = contact_in_sensor(points_sensor)
+    centre, normal = contact_in_sensor(points_sensor)
     u, v = tangent_basis(-normal)
-    local = np.stack([points_sensor @ u, points_sensor @ v], axis=1)
-    step = max(1, len(local) // 512)
-    distances, _ = cKDTree(local, balanced_tree=False, compact_nodes=False).query(local[::step], k=2)  # quick build
-    pixel = max(pixel_m, float(np.median(distances[:, 1])))
+    local = (points_sensor - centre) @ np.stack([u, v], axis=1)
+    pixel = max(pixel_m, tactile_spacing_m(local))
     cells = np.floor(local / pixel).astype(np.int64)
     cells -= cells.min(axis=0)
-    # One integer per cell: a 1-D unique is an order of magnitude faster than np.unique(axis=0) on rows.
-    occupied = np.unique(cells[:, 0] * (int(cells[:, 1].max()) + 1) + cells[:, 1])
-    return len(occupied) * pixel * pixel
+    occupied = np.zeros(cells.max(axis=0) + 1, dtype=bool)
+    occupied[cells[:, 0], cells[:, 1]] = True
+    return int(np.count_nonzero(occupied)) * pixel * pixel
 
 
 class ScaledMatchLocalizer:
@@ -108,18 +106,29 @@ class ScaledMatchLocalizer:
         level matches: a small patch says little about where it is, and the pose stage's confidence shows it.
         """
         points_sensor = validate_tactile_points(points_sensor, None)
-        area = contact_area_m2(points_sensor, self.scale.area_pixel_m)
-        level = self.level_for(area)
-        while True:
-            localizer = self.localizer(level)
+        localizer, area, candidates = self.default, None, None
+        # Most contacts are broad: when the trusted pixels of the default level's image alone cover its smallest
+        # area (they lie inside the contact, so they do not overstate it), that image is matched as it is and the
+        # finer area measurement is skipped.
+        image = self.default.image(points_sensor, model)
+        if np.count_nonzero(image.mask) * image.pixel_m**2 >= self.min_area_m2(0):
             try:
-                candidates = localizer.localize(points_sensor, model)
-                break
+                candidates = self.default.localize_image(image, model)
             except DegenerateGeometryError:
-                if level >= self.scale.levels:
-                    raise
-                level += 1  # the filter's own cover test is stricter than the area estimate: one level finer
-        trust = min(1.0, area / self.min_area_m2(0)) if level > 0 else 1.0
+                pass
+        if candidates is None:
+            area = contact_area_m2(points_sensor, self.scale.area_pixel_m)
+            level = self.level_for(area)
+            while True:
+                localizer = self.localizer(level)
+                try:
+                    candidates = localizer.localize(points_sensor, model)
+                    break
+                except DegenerateGeometryError:
+                    if level >= self.scale.levels:
+                        raise
+                    level += 1  # the filter's own cover test is stricter than the area estimate: one level finer
+        trust = min(1.0, area / self.min_area_m2(0)) if area is not None and localizer is not self.default else 1.0
         for candidate in candidates:
             candidate.probability *= trust
             candidate.details["match_cell_mm"] = 1000.0 * localizer.config.anchors.cell_m

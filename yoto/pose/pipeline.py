@@ -21,6 +21,7 @@
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -49,6 +50,7 @@ from yoto.pose.hypotheses import (
     HypothesisConfig,
     group_hypotheses,
     is_ambiguous,
+    log_likelihoods,
     reported,
 )
 from yoto.pose.next_touch import NextTouch, NextTouchConfig, suggest_next_touch
@@ -64,6 +66,7 @@ from yoto.pose.refine import (
 )
 from yoto.pose.search import LocalShape, SearchConfig, contact_shape, search_poses
 from yoto.pose.solver import PoseSolution, solve_pose, solve_poses
+from yoto.registration import one_blas_thread
 
 
 @dataclass(frozen=True)
@@ -171,23 +174,36 @@ class PoseEstimate:
 
 
 def localize_contacts(
-    pair: ContactPair, model: ObjectModel, localizer: ContactLocalizer
+    pair: ContactPair, model: ObjectModel, localizer: ContactLocalizer, concurrent: bool = False
 ) -> tuple[dict[str, list[ContactEstimate]], dict[str, WorldContact], dict[str, float]]:
-    """Each contact's ranked candidates on the model, its world-side measurement, and the localizer's time (ms)."""
-    latency: dict[str, float] = {}
-    candidates: dict[str, list[ContactEstimate]] = {}
-    world: dict[str, WorldContact] = {}
-    for side in SIDES:
-        contact = pair.contact(side)
+    """Each contact's ranked candidates on the model, its world-side measurement, and the localizer's time (ms).
+
+    With `concurrent`, the two contacts are localized on two threads at once (numpy's and the k-d tree's work
+    runs outside the GIL): a robot waits for both, not for each. Each side's time is then its own wall time
+    while the other runs beside it, and `localize_pair` is the time of both.
+    """
+
+    def localize(side: str) -> tuple[list[ContactEstimate], float]:
         truth = None
         if localizer.needs_ground_truth:
             if side not in pair.p_mesh_true:
                 raise DegenerateGeometryError(f"{pair.path}: the oracle needs ground_truth.{side}_p_object")
             truth = transform_points(model.T_object_mesh, pair.p_mesh_true[side])
         tick = time.perf_counter()
-        candidates[side] = localizer.localize(contact.points_sensor, model, truth)
-        latency[f"localize_{side}"] = 1000.0 * (time.perf_counter() - tick)
-        world[side] = contact_in_world(contact)
+        found = localizer.localize(pair.contact(side).points_sensor, model, truth)
+        return found, 1000.0 * (time.perf_counter() - tick)
+
+    start = time.perf_counter()
+    if concurrent:
+        # BLAS on one thread for the whole pair: each localizer's own limit then restores one thread, not two.
+        with one_blas_thread(), ThreadPoolExecutor(max_workers=2) as pool:
+            results = list(pool.map(localize, SIDES))
+    else:
+        results = [localize(side) for side in SIDES]
+    latency = {f"localize_{side}": ms for side, (_, ms) in zip(SIDES, results)}
+    latency["localize_pair"] = 1000.0 * (time.perf_counter() - start)
+    candidates = {side: found for side, (found, _) in zip(SIDES, results)}
+    world = {side: contact_in_world(pair.contact(side)) for side in SIDES}
     return candidates, world, latency
 
 
@@ -203,9 +219,7 @@ def _seeds(
     matches); the localizers' top pair is always among them, fitting or not, so there is a pose to verify. Of the
     matches in one pose cell only the one whose key fits best is kept."""
     matches = search_poses(model, world, shapes, candidates, config.search_config, samples=search)
-    matches_T = matches.solution.T_world_object[
-        _best_per_cell(matches.solution.T_world_object, -matches.mismatch, config)
-    ]
+    matches_T = matches.T_world_object[_best_per_cell(matches.T_world_object, -matches.mismatch, config)]
     left, right = candidates["left"][0], candidates["right"][0]
     top = solve_poses(
         left.p_object[None],
@@ -224,7 +238,12 @@ def _best_per_cell(T_world_object: np.ndarray, score: np.ndarray, config: PoseCo
     translation = np.floor(T_world_object[:, :3, 3] / config.seed_distinct_m)
     rotation = np.floor(so3_log(T_world_object[:, :3, :3]) / config.seed_distinct_rad)
     order = np.argsort(-score, kind="stable")
-    _, first = np.unique(np.hstack([translation, rotation])[order].astype(np.int64), axis=0, return_index=True)
+    cells = np.hstack([translation, rotation])[order].astype(np.int64)
+    cells -= cells.min(axis=0, initial=0)
+    key = np.zeros(len(cells), dtype=np.int64)  # one integer per cell: a 1-D unique is far faster than rows'
+    for column, span in zip(cells.T, cells.max(axis=0, initial=0) + 1):
+        key = key * span + column
+    _, first = np.unique(key, return_index=True)
     return order[np.sort(first)]
 
 
@@ -248,9 +267,23 @@ def _verify_and_refine(
     chosen = np.argsort(-score, kind="stable")[:screened]
     short = replace(refine, iterations=refine.screen_iterations)
     first = refine_hypotheses(field, thinned(contacts, refine.screen_points), seeds[chosen], config.calibration, short)
-    grouped = group_hypotheses(first, symmetry, config.hypotheses)
-    best = grouped.member[:refined]
+    best = _best_distinct(first, symmetry, config.hypotheses, refined)
     return refine_hypotheses(field, contacts, first.T_world_object[best], config.calibration, refine)
+
+
+def _best_distinct(refined: Refined, symmetry: Symmetry, config: HypothesisConfig, count: int) -> np.ndarray:
+    """Indices of the best pose of each of the `count` most likely distinct hypotheses (`group_hypotheses`).
+
+    Grouping visits the poses from the most likely down, and whether a pose founds a hypothesis depends only on
+    the poses before it: the first `count` founders among the most likely few poses are the first `count` of all.
+    So the grouping runs on the most likely 4 x `count` poses first, and on all only when they hold fewer.
+    """
+    order = np.argsort(-log_likelihoods(refined, config), kind="stable")
+    subset = order[: 4 * count]
+    members = subset[group_hypotheses(refined.subset(subset), symmetry, config).member[:count]]
+    if len(members) < count and len(subset) < len(order):
+        members = group_hypotheses(refined, symmetry, config).member[:count]
+    return members
 
 
 def _contact_under_pose(
@@ -287,7 +320,20 @@ def pose_from_candidates(
     confidence_model: ConfidenceModel | None = None,
 ) -> PoseEstimate:
     """The pose stage proper, from localized candidates. `latency_ms` holds `pose` (this stage's own time) and
-    `next_touch` when one was computed."""
+    `next_touch` when one was computed. BLAS runs on one thread (`registration.one_blas_thread`)."""
+    with one_blas_thread():
+        return _pose_from_candidates(pair, model, candidates, world, config, method, confidence_model)
+
+
+def _pose_from_candidates(
+    pair: ContactPair,
+    model: ObjectModel,
+    candidates: dict[str, list[ContactEstimate]],
+    world: dict[str, WorldContact],
+    config: PoseConfig,
+    method: str,
+    confidence_model: ConfidenceModel | None,
+) -> PoseEstimate:
     tick = time.perf_counter()
     if not config.joint_selection:
         candidates = {side: found[:1] for side, found in candidates.items()}
@@ -311,12 +357,15 @@ def pose_from_candidates(
         for side in SIDES
     }
     searched = config.search == "always"
-    seeds = _seeds(model, world, shapes, candidates, config, search=searched)
     refined = None
-    if len(seeds):
-        refined = _verify_and_refine(
-            field, contacts, seeds, model.symmetry, config, config.candidates_screened, config.candidates_refined
-        )
+    # The candidates' pass, unless "auto" searches whatever it finds: `_decisive` needs `decisive_featured` contacts
+    # with features of their own, and without them the pass would be thrown away.
+    if config.search != "auto" or _featured(shapes) >= config.decisive_featured:
+        seeds = _seeds(model, world, shapes, candidates, config, search=searched)
+        if len(seeds):
+            refined = _verify_and_refine(
+                field, contacts, seeds, model.symmetry, config, config.candidates_screened, config.candidates_refined
+            )
     hypotheses = None if refined is None else group_hypotheses(refined, model.symmetry, config.hypotheses)
     if config.search == "auto" and not _decisive(hypotheses, shapes, config):
         searched = True
@@ -469,12 +518,16 @@ def _decisive(hypotheses: Hypotheses | None, shapes: dict[str, LocalShape], conf
     nine objects, no pair that passed was wrong."""
     if hypotheses is None or not len(hypotheses):
         return False
-    featured = sum(not featureless(shapes[side]) for side in SIDES)
     return bool(
         hypotheses.probability[0] >= config.decisive_probability
         and hypotheses.log_likelihood[0] >= config.decisive_log_likelihood
-        and featured >= config.decisive_featured
+        and _featured(shapes) >= config.decisive_featured
     )
+
+
+def _featured(shapes: dict[str, LocalShape]) -> int:
+    """How many of the two contacts have features of their own (are not `featureless`)."""
+    return sum(not featureless(shapes[side]) for side in SIDES)
 
 
 def _closed_form_estimate(

@@ -26,7 +26,7 @@ from scipy import ndimage
 from yoto.geometry import se3_exp, se3_log
 from yoto.pointcloud import voxel_downsample
 from yoto.pose.field import SurfaceField
-from yoto.registration import masked_row_medians
+from yoto.registration import masked_row_medians, transform_batch
 from yoto.sensor.spec import GELSIGHT_MINI
 from yoto.simulate.body import SensorBody
 
@@ -163,11 +163,10 @@ def evaluate_fit(
     T_object_world = invert_transform_batch(T_world_object)
     rms, inliers, free = [], [], []
     for contact in contacts:
-        T = np.einsum("kij,jl->kil", T_object_world, contact.T_world_sensor)
+        T = T_object_world @ contact.T_world_sensor
         if corrections is not None:
             T = T @ se3_exp(corrections[:, contact.sensor])
-        points = np.vstack([contact.points_sensor, contact.free_sensor])
-        q = np.einsum("kij,mj->kmi", T[:, :3, :3], points) + T[:, None, :3, 3]
+        q = transform_batch(T, np.vstack([contact.points_sensor, contact.free_sensor]))
         distance, _ = field.distance(q, with_gradient=False)
         count = len(contact.points_sensor)
         magnitude = np.abs(distance[:, :count])
@@ -198,8 +197,7 @@ def evaluate_offsets(
     score = np.zeros(len(T_object_world))
     for contact in thinned(contacts, config.verify_points):
         points = contact.points_sensor
-        T = np.einsum("kij,jl->kil", T_object_world, contact.T_world_sensor)
-        q = np.einsum("kij,mj->kmi", T[:, :3, :3], points) + T[:, None, :3, 3]
+        q = transform_batch(T_object_world @ contact.T_world_sensor, points)
         distance, _ = field.distance(q, with_gradient=False)
         centred = points[:, :2] - points[:, :2].mean(axis=0)
         design = np.column_stack([np.ones(len(points)), centred])
@@ -244,31 +242,36 @@ def refine_hypotheses(
     deviation = np.zeros((count, 18))  # twists from the start and of the corrections, accumulated to first order
     for _ in range(config.iterations):
         T_object_world = invert_transform_batch(poses)
-        jacobians, residuals, weights = [], [], []
+        hessian = np.broadcast_to(information, (count, 18, 18)).copy()
+        gradient = deviation @ information
         for contact in contacts:
             s = contact.sensor
-            A = np.einsum("kij,jl->kil", T_object_world, contact.T_world_sensor) @ corrections[:, s]  # object<-sensor
-            q = np.einsum("kij,mj->kmi", A[:, :3, :3], contact.points_sensor) + A[:, None, :3, 3]
+            A = T_object_world @ contact.T_world_sensor @ corrections[:, s]  # object <- sensor
+            q = transform_batch(A, contact.points_sensor)
             r, n = field.distance(q)
             assert n is not None
             magnitude = np.abs(r)
             use = magnitude < config.max_distance_m
             scale = np.maximum(config.surface_noise_m, 1.4826 * masked_row_medians(magnitude, use))
-            w = np.where(use, np.minimum(1.0, scale[:, None] / np.maximum(magnitude, 1e-12)), 0.0)
-            m = np.einsum("kji,kmj->kmi", A[:, :3, :3], n)  # the surface normal in the sensor frame
-            J = np.zeros(q.shape[:2] + (18,))
+            w = np.where(use, np.minimum(1.0, scale[:, None] / np.maximum(magnitude, 1e-12)), 0.0) * weight_scale
+            m = n @ A[:, :3, :3]  # the surface normal in the sensor frame
+            # The residuals of one contact depend on the object pose and on its sensor's correction only: a
+            # 12-column Jacobian, its normal equations one batched product, added into the 18 x 18 system.
+            J = np.empty(q.shape[:2] + (12,))
             J[..., 0:3] = _cross(n, q)
             J[..., 3:6] = -n
-            J[..., 6 + 6 * s : 9 + 6 * s] = _cross(contact.points_sensor, m)
-            J[..., 9 + 6 * s : 12 + 6 * s] = m
-            jacobians.append(J)
-            residuals.append(r)
-            weights.append(w)
-        J = np.concatenate(jacobians, axis=1)
-        r = np.concatenate(residuals, axis=1)
-        w = np.concatenate(weights, axis=1) * weight_scale
-        hessian = np.einsum("kmi,km,kmj->kij", J, w, J) + information
-        gradient = np.einsum("kmi,km,km->ki", J, w, r) + deviation @ information
+            J[..., 6:9] = _cross(contact.points_sensor, m)
+            J[..., 9:12] = m
+            weighted = np.swapaxes(J * w[..., None], 1, 2)
+            block = weighted @ J
+            side = slice(6 + 6 * s, 12 + 6 * s)  # this sensor's correction
+            hessian[:, :6, :6] += block[:, :6, :6]
+            hessian[:, :6, side] += block[:, :6, 6:]
+            hessian[:, side, :6] += block[:, 6:, :6]
+            hessian[:, side, side] += block[:, 6:, 6:]
+            g = (weighted @ r[..., None])[..., 0]
+            gradient[:, :6] += g[:, :6]
+            gradient[:, side] += g[:, 6:]
         step = -np.linalg.solve(hessian, gradient[:, :, None])[:, :, 0]
         deviation += step
         updates = se3_exp(step.reshape(count, 3, 6))

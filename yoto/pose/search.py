@@ -14,7 +14,7 @@ place of that kind, and the true one is often not among them. The search covers 
    samples, an edge only edges), plus the localizer's candidates.
 3. Per pair (`search_poses`): every left x right location pair whose key fits the measured key within the
    tolerances (the sensors' calibration error, the localizers' error, and the blur of the sampling, which is
-   larger where the normal turns quickly), solved in closed form (`solver.solve_poses`, vectorised). Large
+   larger where the normal turns quickly), solved in closed form (`solver.closed_form_poses`, vectorised). Large
    location sets are thinned on a coarser grid first (smooth regions first: there a coarser sampling blurs
    only the separation), so a query costs at most `pair_budget` key evaluations.
 
@@ -34,11 +34,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from yoto.contacts import SIDES, ContactEstimate, WorldContact
-from yoto.geometry import tangent_basis
+from yoto.geometry import normalize, tangent_basis
 from yoto.objects.cache import ModelCache
 from yoto.objects.model import ObjectModel
 from yoto.pointcloud import voxel_downsample
-from yoto.pose.solver import MIN_CONTACT_SEPARATION_M, BatchSolution, direction_angles, solve_poses
+from yoto.pose.solver import MIN_CONTACT_SEPARATION_M, closed_form_poses, direction_angles
 
 
 @dataclass(frozen=True)
@@ -229,7 +229,7 @@ class PairMatches:
     """Pairs of locations that fit a measured pair, and the closed-form pose of each (arrays over K)."""
 
     mismatch: np.ndarray  # (K,) key mismatch in tolerances (0: exact; at most 1)
-    solution: BatchSolution  # (K,) poses
+    T_world_object: np.ndarray  # (K, 4, 4) the closed-form pose of each
 
     def __len__(self) -> int:
         return len(self.mismatch)
@@ -259,43 +259,47 @@ def search_poses(
     separation = float(np.linalg.norm(offset))
     angles = direction_angles(offset, world["left"].n_world, world["right"].n_world)
     # Squared distances of all left x right pairs by one matrix product per chunk; the shell of the widest
-    # tolerance first, the exact per-pair tolerances on what falls in it.
+    # tolerance first, the exact per-pair tolerances on what falls in it. The separation comes from those squared
+    # distances and the key's cosines from dot products (offset . n = pR . n - pL . n, each location's own term
+    # computed once); each part of the key is tested in turn, on the pairs the parts before it kept.
+    n_left, n_right = normalize(left.n_object), normalize(right.n_object)
     widest = float(np.hypot(config.distance_tolerance_m, left.blur_m.max(initial=0) + right.blur_m.max(initial=0)))
     low2, high2 = max(separation - widest, 0.0) ** 2, (separation + widest) ** 2
     squared_left, squared_right = np.sum(left.p_object**2, axis=1), np.sum(right.p_object**2, axis=1)
+    own_left = np.sum(left.p_object * n_left, axis=1)  # pL . nL
+    own_right = np.sum(right.p_object * n_right, axis=1)  # pR . nR
+    angle_variance = config.angle_tolerance_rad**2
     found = []
     chunk = max(1, 400_000 // max(len(right.p_object), 1))
     for first in range(0, len(left.p_object), chunk):
         rows = slice(first, first + chunk)
         squared = squared_left[rows, None] + squared_right[None, :] - 2.0 * left.p_object[rows] @ right.p_object.T
-        shell = (squared >= low2) & (squared <= high2)
-        i, j = np.nonzero(shell)
+        i, j = np.nonzero((squared >= low2) & (squared <= high2))
         if not len(i):
             continue
-        within = np.abs(np.sqrt(np.maximum(squared[i, j], 0.0)) - separation) <= np.hypot(
-            config.distance_tolerance_m, left.blur_m[i + first] + right.blur_m[j]
-        )
-        i, j = i[within], j[within]
+        distance = np.sqrt(np.maximum(squared[i, j], 0.0))
         i = i + first
-        offsets = right.p_object[j] - left.p_object[i]
-        distance = np.linalg.norm(offsets, axis=1)
         blur = left.blur_m[i] + right.blur_m[j]
-        tolerance_m = np.hypot(config.distance_tolerance_m, blur)
-        turn = blur / max(separation, 1e-3)  # the direction d turns as the locations move within their blur
-        tolerance_rad = np.stack(
-            [
-                np.sqrt(config.angle_tolerance_rad**2 + left_turn[i] ** 2 + turn**2),
-                np.sqrt(config.angle_tolerance_rad**2 + right_turn[j] ** 2 + turn**2),
-                np.sqrt(config.angle_tolerance_rad**2 + left_turn[i] ** 2 + right_turn[j] ** 2),
-            ],
-            axis=1,
-        )
-        key = direction_angles(offsets, left.n_object[i], right.n_object[j])
-        mismatch = np.maximum(
-            np.abs(distance - separation) / tolerance_m, (np.abs(key - angles) / tolerance_rad).max(axis=1)
-        )
+        mismatch = np.abs(distance - separation) / np.hypot(config.distance_tolerance_m, blur)
         keep = (mismatch <= 1.0) & (distance >= MIN_CONTACT_SEPARATION_M)
-        found.append((i[keep], j[keep], mismatch[keep]))
+        i, j, distance, blur, mismatch = i[keep], j[keep], distance[keep], blur[keep], mismatch[keep]
+        # (nL, nR)
+        key = np.arccos(np.clip(np.sum(n_left[i] * n_right[j], axis=1), -1.0, 1.0))
+        part = np.abs(key - angles[2]) / np.sqrt(angle_variance + left_turn[i] ** 2 + right_turn[j] ** 2)
+        keep = part <= 1.0
+        i, j, distance, blur = i[keep], j[keep], distance[keep], blur[keep]
+        mismatch = np.maximum(mismatch[keep], part[keep])
+        turn2 = (blur / max(separation, 1e-3)) ** 2  # the direction d turns as the locations move within their blur
+        # (d, nL) and (d, nR), d = (pR - pL) / distance
+        p_left, p_right = left.p_object[i], right.p_object[j]
+        cosine = (np.sum(p_right * n_left[i], axis=1) - own_left[i]) / np.maximum(distance, 1e-12)
+        key = np.arccos(np.clip(cosine, -1.0, 1.0))
+        part = np.abs(key - angles[0]) / np.sqrt(angle_variance + left_turn[i] ** 2 + turn2)
+        cosine = (own_right[j] - np.sum(p_left * n_right[j], axis=1)) / np.maximum(distance, 1e-12)
+        key = np.arccos(np.clip(cosine, -1.0, 1.0))
+        part = np.maximum(part, np.abs(key - angles[1]) / np.sqrt(angle_variance + right_turn[j] ** 2 + turn2))
+        keep = part <= 1.0
+        found.append((i[keep], j[keep], np.maximum(mismatch[keep], part[keep])))
     if found:
         a, b, mismatch = (np.concatenate(parts) for parts in zip(*found))
     else:
@@ -303,7 +307,7 @@ def search_poses(
     if len(mismatch) > config.max_matches:
         best = np.argpartition(mismatch, config.max_matches - 1)[: config.max_matches]
         a, b, mismatch = a[best], b[best], mismatch[best]
-    solution = solve_poses(
-        left.p_object[a], left.n_object[a], right.p_object[b], right.n_object[b], world["left"], world["right"]
+    T_world_object = closed_form_poses(
+        left.p_object[a], n_left[a], right.p_object[b], n_right[b], world["left"], world["right"]
     )
-    return PairMatches(mismatch, solution)
+    return PairMatches(mismatch, T_world_object)

@@ -90,9 +90,38 @@ def procrustes_rotations(cross_covariances: np.ndarray) -> np.ndarray:
     """Proper rotations R maximising trace(R^T H) of (K, 3, 3) matrices H: `geometry.procrustes_rotation` for many
     at once (R = U diag(1, 1, det(U V^T)) V^T)."""
     u, _, vt = np.linalg.svd(np.asarray(cross_covariances, dtype=np.float64))
-    fix = np.ones((len(u), 3))
-    fix[:, 2] = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)
-    return np.einsum("kij,kj,kjl->kil", u, fix, vt)
+    u[:, :, 2] *= np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)[:, None]
+    return u @ vt
+
+
+def closed_form_poses(
+    p_left_object: np.ndarray,
+    n_left_object: np.ndarray,
+    p_right_object: np.ndarray,
+    n_right_object: np.ndarray,
+    left_world: WorldContact,
+    right_world: WorldContact,
+) -> np.ndarray:
+    """(K, 4, 4) T_world_object of K object-side contact pairs ((K, 3) arrays) against one measured pair: the
+    Procrustes rotation of Q_object onto Q_world, and the translation that aligns the contact points on average
+    (`solve_poses` without its diagnostics)."""
+    q_object = _object_directions(p_left_object, n_left_object, p_right_object, n_right_object)
+    offset_world = right_world.p_world - left_world.p_world
+    q_world = dual_contact_directions(offset_world, left_world.n_world, right_world.n_world)
+    rotation = procrustes_rotations(q_world @ np.swapaxes(q_object, 1, 2))
+    middle = 0.5 * (p_left_object + p_right_object)
+    translation = 0.5 * (left_world.p_world + right_world.p_world) - (rotation @ middle[:, :, None])[:, :, 0]
+    T = np.tile(np.eye(4), (len(rotation), 1, 1))
+    T[:, :3, :3], T[:, :3, 3] = rotation, translation
+    return T
+
+
+def _object_directions(
+    p_left_object: np.ndarray, n_left_object: np.ndarray, p_right_object: np.ndarray, n_right_object: np.ndarray
+) -> np.ndarray:
+    """(K, 3, 3) unit columns [d, nL, nR] on the object."""
+    offset = p_right_object - p_left_object
+    return np.stack([normalize(offset), normalize(n_left_object), normalize(n_right_object)], axis=-1)
 
 
 def solve_poses(
@@ -104,18 +133,12 @@ def solve_poses(
     right_world: WorldContact,
 ) -> BatchSolution:
     """`solve_pose` for K object-side contact pairs at once ((K, 3) arrays), vectorised; no degeneracy checks."""
+    q_object = _object_directions(p_left_object, n_left_object, p_right_object, n_right_object)
+    T = closed_form_poses(p_left_object, n_left_object, p_right_object, n_right_object, left_world, right_world)
     offset_object = p_right_object - p_left_object
     offset_world = right_world.p_world - left_world.p_world
-    q_object = np.stack([normalize(offset_object), normalize(n_left_object), normalize(n_right_object)], axis=-1)
     q_world = dual_contact_directions(offset_world, left_world.n_world, right_world.n_world)
-    rotation = procrustes_rotations(np.einsum("ij,klj->kil", q_world, q_object))
-    translation = 0.5 * (
-        (left_world.p_world - np.einsum("kij,kj->ki", rotation, p_left_object))
-        + (right_world.p_world - np.einsum("kij,kj->ki", rotation, p_right_object))
-    )
-    T = np.tile(np.eye(4), (len(rotation), 1, 1))
-    T[:, :3, :3], T[:, :3, 3] = rotation, translation
-    aligned = np.einsum("kij,kjl->kil", rotation, q_object)
+    aligned = T[:, :3, :3] @ q_object
     alignment = np.arccos(np.clip(np.einsum("kil,il->kl", aligned, q_world), -1.0, 1.0)).max(axis=1)
     angles_world = direction_angles(offset_world, left_world.n_world, right_world.n_world)
     angles_object = direction_angles(offset_object, n_left_object, n_right_object)

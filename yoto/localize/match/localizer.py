@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
-from threadpoolctl import ThreadpoolController
 
 from yoto.contacts import ContactEstimate, validate_tactile_points
 from yoto.errors import DegenerateGeometryError
@@ -18,7 +16,7 @@ from yoto.localize.match.rings import contact_rings, ring_distances
 from yoto.localize.match.scores import free_space_penalty, free_space_violation, plane_costs
 from yoto.localize.ranking import rank_registrations
 from yoto.objects.model import ObjectModel
-from yoto.registration import point_to_plane_gauss_newton, truncated_plane_fit
+from yoto.registration import one_blas_thread, point_to_plane_gauss_newton, truncated_plane_fit
 
 Z_AXIS = np.array([0.0, 0.0, 1.0])
 MIN_CONTACT_CELLS = 3  # fewer covered cells leave nothing to match
@@ -47,12 +45,16 @@ class MatchLocalizer:
     def prepare_object(self, model: ObjectModel) -> AnchorMaps:
         return anchor_maps(model, self.config.anchors)
 
-    def hypotheses(self, points_sensor: np.ndarray, model: ObjectModel) -> FilterHypotheses:
-        """The matched filter's shortlist: anchors, rolls, costs and poses (best first, NMS applied)."""
+    def image(self, points_sensor: np.ndarray, model: ObjectModel) -> ContactImage:
+        """The contact's height image at this filter's resolution and extent."""
+        return contact_image(points_sensor, anchor_maps(model, self.config.anchors).grid.radius_m, self.config)
+
+    def hypotheses(self, image: ContactImage, model: ObjectModel) -> FilterHypotheses:
+        """The matched filter's shortlist for a contact image: anchors, rolls, costs and poses (best first, NMS
+        applied)."""
         config = self.config
         anchors = anchor_maps(model, config.anchors)
         grid = anchors.grid
-        image = contact_image(points_sensor, grid.radius_m, config)
         contact = contact_maps(image, grid.centres, config.rolls, config)
         if contact.mask.sum(axis=1).max() < MIN_CONTACT_CELLS:
             raise DegenerateGeometryError(
@@ -143,9 +145,13 @@ class MatchLocalizer:
         The filter's matrix products are small: BLAS runs them on one thread. (Its threads wait for one another,
         and on a busy machine a product that takes 2 ms alone took 50 ms on two threads.)
         """
-        with _blas_threads().limit(limits=1, user_api="blas"):
-            points_sensor = validate_tactile_points(points_sensor, None)
-            return self.refine(self.hypotheses(points_sensor, model), model)
+        points_sensor = validate_tactile_points(points_sensor, None)
+        return self.localize_image(self.image(points_sensor, model), model)
+
+    def localize_image(self, image: ContactImage, model: ObjectModel) -> list[ContactEstimate]:
+        """`localize` from the contact's height image (`image`)."""
+        with one_blas_thread():
+            return self.refine(self.hypotheses(image, model), model)
 
     def refine(self, found: FilterHypotheses, model: ObjectModel) -> list[ContactEstimate]:
         """The filter's hypotheses refined by ICP, checked for free space, ranked and given beliefs.
@@ -243,9 +249,3 @@ class _Ranked:
     indices: list[int]  # distinct registrations, best first
     probabilities: np.ndarray  # their beliefs
     p_object: np.ndarray  # (K, 3) every registration's contact location
-
-
-@functools.cache
-def _blas_threads() -> ThreadpoolController:
-    """The BLAS libraries numpy and scipy loaded (found once, on first use)."""
-    return ThreadpoolController()
