@@ -296,3 +296,34 @@ def test_fusing_the_next_touch_finds_a_truth_the_first_pair_missed(box, rng):
     fused = fuse_next_touch(pair, box, estimate, touch, "left", PoseConfig(), localizer=_KnownLocations(truth))
     translation, rotation = offset(fused)
     assert translation < 0.002 and rotation < np.radians(1.0)  # as refining a right hypothesis gives
+
+
+def test_pose_cli_fuses_a_retouch_read_from_files(box, rng, tmp_path, capsys):
+    """`yoto pose PAIR.json --retouch TOUCH.json --sensor left`: the pair's contacts on the box's top and bottom
+    leave it free to slide; the end-face touch read from its file fixes x, z and the rotation in the fused result
+    (NAME.retouch.pose.json, with its error against the pair's ground truth); a touch file that names no sensor
+    needs --sensor."""
+    from yoto.cli import main
+    from yoto.contacts import write_contact_pair
+    from yoto.io import write_json_atomic, write_ply_points
+
+    pair, touch, _, T, _ = _box_with_a_third_touch(box, rng, [0.0])
+    pair.T_world_mesh_true = T @ box.T_object_mesh
+    pair_path = write_contact_pair(tmp_path / "pair_0000.json", pair)
+    write_ply_points(tmp_path / "touch_left.ply", touch.points_sensor)
+    touch_path = write_json_atomic(
+        tmp_path / "touch.json", {"points": "touch_left.ply", "T_world_sensor": touch.T_world_sensor}
+    )
+    model_path = box.save(tmp_path / "box.npz")
+    command = ["pose", str(pair_path), "--retouch", str(touch_path), "--model", str(model_path), "--search", "always"]
+    assert main(command) == 1
+    assert "names no 'sensor'" in capsys.readouterr().out
+    assert main([*command, "--sensor", "left", "--out", str(tmp_path / "out")]) == 0
+    assert "with the left sensor's touch" in capsys.readouterr().out
+    result = json.loads((tmp_path / "out" / "pair_0000.retouch.pose.json").read_text())
+    assert result["retouch"]["sensor"] == "left" and "error" in result
+    T_fused = np.array(result["T_world_object"]) @ box.T_mesh_object
+    relative = invert_transform(T) @ T_fused
+    _, rotation = pose_distances(T_fused[None], T, box.symmetry)
+    assert np.abs(relative[[0, 2], 3]).max() < 0.002 and rotation[0] < np.radians(1.0)  # y stays free
+    assert np.allclose(result["hypotheses"][0]["T_world_object"], result["T_world_object"])

@@ -314,9 +314,12 @@ def pose_from_candidates(
     seeds = _seeds(model, world, shapes, candidates, config, search=searched)
     refined = None
     if len(seeds):
-        refined = _verify_and_refine(
-            field, contacts, seeds, model.symmetry, config, config.candidates_screened, config.candidates_refined
+        screened, kept = (
+            (config.screened, config.seeds_refined)
+            if searched
+            else (config.candidates_screened, config.candidates_refined)
         )
+        refined = _verify_and_refine(field, contacts, seeds, model.symmetry, config, screened, kept)
     hypotheses = None if refined is None else group_hypotheses(refined, model.symmetry, config.hypotheses)
     if config.search == "auto" and not _decisive(hypotheses, shapes, config):
         searched = True
@@ -432,7 +435,29 @@ def fuse_next_touch(
     )
     fused.confidence = (confidence_model or load_confidence_model(config.confidence_model)).predict(fused.features)
     fused.latency_ms = {"fuse": 1000.0 * (time.perf_counter() - tick)}
+    if fused.ambiguous and config.suggest_next_touch:
+        tock = time.perf_counter()
+        left, right = (touch, pair.right) if sensor == "left" else (pair.left, touch)
+        moved = ContactPair(pair.object_name, left, right)  # the sensors where they are now
+        fused.next_touch = suggest_next_touch(model, fused.hypotheses, moved, config.next_touch)
+        fused.latency_ms["next_touch"] = 1000.0 * (time.perf_counter() - tock)
     return fused
+
+
+def estimate_pose_with_touch(
+    pair: ContactPair,
+    model: ObjectModel,
+    localizer: ContactLocalizer,
+    touch: TactileContact,
+    sensor: str,
+    config: PoseConfig = PoseConfig(),
+) -> tuple[PoseEstimate, PoseEstimate]:
+    """The pose of `pair`, and the pose after `sensor` moved and pressed again (`touch`, e.g. where the first
+    estimate's `next_touch` said) while the other sensor stayed: (first estimate, fused estimate)."""
+    if sensor not in SIDES:
+        raise YotoError(f"the sensor that touched again must be 'left' or 'right', got {sensor!r}")
+    first = estimate_pose(pair, model, localizer, replace(config, suggest_next_touch=False))
+    return first, fuse_next_touch(pair, model, first, touch, sensor, config, localizer=localizer)
 
 
 def _second_pair_seeds(
