@@ -327,3 +327,25 @@ def test_pose_cli_fuses_a_retouch_read_from_files(box, rng, tmp_path, capsys):
     _, rotation = pose_distances(T_fused[None], T, box.symmetry)
     assert np.abs(relative[[0, 2], 3]).max() < 0.002 and rotation[0] < np.radians(1.0)  # y stays free
     assert np.allclose(result["hypotheses"][0]["T_world_object"], result["T_world_object"])
+
+
+def test_a_sequence_of_touches_resolves_what_one_leaves_free(box, rng):
+    """Top and bottom contacts leave the box free to slide in x and y: the first touch (left sensor, end face)
+    fixes x but leaves the y-slid hypothesis; the second (right sensor, side face), fused with the first as an
+    earlier touch, fixes y too."""
+    from yoto.pose.hypotheses import Hypotheses
+    from yoto.pose.pipeline import PoseConfig, fuse_next_touch
+
+    pair, touch, estimate, T, _ = _box_with_a_third_touch(box, rng, [0.0])
+    slides = [(0.0, 0.0), (0.012, 0.0), (0.0, 0.01), (0.012, 0.01)]
+    poses = np.array([T @ make_transform(np.eye(3), [dx, dy, 0.0]) for dx, dy in slides])
+    estimate.hypotheses = Hypotheses(poses, np.full(4, 0.25), np.zeros(4), np.arange(4), np.ones(4, np.int64))
+    config = PoseConfig(suggest_next_touch=False)
+    first = fuse_next_touch(pair, box, estimate, touch, "left", config)
+    slid = invert_transform(T) @ first.hypotheses.T_world_object
+    assert first.ambiguous and np.abs(slid[:, 0, 3]).max() < 0.002  # x fixed, y not
+    assert np.abs(slid[:, 1, 3]).max() > 0.008
+    side, _ = _press(box, np.array([0.0, 0.04, 0.0]), np.array([0.0, 1.0, 0.0]), T, whole_pad=True)
+    second = fuse_next_touch(pair, box, first, side, "right", config, earlier=((touch, "left"),))
+    relative = invert_transform(T) @ second.T_world_object
+    assert np.abs(relative[:3, 3]).max() < 0.002 and not second.ambiguous

@@ -394,26 +394,27 @@ def fuse_next_touch(
     config: PoseConfig = PoseConfig(),
     confidence_model: ConfidenceModel | None = None,
     localizer: ContactLocalizer | None = None,
+    earlier: tuple[tuple[TactileContact, str], ...] = (),
 ) -> PoseEstimate:
     """The pose after one more touch: `sensor` moved and pressed again (`touch`: its tactile cloud and reported
-    pose) while the other stayed. Every hypothesis of the first estimate is refined with all three clouds (the
-    moved sensor's two contacts share its calibration error) and regrouped. With a `localizer`, the new touch and
-    the contact that stayed are also a pair of their own: the seeds of its joint search join the first estimate's
-    hypotheses and all are verified with the three clouds, so a truth that the first pair missed can be found."""
+    pose) while the other stayed. Every hypothesis of the previous estimate is refined with all the clouds (a
+    sensor's contacts share its calibration error) and regrouped. With a `localizer`, the new touch and the contact
+    that stayed are also a pair of their own: the seeds of its joint search join the previous hypotheses and all
+    are verified with all the clouds, so a truth that the first pair missed can be found. `earlier` holds the
+    touches (contact, sensor) fused into `estimate` before this one, in order: a sequence of touches."""
     tick = time.perf_counter()
     field = surface_field(model, config.field_config)
     spacing = model.point_spacing_m
+    touches = [*((pair.contact(side), side) for side in SIDES), *earlier, (touch, sensor)]
     contacts = [
-        contact_points(
-            pair.contact(side).points_sensor, pair.contact(side).T_world_sensor, s, spacing, config.refine_config
-        )
-        for s, side in enumerate(SIDES)
+        contact_points(c.points_sensor, c.T_world_sensor, SIDES.index(side), spacing, config.refine_config)
+        for c, side in touches
     ]
-    contacts.append(
-        contact_points(touch.points_sensor, touch.T_world_sensor, SIDES.index(sensor), spacing, config.refine_config)
-    )
+    now = pair
+    for contact, side in touches[2:-1]:
+        now = _moved(now, contact, side)
     seeds = estimate.hypotheses.T_world_object
-    second_seeds = _second_pair_seeds(pair, model, touch, sensor, config, localizer) if localizer else None
+    second_seeds = _second_pair_seeds(now, model, touch, sensor, config, localizer) if localizer else None
     if second_seeds is None:
         refined = refine_hypotheses(field, contacts, seeds, config.calibration, config.refine_config)
     else:
@@ -437,9 +438,7 @@ def fuse_next_touch(
     fused.latency_ms = {"fuse": 1000.0 * (time.perf_counter() - tick)}
     if fused.ambiguous and config.suggest_next_touch:
         tock = time.perf_counter()
-        left, right = (touch, pair.right) if sensor == "left" else (pair.left, touch)
-        moved = ContactPair(pair.object_name, left, right)  # the sensors where they are now
-        fused.next_touch = suggest_next_touch(model, fused.hypotheses, moved, config.next_touch)
+        fused.next_touch = suggest_next_touch(model, fused.hypotheses, _moved(now, touch, sensor), config.next_touch)
         fused.latency_ms["next_touch"] = 1000.0 * (time.perf_counter() - tock)
     return fused
 
@@ -460,6 +459,12 @@ def estimate_pose_with_touch(
     return first, fuse_next_touch(pair, model, first, touch, sensor, config, localizer=localizer)
 
 
+def _moved(pair: ContactPair, touch: TactileContact, sensor: str) -> ContactPair:
+    """The pair of the sensors' latest contacts after `sensor` touched again."""
+    left, right = (touch, pair.right) if sensor == "left" else (pair.left, touch)
+    return ContactPair(pair.object_name, left, right)
+
+
 def _second_pair_seeds(
     pair: ContactPair,
     model: ObjectModel,
@@ -470,9 +475,7 @@ def _second_pair_seeds(
 ) -> np.ndarray | None:
     """The closed-form seeds (candidates and joint search) of the pair made by the new touch and the contact that
     stayed, or None when that pair cannot be solved (e.g. its contacts are too close)."""
-    stayed = pair.contact("right" if sensor == "left" else "left")
-    left, right = (touch, stayed) if sensor == "left" else (stayed, touch)
-    second = ContactPair(pair.object_name, left, right)
+    second = _moved(pair, touch, sensor)
     try:
         candidates, world, _ = localize_contacts(second, model, localizer)
         shapes = {
