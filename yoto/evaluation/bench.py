@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from yoto.contacts import SIDES
+from yoto.contacts import SIDES, TactileContact
 from yoto.errors import InputError, YotoError
 from yoto.evaluation.shapes import is_procedural, procedural_mesh
 from yoto.geometry import transform_points
@@ -234,7 +234,8 @@ def _retouch(
         errors = symmetric_errors(model, current.T_world_mesh, simulated.pair.T_world_mesh_true)
         return errors["translation_mm"] < RIGHT_MM and errors["rotation_deg"] < RIGHT_DEG
 
-    current, earlier, status, right = estimate, (), "-", []
+    earlier: tuple[tuple[TactileContact, str], ...] = ()
+    current, status, right = estimate, "-", []
     for number in range(touches):
         suggestion = current.next_touch
         outcome = None if suggestion is None else simulate_retouch(simulator, simulated, suggestion, number)
