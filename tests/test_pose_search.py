@@ -286,16 +286,19 @@ def test_fusing_the_next_touch_finds_a_truth_the_first_pair_missed(box, rng):
     pair, touch, estimate, T, truth = _box_with_a_third_touch(box, rng, [0.03, -0.03])
 
     def offset(fused):
-        """Translation off the truth along x and z (object frame), rotation off it modulo the box's symmetry."""
-        relative = invert_transform(T) @ fused.T_world_object
-        _, rotation = pose_distances(fused.T_world_object[None], T, box.symmetry)
-        return np.abs(relative[[0, 2], 3]).max(), float(rotation[0])
+        """Per hypothesis: translation off the truth along x and z (object frame), rotation off it modulo the
+        box's symmetry."""
+        relative = invert_transform(T) @ fused.hypotheses.T_world_object
+        _, rotation = pose_distances(fused.hypotheses.T_world_object, T, box.symmetry)
+        return np.abs(relative[:, [0, 2], 3]).max(axis=1), rotation
 
     alone = fuse_next_touch(pair, box, estimate, touch, "left", PoseConfig())
-    assert offset(alone)[0] > 0.02  # refining the slid poses cannot get there
+    assert offset(alone)[0].min() > 0.02  # refining the slid poses cannot get there
     fused = fuse_next_touch(pair, box, estimate, touch, "left", PoseConfig(), localizer=_KnownLocations(truth))
     translation, rotation = offset(fused)
-    assert translation < 0.002 and rotation < np.radians(1.0)  # as refining a right hypothesis gives
+    # Among the hypotheses, as refining a right hypothesis gives (the box turned a quarter about z, the touch on a
+    # side face, explains the three contacts as well: the first hypothesis may be either).
+    assert np.any((translation < 0.002) & (rotation < np.radians(1.0)))
 
 
 def test_pose_cli_fuses_a_retouch_read_from_files(box, rng, tmp_path, capsys):

@@ -49,6 +49,7 @@ from yoto.pose.hypotheses import (
     HypothesisConfig,
     group_hypotheses,
     is_ambiguous,
+    neighbour_poses,
     reported,
 )
 from yoto.pose.next_touch import NextTouch, NextTouchConfig, suggest_next_touch
@@ -82,8 +83,8 @@ class PoseConfig:
     seeds_refined: int = 40  # distinct hypotheses (the most likely after the short refinement) refined in full
     candidates_screened: int = 24  # the same two numbers when only the localizers' candidate pairs are verified
     candidates_refined: int = 6
-    seed_distinct_m: float = 0.003  # seeds in one cell of this size (object centroid) ...
-    seed_distinct_rad: float = float(np.radians(3.0))  # ... and of this (rotation vector) are screened as one
+    seed_distinct_m: float = 0.005  # seeds in one cell of this size (object centroid) ...
+    seed_distinct_rad: float = float(np.radians(5.0))  # ... and of this (rotation vector) are screened as one
     search_config: SearchConfig = SearchConfig()
     refine_config: RefineConfig = RefineConfig()
     field_config: FieldConfig = FieldConfig()
@@ -236,12 +237,14 @@ def _verify_and_refine(
     config: PoseConfig,
     screened: int,
     refined: int,
+    neighbours: bool = False,
 ) -> Refined:
     """Screen the seeds and refine the best distinct ones.
 
     A cheap score (each cloud may sit off the surface by an offset and a tilt) ranks the seeds; the best
     `screened` get a short refinement on a few points; the best pose of each of the `refined`
-    most likely distinct hypotheses among those is refined in full.
+    most likely distinct hypotheses among those is refined in full; with `neighbours`, so are the neighbours of
+    the most likely of them (`hypotheses.neighbour_poses`).
     """
     refine = config.refine_config
     score = evaluate_offsets(field, contacts, seeds, config.calibration, refine)
@@ -250,7 +253,13 @@ def _verify_and_refine(
     first = refine_hypotheses(field, thinned(contacts, refine.screen_points), seeds[chosen], config.calibration, short)
     grouped = group_hypotheses(first, symmetry, config.hypotheses)
     best = grouped.member[:refined]
-    return refine_hypotheses(field, contacts, first.T_world_object[best], config.calibration, refine)
+    full = refine_hypotheses(field, contacts, first.T_world_object[best], config.calibration, refine)
+    if not neighbours or not config.hypotheses.neighbours_of:
+        return full
+    top = group_hypotheses(full, symmetry, config.hypotheses).member[: config.hypotheses.neighbours_of]
+    near = neighbour_poses(full.T_world_object[top], config.hypotheses)
+    more = refine_hypotheses(field, contacts, near, config.calibration, refine)
+    return Refined(*(np.concatenate([getattr(full, name), getattr(more, name)]) for name in full.__dataclass_fields__))
 
 
 def _contact_under_pose(
@@ -319,14 +328,14 @@ def pose_from_candidates(
             if searched
             else (config.candidates_screened, config.candidates_refined)
         )
-        refined = _verify_and_refine(field, contacts, seeds, model.symmetry, config, screened, kept)
+        refined = _verify_and_refine(field, contacts, seeds, model.symmetry, config, screened, kept, searched)
     hypotheses = None if refined is None else group_hypotheses(refined, model.symmetry, config.hypotheses)
     if config.search == "auto" and not _decisive(hypotheses, shapes, config):
         searched = True
         seeds = _seeds(model, world, shapes, candidates, config, search=True)
         if len(seeds):
             refined = _verify_and_refine(
-                field, contacts, seeds, model.symmetry, config, config.screened, config.seeds_refined
+                field, contacts, seeds, model.symmetry, config, config.screened, config.seeds_refined, True
             )
             hypotheses = group_hypotheses(refined, model.symmetry, config.hypotheses)
     if refined is None or hypotheses is None or not len(hypotheses):
