@@ -23,6 +23,7 @@ from yoto.geometry import (
     transform_points,
 )
 from yoto.objects.model import ObjectModelConfig, build_object_model
+from yoto.objects.symmetry import Symmetry
 from yoto.pose.confidence import FEATURES, fit_logistic, load_confidence_model, read_confidence_model
 from yoto.pose.field import FieldConfig, build_surface_field
 from yoto.pose.hypotheses import HypothesisConfig, group_hypotheses, is_ambiguous, pose_distances
@@ -151,6 +152,28 @@ def test_hypotheses_are_grouped_modulo_symmetry(box, rng):
         _refined(poses, np.array([[3e-5] * 2, [3e-5] * 2, [2e-4] * 2])), symmetry, HypothesisConfig()
     )
     assert worse.probability[0] > 0.999 and not is_ambiguous(worse, HypothesisConfig())
+    # Probabilities are the likelihoods tempered: the two groups' odds are exp(log-likelihood gap / temperature).
+    config = HypothesisConfig(temperature=4.0)
+    tempered = group_hypotheses(_refined(poses, np.array([[3e-5] * 2, [3e-5] * 2, [4e-5] * 2])), symmetry, config)
+    gap = tempered.log_likelihood[0] - tempered.log_likelihood[1]
+    assert gap > 1.0 and tempered.probability[0] / tempered.probability[1] == pytest.approx(np.exp(gap / 4.0))
+
+
+def test_neighbour_poses_turn_and_slide_each_pose_about_its_own_axes(rng):
+    from yoto.pose.hypotheses import neighbour_poses
+
+    config = HypothesisConfig()
+    poses = np.array([make_transform(R, [0.5, 0.0, 0.2]) for R in random_rotations(rng, 2)])
+    near = neighbour_poses(poses, config)
+    assert near.shape == (24, 4, 4)
+    for h in range(2):
+        translation, rotation = pose_distances(near[12 * h : 12 * (h + 1)], poses[h], Symmetry())
+        turned = rotation > 1e-4
+        assert turned.sum() == 6 and np.allclose(rotation[turned], config.neighbour_rotation_rad)
+        assert np.allclose(translation[turned], 0.0) and np.allclose(translation[~turned], 0.006)
+        # Slid along the pose's own object axes: in the object frame, each step is along one axis.
+        steps = np.einsum("ij,kj->ki", poses[h, :3, :3].T, near[12 * h : 12 * (h + 1), :3, 3] - poses[h, :3, 3])
+        assert np.allclose(np.sort(np.abs(steps[~turned]), axis=1)[:, :2], 0.0, atol=1e-12)
 
 
 def test_logistic_confidence_fit_and_files(tmp_path, rng):
@@ -321,6 +344,11 @@ def test_pose_cli_fuses_a_retouch_read_from_files(box, rng, tmp_path, capsys):
     command = ["pose", str(pair_path), "--retouch", str(touch_path), "--model", str(model_path), "--search", "always"]
     assert main(command) == 1
     assert "names no 'sensor'" in capsys.readouterr().out
+    odd = write_json_atomic(
+        tmp_path / "odd.json", {"points": "touch_left.ply", "T_world_sensor": np.eye(4), "sensor": "up"}
+    )
+    assert main(["pose", str(pair_path), "--retouch", str(odd), "--model", str(model_path)]) == 1
+    assert "'sensor' must be 'left' or 'right'" in capsys.readouterr().out
     assert main([*command, "--sensor", "left", "--out", str(tmp_path / "out")]) == 0
     assert "with the left sensor's touch" in capsys.readouterr().out
     result = json.loads((tmp_path / "out" / "pair_0000.retouch.pose.json").read_text())
