@@ -148,7 +148,7 @@ def run_retouch(args: argparse.Namespace) -> int:
     except YotoError as exc:
         print(f"error: {exc}")
         return 1
-    first_line = _describe(first, model, pair, first.to_json(model))
+    first_line = _describe(first, model, pair, {})
     result = fused.to_json(model)
     result["retouch"] = {"sensor": sensor, "touch": str(Path(args.retouch).resolve())}
     line = _describe(fused, model, pair, result)
