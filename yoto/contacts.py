@@ -269,6 +269,22 @@ def read_contact_pair(
     return pair
 
 
+def read_touch(
+    path: str | Path, images: ImageReconstructor | None = None, from_images: bool = False
+) -> tuple[TactileContact, str | None]:
+    """A touch file: one more contact of one sensor (e.g. the re-touch `next_touch` suggested), written like one
+    side of a pair file, `{"points": "touch.ply", "T_world_sensor": 4x4}` (or an `image`), optionally with
+    `"sensor": "left"|"right"`. Returns the contact and the sensor it names (None when it names none)."""
+    path = Path(path)
+    payload = read_json(path)
+    if not isinstance(payload, dict):
+        raise InputError("a touch file must hold a JSON object", path)
+    sensor = payload.get("sensor")
+    if sensor is not None and sensor not in SIDES:
+        raise InputError(f"'sensor' must be 'left' or 'right', got {sensor!r}", path)
+    return _read_side(payload, sensor or "touch", path, images, from_images), sensor
+
+
 def _read_side(
     record: Any, side: str, path: Path, images: ImageReconstructor | None, from_images: bool
 ) -> TactileContact:

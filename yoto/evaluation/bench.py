@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from yoto.contacts import SIDES
+from yoto.contacts import SIDES, TactileContact
 from yoto.errors import InputError, YotoError
 from yoto.evaluation.shapes import is_procedural, procedural_mesh
 from yoto.geometry import transform_points
@@ -104,6 +104,7 @@ class MethodResult:
     truth_in_hypotheses: list[bool] = field(default_factory=list)  # a hypothesis within 5 mm and 5 deg
     retouch: list[str] = field(default_factory=list)  # "-" (not ambiguous / no suggestion), "ok", or the rejection
     right_after_retouch: list[bool] = field(default_factory=list)  # the pose right after the re-touch (or without)
+    right_after_two: list[bool] = field(default_factory=list)  # ... after a second re-touch where still ambiguous
     contact_latency_ms: list[float] = field(default_factory=list)  # per contact, warm-up excluded
     pose_latency_ms: list[float] = field(default_factory=list)  # per pair: both localizations + the pose stage
     pose_stage_ms: list[float] = field(default_factory=list)  # per pair: the pose stage alone (no next_touch)
@@ -203,13 +204,12 @@ def evaluate_method(
             result.truth_in_hypotheses.append(
                 bool(np.any((translation < RIGHT_MM / 1000.0) & (rotation < np.radians(RIGHT_DEG))))
             )
-            status, right_after = "-", right
+            status, after = "-", [right, right]
             if estimate.next_touch is not None and simulator is not None:
-                status, right_after = _retouch(
-                    simulator, simulated, estimate, localize_model, model, pose_config, localizer
-                )
+                status, after = _retouch(simulator, simulated, estimate, localize_model, model, pose_config, localizer)
             result.retouch.append(status)
-            result.right_after_retouch.append(bool(right_after))
+            result.right_after_retouch.append(bool(after[0]))
+            result.right_after_two.append(bool(after[1]))
             if number >= config.warmup_pairs:
                 result.contact_latency_ms += [latency["localize_left"], latency["localize_right"]]
                 result.pose_stage_ms.append(estimate.latency_ms["pose"])
@@ -221,25 +221,40 @@ def evaluate_method(
     return results
 
 
-def _retouch(simulator, simulated, estimate, localize_model, model, pose_config, localizer) -> tuple[str, bool]:
-    """Simulate the suggested re-touch, fuse it, and say whether the fused pose is right."""
+def _retouch(
+    simulator, simulated, estimate, localize_model, model, pose_config, localizer, touches: int = 2
+) -> tuple[str, list[bool]]:
+    """Simulate the suggested re-touches (up to `touches`, the next one only while the fused pose is still
+    ambiguous and suggests one), fuse each, and say whether the pose is right after each: the first touch's outcome
+    ("ok" or the simulator's rejection) and, per touch, right or not (a failed or unsuggested touch keeps the pose
+    as it was)."""
     from yoto.evaluation.retouch import simulate_retouch
 
-    outcome = simulate_retouch(simulator, simulated, estimate.next_touch)
-    if outcome.touch is None:
-        errors = symmetric_errors(model, estimate.T_world_mesh, simulated.pair.T_world_mesh_true)
-        return str(outcome.rejection), errors["translation_mm"] < RIGHT_MM and errors["rotation_deg"] < RIGHT_DEG
-    fused = fuse_next_touch(
-        simulated.pair,
-        localize_model,
-        estimate,
-        outcome.touch,
-        estimate.next_touch.sensor,
-        pose_config,
-        localizer=localizer,
-    )
-    errors = symmetric_errors(model, fused.T_world_mesh, simulated.pair.T_world_mesh_true)
-    return "ok", errors["translation_mm"] < RIGHT_MM and errors["rotation_deg"] < RIGHT_DEG
+    def is_right(current) -> bool:
+        errors = symmetric_errors(model, current.T_world_mesh, simulated.pair.T_world_mesh_true)
+        return errors["translation_mm"] < RIGHT_MM and errors["rotation_deg"] < RIGHT_DEG
+
+    earlier: tuple[tuple[TactileContact, str], ...] = ()
+    current, status, right = estimate, "-", []
+    for number in range(touches):
+        suggestion = current.next_touch
+        outcome = None if suggestion is None else simulate_retouch(simulator, simulated, suggestion, number)
+        if number == 0 and outcome is not None:
+            status = "ok" if outcome.touch is not None else str(outcome.rejection)
+        if outcome is not None and outcome.touch is not None:
+            current = fuse_next_touch(
+                simulated.pair,
+                localize_model,
+                current,
+                outcome.touch,
+                suggestion.sensor,
+                pose_config,
+                localizer=localizer,
+                earlier=earlier,
+            )
+            earlier = (*earlier, (outcome.touch, suggestion.sensor))
+        right.append(is_right(current))
+    return status, right
 
 
 def benchmark_simulator(model: ObjectModel, config: BenchConfig):
@@ -430,6 +445,7 @@ def build_report(results: dict[str, dict[str, MethodResult]], rows: list[Row]) -
             "retouched": float(np.mean([r == "ok" for r in retouch])) if retouch else 0.0,
             "retouch_failed": float(np.mean([r not in ("-", "ok") for r in retouch])) if retouch else 0.0,
             "right_after_retouch": float(np.mean(gather("right_after_retouch"))) if len(right) else float("nan"),
+            "right_after_two": float(np.mean(gather("right_after_two"))) if len(right) else float("nan"),
             "reliability": reliability(confidence, right),
             "trusted": trusted_threshold(confidence, right),
             "contact_latency_ms": summarize(gather("contact_latency_ms")),
@@ -550,7 +566,7 @@ def format_markdown(report: dict[str, Any]) -> str:
     lines += table(labels, lambda s: _percent(s["right_share"]))
     lines += [
         "",
-        "## Trust: right / truth among hypotheses / ambiguous / right after one suggested re-touch / "
+        "## Trust: right / truth among hypotheses / ambiguous / right after one suggested re-touch / after two / "
         "confident at the common 99% threshold (its precision)",
         "",
         header,
@@ -563,7 +579,8 @@ def format_markdown(report: dict[str, Any]) -> str:
         )
         return (
             f"{_percent(s['right'])} / {_percent(s['truth_in_hypotheses'])} / {_percent(s['ambiguous'])} / "
-            f"{_percent(s['right_after_retouch'])} / {_percent(common['confident'])} ({_percent(common['precision'])})"
+            f"{_percent(s['right_after_retouch'])} / {_percent(s['right_after_two'])} / "
+            f"{_percent(common['confident'])} ({_percent(common['precision'])})"
         )
 
     lines += table(full_labels, trust)

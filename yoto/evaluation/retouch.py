@@ -30,9 +30,13 @@ class Retouch:
     rejection: str | None  # why the press failed (a key of the simulator's rejection reasons)
 
 
-def simulate_retouch(simulator: PairSimulator, simulated: SimulatedPair, suggestion: NextTouch) -> Retouch:
-    """Press the suggested sensor at the suggested place into the true object (see the module docstring)."""
-    rng = np.random.default_rng(np.random.SeedSequence([simulated.seed, simulated.index, RETOUCH_STREAM]))
+def simulate_retouch(
+    simulator: PairSimulator, simulated: SimulatedPair, suggestion: NextTouch, number: int = 0
+) -> Retouch:
+    """Press the suggested sensor at the suggested place into the true object (see the module docstring); `number`
+    counts the re-touches of one pair (each draws its own press depth and noise)."""
+    stream = [simulated.seed, simulated.index, RETOUCH_STREAM] + ([number] if number else [])
+    rng = np.random.default_rng(np.random.SeedSequence(stream))
     depth = float(rng.uniform(*simulator.config.press.depth_range_m))
     T_object_sensor_start = invert_transform(simulated.T_world_object) @ suggestion.T_world_sensor
     press = simulator.presses.press(T_object_sensor_start, depth)

@@ -56,6 +56,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "'calibration' of their own",
     )
     parser.add_argument(
+        "--retouch",
+        metavar="TOUCH.json",
+        help="fuse one more touch of one sensor (e.g. the suggested next_touch) with the single pair given: a file "
+        'like one side of a pair file, {"points": PLY, "T_world_sensor": 4x4}, optionally with "sensor"; writes '
+        "NAME.retouch.pose.json",
+    )
+    parser.add_argument(
+        "--sensor",
+        choices=["left", "right"],
+        help="with --retouch: the sensor that moved and pressed again (default: the touch file's 'sensor')",
+    )
+    parser.add_argument(
         "--from-images",
         action="store_true",
         help="reconstruct every side that gives an 'image' from it, even when it also gives 'points'",
@@ -63,27 +75,107 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(run=run)
 
 
-def run(args: argparse.Namespace) -> int:
+def _pose_config(args: argparse.Namespace):
     from dataclasses import replace
 
+    import numpy as np
+
+    from yoto.pose.pipeline import PAPER, PoseConfig
+    from yoto.pose.refine import CalibrationPrior
+
+    prior = CalibrationPrior(args.calibration_error_mm / 1000.0, float(np.radians(args.calibration_error_deg)))
+    config = PAPER if args.paper else PoseConfig(calibration=prior, search=args.search)
+    return replace(config, confidence_model=args.confidence_model) if args.confidence_model else config
+
+
+def _describe(estimate, model, pair, result: dict) -> str:
+    """One line about a pose result; adds the error to `result` when the pair has ground truth."""
+    import numpy as np
+
+    from yoto.metrics import pose_errors
+
+    count = len(estimate.hypotheses)
+    line = f"confidence {estimate.confidence:.2f}, {count} hypothes{'i' if count == 1 else 'e'}s"
+    line += " (ambiguous)" if estimate.ambiguous else ""
+    if estimate.next_touch is not None:
+        line += f", touch next with the {estimate.next_touch.sensor} sensor"
+    if pair.T_world_mesh_true is not None:
+        result["error"] = pose_errors(estimate.T_world_mesh, pair.T_world_mesh_true, model)
+        result["error"]["rotation_deg_modulo_symmetry"] = float(
+            np.degrees(
+                model.symmetry.rotation_error_rad(
+                    estimate.T_world_mesh @ model.T_mesh_object, pair.T_world_mesh_true @ model.T_mesh_object
+                )
+            )
+        )
+        line += (
+            f", error {result['error']['translation_mm']:.1f} mm / "
+            f"{result['error']['rotation_deg_modulo_symmetry']:.1f} deg"
+        )
+    return line + "".join(f"\n  warning: {w}" for w in estimate.solution.warnings)
+
+
+def run_retouch(args: argparse.Namespace) -> int:
+    """`yoto pose PAIR.json --retouch TOUCH.json [--sensor SIDE]`: the pair's pose, then the pose with the touch."""
+    from pathlib import Path
+
+    from yoto.contacts import POSE_RESULT_SUFFIX, find_pair_files, read_contact_pair, read_touch
+    from yoto.errors import InputError, YotoError
+    from yoto.io import write_json_atomic
+    from yoto.localize import make_localizer
+    from yoto.objects.build import load_object_model
+    from yoto.pose.pipeline import estimate_pose_with_touch, pose_result_path
+    from yoto.sensor.pair_images import ImageSides
+
+    try:
+        paths = find_pair_files(args.pairs)
+        if len(paths) != 1:
+            raise InputError(f"--retouch fuses one touch with one pair file, got {len(paths)} pair files")
+        path = paths[0]
+        if args.paper:
+            raise InputError("--retouch needs the full pose stage (not --paper)")
+        images = ImageSides(args.calibration)
+        pair = read_contact_pair(path, images, args.from_images)
+        touch, named = read_touch(args.retouch, images, args.from_images)
+        sensor = args.sensor or named
+        if sensor is None:
+            raise InputError("the touch file names no 'sensor': say which sensor moved with --sensor", args.retouch)
+        if args.sensor and named and args.sensor != named:
+            raise InputError(f"--sensor {args.sensor} but the touch file says {named!r}", args.retouch)
+        model = load_object_model(args.model or pair.object_name, args.workspace)
+        localizer = make_localizer("oracle" if args.oracle else args.method, args.checkpoint)
+        first, fused = estimate_pose_with_touch(pair, model, localizer, touch, sensor, _pose_config(args))
+    except YotoError as exc:
+        print(f"error: {exc}")
+        return 1
+    first_line = _describe(first, model, pair, {})
+    result = fused.to_json(model)
+    result["retouch"] = {"sensor": sensor, "touch": str(Path(args.retouch).resolve())}
+    line = _describe(fused, model, pair, result)
+    out = pose_result_path(path, args.out)
+    out = out.with_name(out.name.removesuffix(POSE_RESULT_SUFFIX) + ".retouch" + POSE_RESULT_SUFFIX)
+    write_json_atomic(out, result)
+    print(f"{path.name}: before the touch: {first_line}")
+    print(f"{path.name}: with the {sensor} sensor's touch: {line} -> {out}")
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from yoto.contacts import find_pair_files, read_contact_pair
     from yoto.errors import NoContactError, YotoError
     from yoto.io import write_json_atomic
     from yoto.localize import make_localizer
-    from yoto.metrics import pose_errors
     from yoto.objects.build import load_object_model
     from yoto.objects.model import ObjectModel
-    from yoto.pose.pipeline import PAPER, PoseConfig, estimate_pose, pose_result_path
-    from yoto.pose.refine import CalibrationPrior
+    from yoto.pose.pipeline import estimate_pose, pose_result_path
     from yoto.sensor.pair_images import ImageSides
 
+    if args.retouch:
+        return run_retouch(args)
     method = "oracle" if args.oracle else args.method
-    prior = CalibrationPrior(args.calibration_error_mm / 1000.0, float(np.radians(args.calibration_error_deg)))
-    pose_config = PAPER if args.paper else PoseConfig(calibration=prior, search=args.search)
-    if args.confidence_model:
-        pose_config = replace(pose_config, confidence_model=args.confidence_model)
+    pose_config = _pose_config(args)
     localizer = make_localizer(method, args.checkpoint)
     images = ImageSides(args.calibration)
     models: dict[str, ObjectModel] = {}
@@ -97,27 +189,11 @@ def run(args: argparse.Namespace) -> int:
             model = models[key]
             estimate = estimate_pose(pair, model, localizer, pose_config)
             result = estimate.to_json(model)
-            count = len(estimate.hypotheses)
-            line = f"{path.name}: confidence {estimate.confidence:.2f}, {count} hypothes{'i' if count == 1 else 'e'}s"
-            line += " (ambiguous)" if estimate.ambiguous else ""
-            if estimate.next_touch is not None:
-                line += f", touch next with the {estimate.next_touch.sensor} sensor"
-            if pair.T_world_mesh_true is not None:
-                result["error"] = pose_errors(estimate.T_world_mesh, pair.T_world_mesh_true, model)
-                result["error"]["rotation_deg_modulo_symmetry"] = float(
-                    np.degrees(
-                        model.symmetry.rotation_error_rad(
-                            estimate.T_world_mesh @ model.T_mesh_object, pair.T_world_mesh_true @ model.T_mesh_object
-                        )
-                    )
-                )
+            line = _describe(estimate, model, pair, result)
+            if "error" in result:
                 errors.append(result["error"])
-                line += (
-                    f", error {result['error']['translation_mm']:.1f} mm / "
-                    f"{result['error']['rotation_deg_modulo_symmetry']:.1f} deg"
-                )
             write_json_atomic(pose_result_path(path, args.out), result)
-            print(line + "".join(f"\n  warning: {w}" for w in estimate.solution.warnings))
+            print(f"{path.name}: {line}")
         except NoContactError as exc:
             no_contact += 1
             print(f"{path}: no pose, a sensor shows no contact: {exc}")

@@ -13,9 +13,13 @@ the sensor felt nothing, or into its housing (a pose that puts the object there 
 
 Poses closer than `distinct_translation_m` (at the object's centroid) and `distinct_rotation_rad`, modulo the
 object's symmetries, are one hypothesis; each keeps its best pose. Probabilities are the normalised likelihoods,
-so hypotheses that explain the contacts equally well (a flat face that lets the object slide, a body of
-revolution) share the probability, and the pose is `ambiguous` when more than one keeps at least
-`ambiguous_probability`.
+tempered (log L / `temperature`: the model above counts the evidence of neighbouring points and of a calibration
+error only roughly, and untempered it made the truth's probability too small where it was not the first), so
+hypotheses that explain the contacts equally well (a flat face that lets the object slide, a body of revolution)
+share the probability, and the pose is `ambiguous` when more than one keeps at least `ambiguous_probability`.
+
+Where the contacts leave a continuous family of poses, the refined hypotheses land anywhere along it: the
+neighbours of the most likely (`neighbour_poses`) are refined as well, so that the family is covered near them.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from yoto.geometry import make_transform, rotation_about_axis
 from yoto.objects.symmetry import Symmetry
 from yoto.pose.refine import Refined
 
@@ -36,11 +41,16 @@ class HypothesisConfig:
     distinct_rotation_rad: float = float(np.radians(5.0))  # ... or this (modulo symmetry) are distinct hypotheses
     fit_noise_m: float = 3e-5  # residual RMS of a right pose (sensor noise, mesh error)
     effective_points: float = 4.0  # effectively independent points per contact (scales the fit's evidence)
+    temperature: float = 2.5  # probabilities from log-likelihood / temperature: the value at which the truth's
+    # probability is best predicted (its mean -log p least) on simulated pairs under 1 mm / 1 deg calibration error
     free_noise_m: float = 1e-4  # free space: RMS depth of the object inside the gel or housing that costs as much
     free_effective_points: float = 4.0  # ... and its effectively independent points per contact
     min_probability: float = 1e-3  # hypotheses below this probability are not reported
     max_hypotheses: int = 40  # reported hypotheses at most (the most probable)
     ambiguous_probability: float = 0.05  # ambiguous when a second hypothesis keeps at least this probability
+    neighbours_of: int = 12  # the most likely hypotheses whose neighbours are refined as well (0: none) ...
+    neighbour_rotation_rad: float = float(np.radians(7.0))  # ... turned by this about each object axis ...
+    neighbour_translation_m: float = 0.006  # ... and slid by this along each (both beyond distinct_*)
 
 
 @dataclass
@@ -89,9 +99,23 @@ def group_hypotheses(refined: Refined, symmetry: Symmetry, config: HypothesisCon
         support.append(int(close.sum()))
     best = np.array(members, dtype=np.int64)
     log_l = score[best]
-    weights = np.exp(log_l - log_l.max()) if len(best) else np.empty(0)
+    weights = np.exp((log_l - log_l.max()) / config.temperature) if len(best) else np.empty(0)
     probability = weights / weights.sum() if len(best) else weights
     return Hypotheses(poses[best], probability, log_l, best, np.array(support, dtype=np.int64))
+
+
+def neighbour_poses(T_world_object: np.ndarray, config: HypothesisConfig) -> np.ndarray:
+    """(12 H, 4, 4) the neighbours of H poses: each turned both ways about each axis of the object frame (through
+    its origin, the centroid) and slid both ways along it. Where two contacts leave a continuous family of poses
+    (a body of revolution that a handle breaks, a flat face), refined hypotheses land anywhere along it, further
+    apart than a hypothesis reaches; refining the best ones' neighbours fills the family near them, while the
+    refinement pulls every neighbour back onto the contacts in the directions they fix."""
+    steps = []
+    for axis in np.eye(3):
+        for sign in (-1.0, 1.0):
+            steps.append(make_transform(rotation_about_axis(axis, sign * config.neighbour_rotation_rad), np.zeros(3)))
+            steps.append(make_transform(np.eye(3), sign * config.neighbour_translation_m * axis))
+    return np.einsum("hij,sjk->hsik", np.asarray(T_world_object).reshape(-1, 4, 4), np.array(steps)).reshape(-1, 4, 4)
 
 
 def reported(hypotheses: Hypotheses, config: HypothesisConfig) -> Hypotheses:

@@ -51,6 +51,7 @@ from yoto.pose.hypotheses import (
     group_hypotheses,
     is_ambiguous,
     log_likelihoods,
+    neighbour_poses,
     reported,
 )
 from yoto.pose.next_touch import NextTouch, NextTouchConfig, suggest_next_touch
@@ -85,8 +86,8 @@ class PoseConfig:
     seeds_refined: int = 40  # distinct hypotheses (the most likely after the short refinement) refined in full
     candidates_screened: int = 24  # the same two numbers when only the localizers' candidate pairs are verified
     candidates_refined: int = 6
-    seed_distinct_m: float = 0.003  # seeds in one cell of this size (object centroid) ...
-    seed_distinct_rad: float = float(np.radians(3.0))  # ... and of this (rotation vector) are screened as one
+    seed_distinct_m: float = 0.005  # seeds in one cell of this size (object centroid) ...
+    seed_distinct_rad: float = float(np.radians(5.0))  # ... and of this (rotation vector) are screened as one
     search_config: SearchConfig = SearchConfig()
     refine_config: RefineConfig = RefineConfig()
     field_config: FieldConfig = FieldConfig()
@@ -255,12 +256,14 @@ def _verify_and_refine(
     config: PoseConfig,
     screened: int,
     refined: int,
+    neighbours: bool = False,
 ) -> Refined:
     """Screen the seeds and refine the best distinct ones.
 
     A cheap score (each cloud may sit off the surface by an offset and a tilt) ranks the seeds; the best
     `screened` get a short refinement on a few points; the best pose of each of the `refined`
-    most likely distinct hypotheses among those is refined in full.
+    most likely distinct hypotheses among those is refined in full; with `neighbours`, so are the neighbours of
+    the most likely of them (`hypotheses.neighbour_poses`).
     """
     refine = config.refine_config
     score = evaluate_offsets(field, contacts, seeds, config.calibration, refine)
@@ -268,7 +271,13 @@ def _verify_and_refine(
     short = replace(refine, iterations=refine.screen_iterations)
     first = refine_hypotheses(field, thinned(contacts, refine.screen_points), seeds[chosen], config.calibration, short)
     best = _best_distinct(first, symmetry, config.hypotheses, refined)
-    return refine_hypotheses(field, contacts, first.T_world_object[best], config.calibration, refine)
+    full = refine_hypotheses(field, contacts, first.T_world_object[best], config.calibration, refine)
+    if not neighbours or not config.hypotheses.neighbours_of:
+        return full
+    top = group_hypotheses(full, symmetry, config.hypotheses).member[: config.hypotheses.neighbours_of]
+    near = neighbour_poses(full.T_world_object[top], config.hypotheses)
+    more = refine_hypotheses(field, contacts, near, config.calibration, refine)
+    return Refined(*(np.concatenate([getattr(full, name), getattr(more, name)]) for name in full.__dataclass_fields__))
 
 
 def _best_distinct(refined: Refined, symmetry: Symmetry, config: HypothesisConfig, count: int) -> np.ndarray:
@@ -363,16 +372,19 @@ def _pose_from_candidates(
     if config.search != "auto" or _featured(shapes) >= config.decisive_featured:
         seeds = _seeds(model, world, shapes, candidates, config, search=searched)
         if len(seeds):
-            refined = _verify_and_refine(
-                field, contacts, seeds, model.symmetry, config, config.candidates_screened, config.candidates_refined
+            screened, kept = (
+                (config.screened, config.seeds_refined)
+                if searched
+                else (config.candidates_screened, config.candidates_refined)
             )
+            refined = _verify_and_refine(field, contacts, seeds, model.symmetry, config, screened, kept, searched)
     hypotheses = None if refined is None else group_hypotheses(refined, model.symmetry, config.hypotheses)
     if config.search == "auto" and not _decisive(hypotheses, shapes, config):
         searched = True
         seeds = _seeds(model, world, shapes, candidates, config, search=True)
         if len(seeds):
             refined = _verify_and_refine(
-                field, contacts, seeds, model.symmetry, config, config.screened, config.seeds_refined
+                field, contacts, seeds, model.symmetry, config, config.screened, config.seeds_refined, True
             )
             hypotheses = group_hypotheses(refined, model.symmetry, config.hypotheses)
     if refined is None or hypotheses is None or not len(hypotheses):
@@ -440,26 +452,27 @@ def fuse_next_touch(
     config: PoseConfig = PoseConfig(),
     confidence_model: ConfidenceModel | None = None,
     localizer: ContactLocalizer | None = None,
+    earlier: tuple[tuple[TactileContact, str], ...] = (),
 ) -> PoseEstimate:
     """The pose after one more touch: `sensor` moved and pressed again (`touch`: its tactile cloud and reported
-    pose) while the other stayed. Every hypothesis of the first estimate is refined with all three clouds (the
-    moved sensor's two contacts share its calibration error) and regrouped. With a `localizer`, the new touch and
-    the contact that stayed are also a pair of their own: the seeds of its joint search join the first estimate's
-    hypotheses and all are verified with the three clouds, so a truth that the first pair missed can be found."""
+    pose) while the other stayed. Every hypothesis of the previous estimate is refined with all the clouds (a
+    sensor's contacts share its calibration error) and regrouped. With a `localizer`, the new touch and the contact
+    that stayed are also a pair of their own: the seeds of its joint search join the previous hypotheses and all
+    are verified with all the clouds, so a truth that the first pair missed can be found. `earlier` holds the
+    touches (contact, sensor) fused into `estimate` before this one, in order: a sequence of touches."""
     tick = time.perf_counter()
     field = surface_field(model, config.field_config)
     spacing = model.point_spacing_m
+    touches = [*((pair.contact(side), side) for side in SIDES), *earlier, (touch, sensor)]
     contacts = [
-        contact_points(
-            pair.contact(side).points_sensor, pair.contact(side).T_world_sensor, s, spacing, config.refine_config
-        )
-        for s, side in enumerate(SIDES)
+        contact_points(c.points_sensor, c.T_world_sensor, SIDES.index(side), spacing, config.refine_config)
+        for c, side in touches
     ]
-    contacts.append(
-        contact_points(touch.points_sensor, touch.T_world_sensor, SIDES.index(sensor), spacing, config.refine_config)
-    )
+    now = pair
+    for contact, side in touches[2:-1]:
+        now = _moved(now, contact, side)
     seeds = estimate.hypotheses.T_world_object
-    second_seeds = _second_pair_seeds(pair, model, touch, sensor, config, localizer) if localizer else None
+    second_seeds = _second_pair_seeds(now, model, touch, sensor, config, localizer) if localizer else None
     if second_seeds is None:
         refined = refine_hypotheses(field, contacts, seeds, config.calibration, config.refine_config)
     else:
@@ -481,7 +494,33 @@ def fuse_next_touch(
     )
     fused.confidence = (confidence_model or load_confidence_model(config.confidence_model)).predict(fused.features)
     fused.latency_ms = {"fuse": 1000.0 * (time.perf_counter() - tick)}
+    if fused.ambiguous and config.suggest_next_touch:
+        tock = time.perf_counter()
+        fused.next_touch = suggest_next_touch(model, fused.hypotheses, _moved(now, touch, sensor), config.next_touch)
+        fused.latency_ms["next_touch"] = 1000.0 * (time.perf_counter() - tock)
     return fused
+
+
+def estimate_pose_with_touch(
+    pair: ContactPair,
+    model: ObjectModel,
+    localizer: ContactLocalizer,
+    touch: TactileContact,
+    sensor: str,
+    config: PoseConfig = PoseConfig(),
+) -> tuple[PoseEstimate, PoseEstimate]:
+    """The pose of `pair`, and the pose after `sensor` moved and pressed again (`touch`, e.g. where the first
+    estimate's `next_touch` said) while the other sensor stayed: (first estimate, fused estimate)."""
+    if sensor not in SIDES:
+        raise YotoError(f"the sensor that touched again must be 'left' or 'right', got {sensor!r}")
+    first = estimate_pose(pair, model, localizer, replace(config, suggest_next_touch=False))
+    return first, fuse_next_touch(pair, model, first, touch, sensor, config, localizer=localizer)
+
+
+def _moved(pair: ContactPair, touch: TactileContact, sensor: str) -> ContactPair:
+    """The pair of the sensors' latest contacts after `sensor` touched again."""
+    left, right = (touch, pair.right) if sensor == "left" else (pair.left, touch)
+    return ContactPair(pair.object_name, left, right)
 
 
 def _second_pair_seeds(
@@ -494,9 +533,7 @@ def _second_pair_seeds(
 ) -> np.ndarray | None:
     """The closed-form seeds (candidates and joint search) of the pair made by the new touch and the contact that
     stayed, or None when that pair cannot be solved (e.g. its contacts are too close)."""
-    stayed = pair.contact("right" if sensor == "left" else "left")
-    left, right = (touch, stayed) if sensor == "left" else (stayed, touch)
-    second = ContactPair(pair.object_name, left, right)
+    second = _moved(pair, touch, sensor)
     try:
         candidates, world, _ = localize_contacts(second, model, localizer)
         shapes = {

@@ -67,7 +67,7 @@ class SearchConfig:
     # or a cylinder well and its curvatures are then sharp; on an edge or a bump they are only a rough guide
     curvature_share: float = 0.35
     curvature_residual_scale_m: float = 0.00015
-    pair_budget: int = 1_000_000  # location pairs evaluated at most per query (large sets are thinned)
+    pair_budget: int = 4_000_000  # location pairs evaluated at most per query (large sets are thinned)
     max_matches: int = 8000  # matches kept (the best keys first)
 
 
