@@ -103,7 +103,7 @@ def test_reconstruction_does_not_depend_on_lighting_noise_and_gel(shading, draw)
 
 def test_the_image_path_is_seeded_by_the_height_map_and_can_use_another_renderer(shading):
     """`image_path_reconstructor` gives the same cloud for the same height map, with any renderer, and an empty
-    cloud for a frame without contact."""
+    cloud for a frame without contact or one the reconstruction refuses (a benchmark counts it as failed)."""
     sensor, calibration = shading
     truth = broad_contact()
     for hook in (
@@ -113,6 +113,8 @@ def test_the_image_path_is_seeded_by_the_height_map_and_can_use_another_renderer
         first = hook(truth)
         assert len(first) > 1000 and np.array_equal(hook(truth), first)
         assert hook(np.zeros_like(truth)).shape == (0, 3)
+    foreign = image_path_reconstructor(calibration, render=lambda h, rng: np.roll(sensor.render(h, rng), 1, axis=2))
+    assert foreign(truth).shape == (0, 3)
 
 
 # ------------------------------------------------------------------------------------------------ image inputs
