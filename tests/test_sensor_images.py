@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from yoto.errors import InputError
 from yoto.sensor.ball_calibration import CalibrationConfig
 from yoto.sensor.optical import OpticsVariation, image_path_reconstructor, render_varied
 from yoto.sensor.reconstruction import reconstruct
@@ -86,6 +87,23 @@ def test_a_broad_contact_keeps_its_whole_area_and_shape(shading):
     contact = truth < -0.5e-3
     true_k, recon_k = quadric_curvatures(truth, contact), quadric_curvatures(recon.height_map_m, contact)
     np.testing.assert_allclose(recon_k, true_k, rtol=0.25)
+
+
+def test_a_contact_over_the_whole_pad_is_a_contact_and_a_lighting_change_is_not(shading):
+    """A broad face pressed over the whole pad changes every block's colour, as another sensor's frame does: it is
+    reconstructed as the contact it is, while the same frame under brighter LEDs, or with its channels swapped, is
+    refused."""
+    sensor, calibration = shading
+    truth = broad_contact(radii_m=(0.08, 0.1), depth_m=1.2e-3, centre_px=(160.0, 120.0))
+    assert (truth < -5e-5).mean() > 0.99
+    image = sensor.render(truth, np.random.default_rng(3))
+    recon = reconstruct(image, calibration)
+    assert recon.contact and recon.mask.mean() > 0.8 and recon.max_depth_m > 0.3e-3
+    brighter = np.clip(calibration.background * 1.15, 0, 255).astype(np.uint8)
+    with pytest.raises(InputError, match="the lighting or exposure changed"):
+        reconstruct(brighter, calibration)
+    with pytest.raises(InputError, match="gradients not a surface.s"):
+        reconstruct(np.roll(image, 1, axis=2), calibration)
 
 
 @pytest.mark.parametrize("draw", range(3))
