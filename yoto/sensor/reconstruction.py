@@ -2,8 +2,9 @@
 
 Steps, for one 320x240 RGB frame:
 1. checks and the touched region: the frame's colour change against the calibration's background is
-   averaged over 8x8 blocks; a frame that differs from the background almost everywhere (another sensor,
-   changed lighting) or is saturated raises InputError. Blocks whose mean colour changed are "touched";
+   averaged over 8x8 blocks; a frame that differs from the background almost everywhere and is no contact
+   over the whole pad (another sensor, changed lighting: `pad_wide_contact`) or is saturated raises
+   InputError. Blocks whose mean colour changed are "touched";
    their bounding box plus a margin is the only region where gradients are computed. Elsewhere the gel is
    flat to within the sensor noise and its gradient is set to zero (the fitted model would only add its
    small bias there, which integrates into a spurious tilt).
@@ -237,7 +238,7 @@ def check_frame(image: np.ndarray, calibration: SensorCalibration, source: str |
 def pad_wide_contact(image: np.ndarray, calibration: SensorCalibration) -> str:
     """Why a frame that changed colour almost everywhere is not a contact over the whole pad, or "" if it is one.
 
-    See LIGHTING_EXPLAINED, MAX_NONINTEGRABLE and MAX_FRAME_SLOPE. Runs only on such frames (a few milliseconds).
+    See LIGHTING_EXPLAINED, MAX_NONINTEGRABLE and MAX_FRAME_SLOPE. Runs only on such frames (about 6 ms CPU).
     """
     background = calibration.background.astype(np.float64)
     rows = (image.shape[0] // BLOCK_PX) * BLOCK_PX
