@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from yoto.errors import InputError
 from yoto.sensor.ball_calibration import CalibrationConfig
 from yoto.sensor.optical import OpticsVariation, image_path_reconstructor, render_varied
 from yoto.sensor.reconstruction import reconstruct
@@ -88,6 +89,23 @@ def test_a_broad_contact_keeps_its_whole_area_and_shape(shading):
     np.testing.assert_allclose(recon_k, true_k, rtol=0.25)
 
 
+def test_a_contact_over_the_whole_pad_is_a_contact_and_a_lighting_change_is_not(shading):
+    """A broad face pressed over the whole pad changes every block's colour, as another sensor's frame does: it is
+    reconstructed as the contact it is, while the same frame under brighter LEDs, or with its channels swapped, is
+    refused."""
+    sensor, calibration = shading
+    truth = broad_contact(radii_m=(0.08, 0.1), depth_m=1.2e-3, centre_px=(160.0, 120.0))
+    assert (truth < -5e-5).mean() > 0.99
+    image = sensor.render(truth, np.random.default_rng(3))
+    recon = reconstruct(image, calibration)
+    assert recon.contact and recon.mask.mean() > 0.8 and recon.max_depth_m > 0.3e-3
+    brighter = np.clip(calibration.background * 1.15, 0, 255).astype(np.uint8)
+    with pytest.raises(InputError, match="the lighting or exposure changed"):
+        reconstruct(brighter, calibration)
+    with pytest.raises(InputError, match="gradients not a surface.s"):
+        reconstruct(np.roll(image, 1, axis=2), calibration)
+
+
 @pytest.mark.parametrize("draw", range(3))
 def test_reconstruction_does_not_depend_on_lighting_noise_and_gel(shading, draw):
     """The fitted optical model with its lighting (per channel), noise, blur and gel smoothing varied around the
@@ -103,7 +121,7 @@ def test_reconstruction_does_not_depend_on_lighting_noise_and_gel(shading, draw)
 
 def test_the_image_path_is_seeded_by_the_height_map_and_can_use_another_renderer(shading):
     """`image_path_reconstructor` gives the same cloud for the same height map, with any renderer, and an empty
-    cloud for a frame without contact."""
+    cloud for a frame without contact or one the reconstruction refuses (a benchmark counts it as failed)."""
     sensor, calibration = shading
     truth = broad_contact()
     for hook in (
@@ -113,6 +131,8 @@ def test_the_image_path_is_seeded_by_the_height_map_and_can_use_another_renderer
         first = hook(truth)
         assert len(first) > 1000 and np.array_equal(hook(truth), first)
         assert hook(np.zeros_like(truth)).shape == (0, 3)
+    foreign = image_path_reconstructor(calibration, render=lambda h, rng: np.roll(sensor.render(h, rng), 1, axis=2))
+    assert foreign(truth).shape == (0, 3)
 
 
 # ------------------------------------------------------------------------------------------------ image inputs

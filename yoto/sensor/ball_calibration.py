@@ -73,7 +73,7 @@ class CalibrationConfig:
     refine_iterations: int = 2  # centre/radius refinements on the model's predicted gradients
     position_degrees: tuple[int, ...] = (2, 3, 4)  # candidate position degrees of the final colour -> gradient
     # model (bias and gains); the one with the lowest press-wise cross-validated gradient error is used
-    image_shapes: tuple[tuple[int, int], ...] = ((2, 1), (4, 2))  # candidate (position degree, gain degree) of
+    image_shapes: tuple[tuple[int, int], ...] = ((2, 1), (4, 2), (4, 4))  # candidate (position degree, gain degree) of
     # the gradient -> colour model, chosen by cross-validated colour error
     selection_folds: int = 4  # folds (by press) of those choices
     min_presses: int = 4  # fewer usable presses than this is an error

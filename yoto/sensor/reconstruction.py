@@ -2,8 +2,9 @@
 
 Steps, for one 320x240 RGB frame:
 1. checks and the touched region: the frame's colour change against the calibration's background is
-   averaged over 8x8 blocks; a frame that differs from the background almost everywhere (another sensor,
-   changed lighting) or is saturated raises InputError. Blocks whose mean colour changed are "touched";
+   averaged over 8x8 blocks; a frame that differs from the background almost everywhere and is no contact
+   over the whole pad (another sensor, changed lighting: `pad_wide_contact`) or is saturated raises
+   InputError. Blocks whose mean colour changed are "touched";
    their bounding box plus a margin is the only region where gradients are computed. Elsewhere the gel is
    flat to within the sensor noise and its gradient is set to zero (the fitted model would only add its
    small bias there, which integrates into a spurious tilt).
@@ -49,6 +50,17 @@ from yoto.sensor.spec import GelSightSpec
 MAX_BACKGROUND_CHANGE = 10.0
 BACKGROUND_PERCENTILE = 10.0
 MAX_UNTOUCHED_CHANGE = 3.0
+# A contact pressing nearly the whole pad (a fruit's broad face) changes every block too. Such a frame is told from
+# another sensor or changed lighting by what its colour change means (`pad_wide_contact`): a lighting or exposure
+# change is explained per channel by a gain and an offset on the background (share of the block changes' energy
+# at least LIGHTING_EXPLAINED: 0.998-1.0 for gains of 0.9-1.15 or an offset, 0.09-0.73 for pad-wide contacts),
+# and a frame from another sensor (or with its channels swapped) maps to gradients that no surface has: not
+# integrable (RMS gradient residual of the Poisson fit over the frame above MAX_NONINTEGRABLE of the gradients'
+# RMS: 0.27-0.48 measured, pad-wide contacts 0.09-0.20) or steeper than a contact's (RMS slope over the frame
+# above MAX_FRAME_SLOPE: 0.28-1.1 measured, contacts 0.07-0.13).
+LIGHTING_EXPLAINED = 0.95
+MAX_NONINTEGRABLE = 0.25
+MAX_FRAME_SLOPE = 0.22
 # A frame with more than this fraction of saturated pixels (any channel at 255) is overexposed. Fewer are steep
 # slopes facing a bright LED: their colour change is clipped, so their slope is underestimated, nothing worse.
 MAX_SATURATED_FRACTION = 0.05
@@ -210,15 +222,52 @@ def check_frame(image: np.ndarray, calibration: SensorCalibration, source: str |
     blocks = block_change(image, calibration.background_i16)
     least, median = (float(v) for v in np.percentile(blocks, [BACKGROUND_PERCENTILE, 50.0]))
     if median > MAX_BACKGROUND_CHANGE and least > MAX_UNTOUCHED_CHANGE:
-        raise InputError(
-            f"frame differs from the calibration's background almost everywhere (median change {median:.0f} "
-            f"levels, limit {MAX_BACKGROUND_CHANGE:.0f}; even the least-changed tenth of the frame changed by "
-            f"{least:.1f}, limit {MAX_UNTOUCHED_CHANGE:.0f}): another sensor, or "
-            "the lighting or a camera setting changed; recalibrate, or give a background taken with this sensor "
-            "now",
-            source,
-        )
+        why = pad_wide_contact(image, calibration)
+        if why:
+            raise InputError(
+                f"frame differs from the calibration's background almost everywhere (median change {median:.0f} "
+                f"levels, limit {MAX_BACKGROUND_CHANGE:.0f}; even the least-changed tenth of the frame changed by "
+                f"{least:.1f}, limit {MAX_UNTOUCHED_CHANGE:.0f}) and is no contact ({why}): another sensor, or "
+                "the lighting or a camera setting changed; recalibrate, or give a background taken with this "
+                "sensor now",
+                source,
+            )
     return blocks
+
+
+def pad_wide_contact(image: np.ndarray, calibration: SensorCalibration) -> str:
+    """Why a frame that changed colour almost everywhere is not a contact over the whole pad, or "" if it is one.
+
+    See LIGHTING_EXPLAINED, MAX_NONINTEGRABLE and MAX_FRAME_SLOPE. Runs only on such frames (about 6 ms CPU).
+    """
+    background = calibration.background.astype(np.float64)
+    rows = (image.shape[0] // BLOCK_PX) * BLOCK_PX
+    cols = (image.shape[1] // BLOCK_PX) * BLOCK_PX
+
+    def block_means(values: np.ndarray) -> np.ndarray:
+        return values[:rows, :cols].reshape(rows // BLOCK_PX, BLOCK_PX, cols // BLOCK_PX, BLOCK_PX, 3).mean((1, 3))
+
+    change = block_means(image - background).reshape(-1, 3)
+    level = block_means(background).reshape(-1, 3)
+    residual = 0.0
+    for channel in range(3):
+        design = np.stack([np.ones(len(level)), level[:, channel]], axis=1)
+        coefficients, *_ = np.linalg.lstsq(design, change[:, channel], rcond=None)
+        residual += float(np.sum((change[:, channel] - design @ coefficients) ** 2))
+    explained = 1.0 - residual / max(float(np.sum(change**2)), 1e-12)
+    if explained >= LIGHTING_EXPLAINED:
+        why = f"a gain and offset on the background explain {explained:.1%} of its colour change"
+        return why + f", limit {LIGHTING_EXPLAINED:.0%}: the lighting or exposure changed"
+    gx, gy, _ = box_gradients(image, calibration, (0, image.shape[0], 0, image.shape[1]))
+    z = poisson_integrate(gx, gy)
+    zy, zx = np.gradient(z)
+    slope = float(np.sqrt(np.mean(gx * gx + gy * gy)))
+    misfit = float(np.sqrt(np.mean((zx - gx) ** 2 + (zy - gy) ** 2))) / max(slope, 1e-12)
+    if misfit > MAX_NONINTEGRABLE:
+        return f"gradients not a surface's: Poisson residual {misfit:.2f} of their RMS (limit {MAX_NONINTEGRABLE})"
+    if slope > MAX_FRAME_SLOPE:
+        return f"RMS slope {slope:.2f} over the frame, steeper than a contact's (limit {MAX_FRAME_SLOPE})"
+    return ""
 
 
 def touched_box(
