@@ -13,6 +13,8 @@ import numpy as np
 
 from yoto.errors import InputError, require_open3d
 
+_RAYS_PER_BATCH = 1_000_000  # rays cast at once by `height_maps` (memory, not speed, sets it)
+
 
 @dataclass
 class RayHits:
@@ -57,6 +59,42 @@ class MeshRaycaster:
         rays[:, :3] = origins
         rays[:, 3:] = np.asarray(directions, dtype=np.float32)
         return self.cast_rays(rays)
+
+    def height_maps(
+        self,
+        points: np.ndarray,
+        normals: np.ndarray,
+        u: np.ndarray,
+        v: np.ndarray,
+        cells: np.ndarray,
+        start_m: float,
+        reach_m: float,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(A, C) float32 heights of the surface along -n at in-plane offsets `cells` (C, 2) of each of A frames
+        (point, outward normal, tangents u and v, each (A, 3)), and their validity (bool).
+
+        A ray starts `start_m` in front of the tangent plane and travels along -n; its first hit is the surface a
+        sensor pressed there would meet. A back-face hit means the ray started inside the object (the surface rises
+        above the start): height -start_m. No hit, or one deeper than `reach_m`: no surface.
+        """
+        heights = np.zeros((len(points), len(cells)), dtype=np.float32)
+        valid = np.zeros((len(points), len(cells)), dtype=bool)
+        chunk = max(1, _RAYS_PER_BATCH // len(cells))
+        for first in range(0, len(points), chunk):
+            last = min(first + chunk, len(points))
+            origins = (
+                points[first:last, None]
+                + cells[None, :, 0, None] * u[first:last, None]
+                + cells[None, :, 1, None] * v[first:last, None]
+                + start_m * normals[first:last, None]
+            ).reshape(-1, 3)
+            directions = np.broadcast_to(-normals[first:last, None], (last - first, len(cells), 3)).reshape(-1, 3)
+            hits = self.cast(origins, directions)
+            h = np.where(hits.back_face, -start_m, hits.t_hit - start_m)
+            ok = hits.hit & (h <= reach_m)
+            heights[first:last] = np.where(ok, h, 0.0).reshape(last - first, len(cells))
+            valid[first:last] = ok.reshape(last - first, len(cells))
+        return heights, valid
 
     def closest_points(self, points: np.ndarray) -> np.ndarray:
         """The nearest point on the mesh surface to each query point, same shape as `points` (float64)."""

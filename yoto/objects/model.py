@@ -19,11 +19,18 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from yoto.errors import InputError
-from yoto.geometry import invert_transform, make_transform, normalize, rotation_between, transform_points
+from yoto.geometry import (
+    invert_transform,
+    make_transform,
+    normalize,
+    rotation_between,
+    tangent_basis,
+    transform_points,
+)
 from yoto.io import load_npz, save_npz_atomic
 from yoto.objects.mesh import RepairReport, require_thickness
 from yoto.objects.symmetry import Symmetry, SymmetryConfig, detect_symmetry
-from yoto.pointcloud import covariance_eigh, estimate_normals
+from yoto.pointcloud import covariance_eigh, estimate_normals, voxel_downsample
 from yoto.raycast import MeshRaycaster
 
 log = logging.getLogger("yoto")
@@ -132,6 +139,20 @@ class ObjectModel:
         _, neighbours = self.kdtree.query(p_object.reshape(-1, 3), k=k)
         normals = normalize(self.normals_object[neighbours.reshape(-1, k)].astype(np.float64).sum(axis=1))
         return normals.reshape(p_object.shape)
+
+    def anchor_frames(
+        self, spacing_m: float, normal_neighbours: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Anchors about every `spacing_m` on the surface (the parent point nearest each voxel's centre) with their
+        outward normals (`aggregated_normal` over `normal_neighbours` points) and tangents u, v: (A, 3) each, (u, v,
+        -n) right-handed, the frame of a sensor pressing along -n."""
+        parent = self.points_object.astype(np.float64)
+        (centres,) = voxel_downsample(parent, spacing_m)
+        _, nearest = self.kdtree.query(centres)
+        points = parent[np.unique(nearest)]
+        normals = self.aggregated_normal(points, normal_neighbours)
+        u, v = tangent_basis(-normals)
+        return points, normals, u, v
 
     def nearest_surface_point(self, p_object: np.ndarray) -> np.ndarray:
         """The parent point nearest each query point (object frame)."""

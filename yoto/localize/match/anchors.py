@@ -9,13 +9,10 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial import cKDTree
 
-from yoto.geometry import tangent_basis
 from yoto.localize.match.config import AnchorConfig
 from yoto.localize.match.rings import RingDescriptors, RingGrid
 from yoto.objects.cache import ModelCache
 from yoto.objects.model import ObjectModel
-from yoto.pointcloud import voxel_downsample
-from yoto.raycast import MeshRaycaster
 
 
 @dataclass(frozen=True)
@@ -65,60 +62,20 @@ class AnchorMaps:
     seconds: float  # time to build
 
 
-def cast_height_maps(
-    raycaster: MeshRaycaster,
-    anchors: np.ndarray,
-    normals: np.ndarray,
-    u: np.ndarray,
-    v: np.ndarray,
-    centres: np.ndarray,
-    config: AnchorConfig,
-) -> tuple[np.ndarray, np.ndarray]:
-    """(A, C) surface heights at (C, 2) positions (u, v) of each anchor frame, by casting rays along -n onto the mesh.
-
-    A ray starts `ray_start_m` in front of the tangent plane. Its first hit is the surface a sensor pressed
-    along -n would meet; a back-face hit means the ray started inside the object (the surface rises above the
-    start): height -ray_start_m. No hit, or a hit deeper than `ray_reach_m`: no surface (invalid).
-    """
-    size = len(centres)
-    heights = np.zeros((len(anchors), size), dtype=np.float32)
-    valid = np.zeros((len(anchors), size), dtype=np.float32)
-    chunk = max(1, 1_000_000 // size)
-    for first in range(0, len(anchors), chunk):
-        last = min(first + chunk, len(anchors))
-        count = (last - first) * size
-        origins = (
-            anchors[first:last, None, :]
-            + centres[None, :, 0, None] * u[first:last, None, :]
-            + centres[None, :, 1, None] * v[first:last, None, :]
-            + config.ray_start_m * normals[first:last, None, :]
-        ).reshape(count, 3)
-        directions = np.broadcast_to(-normals[first:last, None, :], (last - first, size, 3)).reshape(count, 3)
-        hits = raycaster.cast(origins, directions)
-        h = np.where(hits.back_face, -config.ray_start_m, hits.t_hit - config.ray_start_m)
-        ok = hits.hit & (h <= config.ray_reach_m)
-        heights[first:last] = np.where(ok, h, 0.0).reshape(last - first, size)
-        valid[first:last] = ok.reshape(last - first, size)
-    return heights, valid
-
-
 def build_anchor_maps(model: ObjectModel, config: AnchorConfig) -> AnchorMaps:
     """Anchors every `anchor_spacing_m` on the parent cloud with their height maps and ring descriptors (once per
     object model)."""
     start = time.perf_counter()
-    points = model.points_object.astype(np.float64)
-    (centres,) = voxel_downsample(points, config.anchor_spacing_m)
-    _, nearest = model.kdtree.query(centres)
-    anchors = points[np.unique(nearest)]
-    normals = model.aggregated_normal(anchors, config.anchor_normal_neighbours)
-    u, v = tangent_basis(-normals)  # (u, v, -n) right-handed: the frame of a sensor pressing along -n
+    anchors, normals, u, v = model.anchor_frames(config.anchor_spacing_m, config.anchor_normal_neighbours)
+    reach = (config.ray_start_m, config.ray_reach_m)
     grid = MapGrid(config.cell_m, config.map_radius_m)
-    heights, valid = cast_height_maps(model.raycaster, anchors, normals, u, v, grid.centres, config)
+    heights, valid_cells = model.raycaster.height_maps(anchors, normals, u, v, grid.centres, *reach)
+    valid = valid_cells.astype(np.float32)  # used as weights
     ring_grid = RingGrid(config.ring_step_m, config.map_radius_m, config.ring_angles, config.ring_harmonics)
-    ring_heights, ring_valid = cast_height_maps(model.raycaster, anchors, normals, u, v, ring_grid.centres, config)
+    ring_heights, ring_valid = model.raycaster.height_maps(anchors, normals, u, v, ring_grid.centres, *reach)
     # Where the anchor has no surface within reach, describe the ring as if it lay at the reach: a contact that
     # touched there does not match it.
-    rings = RingDescriptors.from_samples(ring_grid, np.where(ring_valid > 0, ring_heights, config.ray_reach_m))
+    rings = RingDescriptors.from_samples(ring_grid, np.where(ring_valid, ring_heights, config.ray_reach_m))
     kdtree = cKDTree(anchors)
     neighbours = [np.asarray(n, dtype=np.int64) for n in kdtree.query_ball_point(anchors, config.nms_radius_m)]
     area = float(model.meta["surface_area_m2"]) / len(anchors)
