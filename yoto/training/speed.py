@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -86,16 +87,13 @@ def measure_training_speed(
     rng = np.random.default_rng(config.seed)
     plan = plan_epoch(data, config.stage1, config.batch_size, rng, use_real=False)
     optimizer, scheduler = make_optimizer(net, config.stage1, config, len(plan))
-    wall, cpu, sizes = [], [], []
-    for i, (obj_index, entries) in enumerate(plan[: warmup + steps]):
-        tick, cpu_tick = time.perf_counter(), time.process_time()
+
+    def run(obj_index: int, entries: Any) -> None:
         runner.step(obj_index, entries, rng, 1.0, optimizer, scheduler)
         if device_.type == "cuda":
             torch.cuda.synchronize(device_)
-        if i >= warmup:
-            wall.append(time.perf_counter() - tick)
-            cpu.append(time.process_time() - cpu_tick)
-            sizes.append(len(entries))
+
+    wall, cpu, sizes = _time_steps(plan, warmup, steps, run)
     info = {
         **run_info(),
         "objects": list(objects),
@@ -109,7 +107,7 @@ def measure_training_speed(
         "load_average": list(os.getloadavg()),
         "cpu_count": os.cpu_count(),
     }
-    return SpeedResult(np.array(wall), np.array(cpu), np.array(sizes), info)
+    return SpeedResult(wall, cpu, sizes, info)
 
 
 def _descriptor_speed(
@@ -129,14 +127,9 @@ def _descriptor_speed(
     rng = np.random.default_rng(config.seed)
     plan = plan_descriptor_epoch(sets, config.stage1, config.batch_size, rng, use_real=False)
     optimizer, scheduler = make_optimizer(net, config.stage1, config, len(plan))
-    wall, cpu, sizes = [], [], []
-    for i, (obj_index, entries) in enumerate(plan[: warmup + steps]):
-        tick, cpu_tick = time.perf_counter(), time.process_time()
-        step(obj_index, entries, 1.0, rng, optimizer, scheduler)
-        if i >= warmup:
-            wall.append(time.perf_counter() - tick)
-            cpu.append(time.process_time() - cpu_tick)
-            sizes.append(len(entries))
+    wall, cpu, sizes = _time_steps(
+        plan, warmup, steps, lambda obj_index, entries: step(obj_index, entries, 1.0, rng, optimizer, scheduler)
+    )
     info = {
         **run_info(),
         "objects": list(objects),
@@ -147,4 +140,20 @@ def _descriptor_speed(
         "load_average": list(os.getloadavg()),
         "cpu_count": os.cpu_count(),
     }
-    return SpeedResult(np.array(wall), np.array(cpu), np.array(sizes), info)
+    return SpeedResult(wall, cpu, sizes, info)
+
+
+def _time_steps(
+    plan: list, warmup: int, steps: int, run: Callable[[int, Any], Any]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Wall and CPU seconds and batch sizes of `steps` training steps `run(obj_index, entries)` of an epoch plan,
+    after `warmup` untimed ones."""
+    wall, cpu, sizes = [], [], []
+    for i, (obj_index, entries) in enumerate(plan[: warmup + steps]):
+        tick, cpu_tick = time.perf_counter(), time.process_time()
+        run(obj_index, entries)
+        if i >= warmup:
+            wall.append(time.perf_counter() - tick)
+            cpu.append(time.process_time() - cpu_tick)
+            sizes.append(len(entries))
+    return np.array(wall), np.array(cpu), np.array(sizes)
