@@ -359,12 +359,7 @@ def _pose_from_candidates(
         )
         for s, side in enumerate(SIDES)
     ]
-    shapes = {
-        side: contact_shape(
-            pair.contact(side).points_sensor, world[side].p_sensor, world[side].n_sensor, config.search_config.samples
-        )
-        for side in SIDES
-    }
+    shapes = _contact_shapes(pair, world, config)
     searched = config.search == "always"
     refined = None
     # The candidates' pass, unless "auto" searches whatever it finds: `_decisive` needs `decisive_featured` contacts
@@ -480,15 +475,7 @@ def fuse_next_touch(
         screened = config.screened + len(estimate.hypotheses)
         refined = _verify_and_refine(field, contacts, seeds, model.symmetry, config, screened, config.seeds_refined)
     hypotheses = group_hypotheses(refined, model.symmetry, config.hypotheses)
-    shapes = {
-        side: contact_shape(
-            pair.contact(side).points_sensor,
-            estimate.world[side].p_sensor,
-            estimate.world[side].n_sensor,
-            config.search_config.samples,
-        )
-        for side in SIDES
-    }
+    shapes = _contact_shapes(pair, estimate.world, config)
     fused = _estimate(
         pair, model, estimate.candidates, estimate.world, shapes, refined, hypotheses, True, config, estimate.method
     )
@@ -536,16 +523,7 @@ def _second_pair_seeds(
     second = _moved(pair, touch, sensor)
     try:
         candidates, world, _ = localize_contacts(second, model, localizer)
-        shapes = {
-            side: contact_shape(
-                second.contact(side).points_sensor,
-                world[side].p_sensor,
-                world[side].n_sensor,
-                config.search_config.samples,
-            )
-            for side in SIDES
-        }
-        return _seeds(model, world, shapes, candidates, config, search=True)
+        return _seeds(model, world, _contact_shapes(second, world, config), candidates, config, search=True)
     except YotoError:
         return None
 
@@ -560,6 +538,16 @@ def _decisive(hypotheses: Hypotheses | None, shapes: dict[str, LocalShape], conf
         and hypotheses.log_likelihood[0] >= config.decisive_log_likelihood
         and _featured(shapes) >= config.decisive_featured
     )
+
+
+def _contact_shapes(pair: ContactPair, world: dict[str, WorldContact], config: PoseConfig) -> dict[str, LocalShape]:
+    """Each contact's local shape (the joint search's key), from its cloud about its measured centre and normal."""
+    return {
+        side: contact_shape(
+            pair.contact(side).points_sensor, world[side].p_sensor, world[side].n_sensor, config.search_config.samples
+        )
+        for side in SIDES
+    }
 
 
 def _featured(shapes: dict[str, LocalShape]) -> int:
