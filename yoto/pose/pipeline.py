@@ -86,6 +86,8 @@ class PoseConfig:
     seeds_refined: int = 40  # distinct hypotheses (the most likely after the short refinement) refined in full
     candidates_screened: int = 24  # the same two numbers when only the localizers' candidate pairs are verified
     candidates_refined: int = 6
+    neighbours_refined: int = 36  # the neighbours of the most likely hypotheses (hypotheses.neighbour_poses) are
+    # screened by the short refinement, and the best of this many distinct ones refined in full (0: all in full)
     seed_distinct_m: float = 0.005  # seeds in one cell of this size (object centroid) ...
     seed_distinct_rad: float = float(np.radians(5.0))  # ... and of this (rotation vector) are screened as one
     search_config: SearchConfig = SearchConfig()
@@ -262,8 +264,9 @@ def _verify_and_refine(
 
     A cheap score (each cloud may sit off the surface by an offset and a tilt) ranks the seeds; the best
     `screened` get a short refinement on a few points; the best pose of each of the `refined`
-    most likely distinct hypotheses among those is refined in full; with `neighbours`, so are the neighbours of
-    the most likely of them (`hypotheses.neighbour_poses`).
+    most likely distinct hypotheses among those is refined in full; with `neighbours`, the neighbours of the most
+    likely of them (`hypotheses.neighbour_poses`) are screened the same way (most land back on a hypothesis
+    already found), and the best of `neighbours_refined` distinct ones refined in full.
     """
     refine = config.refine_config
     score = evaluate_offsets(field, contacts, seeds, config.calibration, refine)
@@ -276,6 +279,9 @@ def _verify_and_refine(
         return full
     top = group_hypotheses(full, symmetry, config.hypotheses).member[: config.hypotheses.neighbours_of]
     near = neighbour_poses(full.T_world_object[top], config.hypotheses)
+    if config.neighbours_refined:
+        first = refine_hypotheses(field, thinned(contacts, refine.screen_points), near, config.calibration, short)
+        near = first.T_world_object[_best_distinct(first, symmetry, config.hypotheses, config.neighbours_refined)]
     more = refine_hypotheses(field, contacts, near, config.calibration, refine)
     return Refined(*(np.concatenate([getattr(full, name), getattr(more, name)]) for name in full.__dataclass_fields__))
 
