@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from yoto.geometry import se3_exp, se3_log
+from yoto.geometry import se3_exp, se3_log, skew
 from yoto.pointcloud import voxel_downsample
 from yoto.pose.field import SurfaceField
 from yoto.registration import masked_row_medians, transform_batch
@@ -254,24 +254,30 @@ def refine_hypotheses(
             use = magnitude < config.max_distance_m
             scale = np.maximum(config.surface_noise_m, 1.4826 * masked_row_medians(magnitude, use))
             w = np.where(use, np.minimum(1.0, scale[:, None] / np.maximum(magnitude, 1e-12)), 0.0) * weight_scale
-            m = n @ A[:, :3, :3]  # the surface normal in the sensor frame
-            # The residuals of one contact depend on the object pose and on its sensor's correction only: a
-            # 12-column Jacobian, its normal equations one batched product, added into the 18 x 18 system.
-            J = np.empty(q.shape[:2] + (12,))
-            J[..., 0:3] = _cross(n, q)
-            J[..., 3:6] = -n
-            J[..., 6:9] = _cross(contact.points_sensor, m)
-            J[..., 9:12] = m
+            # The residuals of one contact depend on the object pose and on its sensor's correction only. Their
+            # rows for the object pose are a = (n x q, -n); for the correction (p x m, m), with m = R^T n the
+            # normal in the sensor frame (A = [R | t]), which is M a, M = [[-R^T, R^T [t]x], [0, -R^T]] (the
+            # adjoint): so only the 6 x 6 normal equations B = a^T W a are summed over points, and the 12 x 12
+            # block is [[B, B M^T], [M B, M B M^T]].
+            J = np.empty(q.shape[:2] + (6,))
+            _cross_into(n, q, J[..., 0:3])
+            np.negative(n, out=J[..., 3:6])
             weighted = np.swapaxes(J * w[..., None], 1, 2)
             block = weighted @ J
-            side = slice(6 + 6 * s, 12 + 6 * s)  # this sensor's correction
-            hessian[:, :6, :6] += block[:, :6, :6]
-            hessian[:, :6, side] += block[:, :6, 6:]
-            hessian[:, side, :6] += block[:, 6:, :6]
-            hessian[:, side, side] += block[:, 6:, 6:]
             g = (weighted @ r[..., None])[..., 0]
-            gradient[:, :6] += g[:, :6]
-            gradient[:, side] += g[:, 6:]
+            rotation_t = np.swapaxes(A[:, :3, :3], 1, 2)
+            adjoint = np.zeros((len(A), 6, 6))
+            adjoint[:, :3, :3] = -rotation_t
+            adjoint[:, :3, 3:] = rotation_t @ skew(A[:, :3, 3])
+            adjoint[:, 3:, 3:] = -rotation_t
+            coupled = adjoint @ block  # M B
+            side = slice(6 + 6 * s, 12 + 6 * s)  # this sensor's correction
+            hessian[:, :6, :6] += block
+            hessian[:, :6, side] += np.swapaxes(coupled, 1, 2)
+            hessian[:, side, :6] += coupled
+            hessian[:, side, side] += coupled @ np.swapaxes(adjoint, 1, 2)
+            gradient[:, :6] += g
+            gradient[:, side] += (adjoint @ g[:, :, None])[..., 0]
         step = -np.linalg.solve(hessian, gradient[:, :, None])[:, :, 0]
         deviation += step
         updates = se3_exp(step.reshape(count, 3, 6))
@@ -285,13 +291,8 @@ def refine_hypotheses(
     return Refined(poses, twists, rms, inliers, free, correction_cost, se3_log(start_inverse @ poses))
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a x b over the last axis, broadcasting (np.cross is slow on many short vectors)."""
-    return np.stack(
-        [
-            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
-            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
-        ],
-        axis=-1,
-    )
+def _cross_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """out = a x b over the last axis (np.cross is slow on many short vectors)."""
+    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        np.multiply(a[..., j], b[..., k], out=out[..., i])
+        out[..., i] -= a[..., k] * b[..., j]
