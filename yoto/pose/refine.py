@@ -58,6 +58,7 @@ class RefineConfig:
     seed_tilt_rad: float = float(np.radians(4.0))  # how far an unrefined seed's normals may be off (sampling)
     screen_points: int = 24  # of these, the points used by the short refinement that screens many seeds
     screen_iterations: int = 3  # iterations of that short refinement
+    screen_free_points: int = 48  # free-space points (of each contact's) that score it
     iterations: int = 8  # Gauss-Newton iterations at most
     max_distance_m: float = 0.003  # points further than this from the surface are ignored (the capture range)
     surface_noise_m: float = 5e-5  # 1-sigma of a tactile point's distance from the true surface (weights)
@@ -141,12 +142,15 @@ class Refined:
         return Refined(*(getattr(self, name)[index] for name in self.__dataclass_fields__))
 
 
-def thinned(contacts: list[ContactPoints], count: int) -> list[ContactPoints]:
-    """The contacts with at most `count` points each (an even stride through them)."""
+def thinned(contacts: list[ContactPoints], count: int, free_count: int | None = None) -> list[ContactPoints]:
+    """The contacts with at most `count` points each, and at most `free_count` free-space points (None: all; an
+    even stride through them)."""
+
+    def stride(points: np.ndarray, most: int | None) -> np.ndarray:
+        return points if most is None else points[:: max(1, -(-len(points) // max(most, 1)))]
+
     return [
-        ContactPoints(
-            c.points_sensor[:: max(1, -(-len(c.points_sensor) // count))], c.T_world_sensor, c.sensor, c.free_sensor
-        )
+        ContactPoints(stride(c.points_sensor, count), c.T_world_sensor, c.sensor, stride(c.free_sensor, free_count))
         for c in contacts
     ]
 
