@@ -242,46 +242,11 @@ def refine_hypotheses(
     calibration = prior.information()
     information[6:12, 6:12] = np.diag(calibration)
     information[12:, 12:] = np.diag(calibration)
-    weight_scale = 1.0 / config.surface_noise_m**2
     deviation = np.zeros((count, 18))  # twists from the start and of the corrections, accumulated to first order
     for _ in range(config.iterations):
-        T_object_world = invert_transform_batch(poses)
         hessian = np.broadcast_to(information, (count, 18, 18)).copy()
         gradient = deviation @ information
-        for contact in contacts:
-            s = contact.sensor
-            A = T_object_world @ contact.T_world_sensor @ corrections[:, s]  # object <- sensor
-            q = transform_batch(A, contact.points_sensor)
-            r, n = field.distance(q)
-            assert n is not None
-            magnitude = np.abs(r)
-            use = magnitude < config.max_distance_m
-            scale = np.maximum(config.surface_noise_m, 1.4826 * masked_row_medians(magnitude, use))
-            w = np.where(use, np.minimum(1.0, scale[:, None] / np.maximum(magnitude, 1e-12)), 0.0) * weight_scale
-            # The residuals of one contact depend on the object pose and on its sensor's correction only. Their
-            # rows for the object pose are a = (n x q, -n); for the correction (p x m, m), with m = R^T n the
-            # normal in the sensor frame (A = [R | t]), which is M a, M = [[-R^T, R^T [t]x], [0, -R^T]] (the
-            # adjoint): so only the 6 x 6 normal equations B = a^T W a are summed over points, and the 12 x 12
-            # block is [[B, B M^T], [M B, M B M^T]].
-            J = np.empty(q.shape[:2] + (6,))
-            _cross_into(n, q, J[..., 0:3])
-            np.negative(n, out=J[..., 3:6])
-            weighted = np.swapaxes(J * w[..., None], 1, 2)
-            block = weighted @ J
-            g = (weighted @ r[..., None])[..., 0]
-            rotation_t = np.swapaxes(A[:, :3, :3], 1, 2)
-            adjoint = np.zeros((len(A), 6, 6))
-            adjoint[:, :3, :3] = -rotation_t
-            adjoint[:, :3, 3:] = rotation_t @ skew(A[:, :3, 3])
-            adjoint[:, 3:, 3:] = -rotation_t
-            coupled = adjoint @ block  # M B
-            side = slice(6 + 6 * s, 12 + 6 * s)  # this sensor's correction
-            hessian[:, :6, :6] += block
-            hessian[:, :6, side] += np.swapaxes(coupled, 1, 2)
-            hessian[:, side, :6] += coupled
-            hessian[:, side, side] += coupled @ np.swapaxes(adjoint, 1, 2)
-            gradient[:, :6] += g
-            gradient[:, side] += (adjoint @ g[:, :, None])[..., 0]
+        _add_normal_equations(field, contacts, poses, corrections, config, hessian, gradient)
         step = -np.linalg.solve(hessian, gradient[:, :, None])[:, :, 0]
         deviation += step
         updates = se3_exp(step.reshape(count, 3, 6))
@@ -293,6 +258,55 @@ def refine_hypotheses(
     rms, inliers, free = evaluate_fit(field, contacts, poses, twists, config)
     correction_cost = np.einsum("ksi,i,ksi->k", twists, calibration, twists)
     return Refined(poses, twists, rms, inliers, free, correction_cost, se3_log(start_inverse @ poses))
+
+
+def _add_normal_equations(
+    field: SurfaceField,
+    contacts: list[ContactPoints],
+    poses: np.ndarray,
+    corrections: np.ndarray,
+    config: RefineConfig,
+    hessian: np.ndarray,
+    gradient: np.ndarray,
+) -> None:
+    """Add the clouds' robustly weighted Gauss-Newton system into `hessian` (K, 18, 18) and `gradient` (K, 18):
+    the object pose's twist, then each sensor's correction, at K poses (K, 4, 4) and corrections (K, 2, 4, 4)."""
+    T_object_world = invert_transform_batch(poses)
+    weight_scale = 1.0 / config.surface_noise_m**2
+    for contact in contacts:
+        s = contact.sensor
+        A = T_object_world @ contact.T_world_sensor @ corrections[:, s]  # object <- sensor
+        q = transform_batch(A, contact.points_sensor)
+        r, n = field.distance(q)
+        assert n is not None
+        magnitude = np.abs(r)
+        use = magnitude < config.max_distance_m
+        scale = np.maximum(config.surface_noise_m, 1.4826 * masked_row_medians(magnitude, use))
+        w = np.where(use, np.minimum(1.0, scale[:, None] / np.maximum(magnitude, 1e-12)), 0.0) * weight_scale
+        # The residuals of one contact depend on the object pose and on its sensor's correction only. Their
+        # rows for the object pose are a = (n x q, -n); for the correction (p x m, m), with m = R^T n the
+        # normal in the sensor frame (A = [R | t]), which is M a, M = [[-R^T, R^T [t]x], [0, -R^T]] (the
+        # adjoint): so only the 6 x 6 normal equations B = a^T W a are summed over points, and the 12 x 12
+        # block is [[B, B M^T], [M B, M B M^T]].
+        J = np.empty(q.shape[:2] + (6,))
+        _cross_into(n, q, J[..., 0:3])
+        np.negative(n, out=J[..., 3:6])
+        weighted = np.swapaxes(J * w[..., None], 1, 2)
+        block = weighted @ J
+        g = (weighted @ r[..., None])[..., 0]
+        rotation_t = np.swapaxes(A[:, :3, :3], 1, 2)
+        adjoint = np.zeros((len(A), 6, 6))
+        adjoint[:, :3, :3] = -rotation_t
+        adjoint[:, :3, 3:] = rotation_t @ skew(A[:, :3, 3])
+        adjoint[:, 3:, 3:] = -rotation_t
+        coupled = adjoint @ block  # M B
+        side = slice(6 + 6 * s, 12 + 6 * s)  # this sensor's correction
+        hessian[:, :6, :6] += block
+        hessian[:, :6, side] += np.swapaxes(coupled, 1, 2)
+        hessian[:, side, :6] += coupled
+        hessian[:, side, side] += coupled @ np.swapaxes(adjoint, 1, 2)
+        gradient[:, :6] += g
+        gradient[:, side] += (adjoint @ g[:, :, None])[..., 0]
 
 
 def _cross_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:

@@ -1,0 +1,64 @@
+"""The refinement's normal equations against finite differences of the clouds' residuals."""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from yoto.geometry import (
+    invert_transform,
+    make_transform,
+    random_rotations,
+    rotation_about_axis,
+    se3_exp,
+    transform_points,
+)
+from yoto.objects.model import ObjectModelConfig, build_object_model
+from yoto.pose.field import surface_field
+from yoto.pose.refine import ContactPoints, RefineConfig, _add_normal_equations
+from yoto.registration import transform_batch
+
+
+def test_normal_equations_match_finite_differences(rng):
+    """Both sensors' correction rows come from the object pose's rows by the adjoint (refine.py): the system they
+    give must be J^T W J and J^T W r of the Jacobian measured by finite differences of the residuals. On a box's
+    faces, away from its edges, the distance field is linear, so the finite differences are exact."""
+    box = build_object_model(
+        trimesh.creation.box(extents=(0.12, 0.08, 0.05)), "box", ObjectModelConfig(num_points=20_000)
+    )
+    field = surface_field(box)
+    T_world_object = make_transform(random_rotations(rng, 1)[0], [0.4, -0.1, 0.3])
+    contacts = []
+    centre_object = transform_points(box.T_object_mesh, np.array([[0.01, 0.005, 0.025], [0.06, -0.01, 0.0]]))
+    for sensor, (centre, normal) in enumerate(zip(centre_object, ([0, 0, 1.0], [1.0, 0, 0]))):
+        patch = box.points_object[np.linalg.norm(box.points_object - centre, axis=1) < 0.005][:40]
+        T_object_sensor = make_transform(rotation_about_axis(np.array(normal), 0.7 + sensor), centre)
+        points_sensor = transform_batch(invert_transform(T_object_sensor)[None], patch)[0]
+        contacts.append(ContactPoints(points_sensor, T_world_object @ T_object_sensor, sensor, np.zeros((0, 3))))
+    poses = T_world_object @ se3_exp(rng.normal(scale=[0.003] * 3 + [0.0003] * 3, size=(3, 6)))
+    corrections = se3_exp(rng.normal(scale=[0.01] * 3 + [0.0005] * 3, size=(3, 2, 6)))
+    config = RefineConfig(surface_noise_m=0.01)  # every residual within the robust scale: all weights 1 / noise^2
+    hessian, gradient = np.zeros((3, 18, 18)), np.zeros((3, 18))
+    _add_normal_equations(field, contacts, poses, corrections, config, hessian, gradient)
+
+    def residuals(twist: np.ndarray) -> np.ndarray:
+        """(K, points) every contact's residual after moving the pose and corrections by `twist` (K, 18)."""
+        moved = poses @ se3_exp(twist[:, :6])
+        corrected = corrections @ se3_exp(twist[:, 6:].reshape(-1, 2, 6))
+        parts = []
+        for contact in contacts:
+            A = np.linalg.inv(moved) @ contact.T_world_sensor @ corrected[:, contact.sensor]
+            parts.append(field.distance(transform_batch(A, contact.points_sensor), with_gradient=False)[0])
+        return np.concatenate(parts, axis=1)
+
+    step = 1e-4  # the field interpolates in float32 (~1e-8 m): a step that moves points by micrometres
+    twists = np.broadcast_to(step * np.eye(18)[:, None], (18, 3, 18))  # one coordinate moved, every pose
+    jacobian = np.stack([(residuals(t) - residuals(-t)) / (2 * step) for t in twists], axis=-1)  # (K, points, 18)
+    weight = 1.0 / config.surface_noise_m**2
+    expected = weight * np.swapaxes(jacobian, 1, 2) @ jacobian
+    assert np.abs(hessian - expected).max() < 1e-4 * np.abs(expected).max()
+    expected_gradient = weight * np.einsum("kpi,kp->ki", jacobian, residuals(np.zeros((3, 18))))
+    assert np.abs(gradient - expected_gradient).max() < 1e-4 * np.abs(expected_gradient).max()
+    # The corrections' blocks are not zero: the test sees them.
+    assert np.abs(hessian[:, 6:12, 6:12]).max() > 0.1 * np.abs(expected).max()
+    assert np.abs(hessian[:, 12:, 12:]).max() > 0.1 * np.abs(expected).max()
