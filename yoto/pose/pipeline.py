@@ -272,13 +272,8 @@ def _verify_and_refine(
     score = evaluate_offsets(field, contacts, seeds, config.calibration, refine)
     chosen = np.argsort(-score, kind="stable")[:screened]
     short = replace(refine, iterations=refine.screen_iterations)
-    first = refine_hypotheses(
-        field,
-        thinned(contacts, refine.screen_points, refine.screen_free_points),
-        seeds[chosen],
-        config.calibration,
-        short,
-    )
+    screening = thinned(contacts, refine.screen_points, refine.screen_free_points)
+    first = refine_hypotheses(field, screening, seeds[chosen], config.calibration, short)
     best = _best_distinct(first, symmetry, config.hypotheses, refined)
     full = refine_hypotheses(field, contacts, first.T_world_object[best], config.calibration, refine)
     if not neighbours or not config.hypotheses.neighbours_of:
@@ -286,9 +281,7 @@ def _verify_and_refine(
     top = group_hypotheses(full, symmetry, config.hypotheses).member[: config.hypotheses.neighbours_of]
     near = neighbour_poses(full.T_world_object[top], config.hypotheses)
     if config.neighbours_refined:
-        first = refine_hypotheses(
-            field, thinned(contacts, refine.screen_points, refine.screen_free_points), near, config.calibration, short
-        )
+        first = refine_hypotheses(field, screening, near, config.calibration, short)
         near = first.T_world_object[_best_distinct(first, symmetry, config.hypotheses, config.neighbours_refined)]
     more = refine_hypotheses(field, contacts, near, config.calibration, refine)
     return Refined(*(np.concatenate([getattr(full, name), getattr(more, name)]) for name in full.__dataclass_fields__))
