@@ -211,8 +211,9 @@ def point_to_plane_gauss_newton(
         # p -> delta (p - c) + c + tau, composed onto each pose
         poses[active, :3, :3] = delta @ rotation
         poses[active, :3, 3] = np.einsum("kij,kj->ki", delta, translation - centres) + centres + step[:, 3:]
-        moving = (np.linalg.norm(step[:, 3:], axis=1) >= config.step_tolerance_m) | (
-            np.linalg.norm(step[:, :3], axis=1) >= config.step_tolerance_rad
+        squared = step * step  # squared norms against squared tolerances: no square roots
+        moving = (squared[:, 3:].sum(axis=1) >= config.step_tolerance_m**2) | (
+            squared[:, :3].sum(axis=1) >= config.step_tolerance_rad**2
         )
         active = active[moving]
         if len(active) == 0:

@@ -36,7 +36,7 @@ def _central_points(local: np.ndarray, samples: int) -> np.ndarray:
     return local[near[np.argsort(radial[near])], :2]
 
 
-def _spacing_at_most(local: np.ndarray, spacing_m: float, samples: int = 512) -> bool:
+def tactile_spacing_at_most(local: np.ndarray, spacing_m: float, samples: int = 512) -> bool:
     """True when `tactile_spacing_m(local, samples)` is certainly at most `spacing_m`, without a k-d tree: a point
     that shares a square cell of diagonal `spacing_m` with another lies at most that far from its nearest
     neighbour, and when more than half of the measured points do, so does the median. (False: not known.)"""
@@ -118,7 +118,7 @@ def tactile_height_image(
     basis = np.stack([u, v, -normal], axis=1)
     local = (points_sensor - centre) @ basis
     # A dense cloud (the usual case) is told from a sparse one without measuring its spacing.
-    pixel = pixel_m if _spacing_at_most(local, pixel_m / 1.5) else max(pixel_m, 1.5 * tactile_spacing_m(local))
+    pixel = pixel_m if tactile_spacing_at_most(local, pixel_m / 1.5) else max(pixel_m, 1.5 * tactile_spacing_m(local))
     half = radius_m + 2.0 * pixel
     side = int(np.ceil(2.0 * half / pixel))
     ix = np.floor((local[:, 0] + half) / pixel).astype(np.int64)
