@@ -58,7 +58,7 @@ class MatchConfig:
     # few points and few iterations (the best are polished below), its start as a weak prior
     polish_candidates: int = 3  # the best distinct candidates after ICP are refined again ...
     polish_points: int = 300  # ... on this many tactile points ...
-    polish_iterations: int = 5  # ... for this many more iterations
+    polish_iterations: int = 4  # ... for this many more iterations
     residual_tau_m: float = 0.0005  # truncation of the ranking residual
     belief: BeliefConfig = BeliefConfig()  # distinct candidates and their beliefs from the ranking residuals
     normal_neighbours: int = 20  # k of the aggregated model normal reported with a candidate
