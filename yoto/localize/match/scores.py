@@ -111,12 +111,12 @@ def free_space_violation(
         return np.zeros(len(T_object_sensor))
     owner = np.repeat(np.arange(len(T_object_sensor)), counts)
     index = np.fromiter(itertools.chain.from_iterable(members), dtype=np.int64, count=int(counts.sum()))
-    offsets = anchors.points_object[index] - T_object_sensor[owner, :3, 3]
+    p_object = anchors.points_object.take(index, axis=0)
     # Each pose's anchors into its sensor frame: one small product per pose (the members lie in pose order).
-    p_sensor = np.empty_like(offsets)
+    p_sensor = np.empty_like(p_object)
     ends = np.cumsum(counts)
     for k, (start, end) in enumerate(zip(ends - counts, ends, strict=True)):
-        p_sensor[start:end] = offsets[start:end] @ T_object_sensor[k, :3, :3]
+        p_sensor[start:end] = (p_object[start:end] - T_object_sensor[k, :3, 3]) @ T_object_sensor[k, :3, :3]
     depth = -p_sensor[:, 2] - image.free_margin_m
     over = (np.abs(p_sensor[:, 0]) <= pad[0]) & (np.abs(p_sensor[:, 1]) <= pad[1]) & (depth > 0)
     local = (p_sensor[over] - image.centre_sensor) @ image.basis_sensor
