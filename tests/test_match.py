@@ -16,6 +16,7 @@ from yoto.localize.match import MapGrid, MatchConfig, MatchLocalizer, plane_cost
 from yoto.localize.match.rings import ContactRings, RingDescriptors, RingGrid, ring_distances  # noqa: E402
 from yoto.localize.scaled_match import ScaledMatchLocalizer  # noqa: E402
 from yoto.simulate.scenarios import PairSimulator  # noqa: E402
+from yoto.tactile_image import tactile_height_image, tactile_spacing_at_most, tactile_spacing_m  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -260,3 +261,31 @@ def test_two_contacts_localized_concurrently_as_one_by_one(builtin_models):
     assert set(world) == {"left", "right"}
     assert latency["localize_pair"] > 0
     assert [library["num_threads"] for library in threadpool_info() if library["user_api"] == "blas"] == blas_before
+
+
+def test_the_dense_cloud_check_agrees_with_the_measured_spacing(rng):
+    """The height image tells a dense cloud from a sparse one without a k-d tree (`tactile_spacing_at_most`):
+    whenever it says the spacing is at most a bound, the measured spacing is; and it says so for dense clouds."""
+    for spacing in (4e-5, 6.3e-5, 1e-4, 1.3e-4, 2e-4, 4e-4):
+        side = np.arange(-0.006, 0.006, spacing)
+        grid = np.stack(np.meshgrid(side, side, indexing="ij"), axis=-1).reshape(-1, 2)
+        for jitter in (0.0, 0.3):
+            xy = grid + rng.uniform(-jitter, jitter, grid.shape) * spacing
+            local = np.column_stack([xy, 1e-4 * rng.standard_normal(len(xy))])
+            measured = tactile_spacing_m(local)
+            for bound in (1e-4, 0.0002 / 1.5, 3e-4):
+                if tactile_spacing_at_most(local, bound):
+                    assert measured <= bound
+            if spacing <= 6.3e-5:  # a GelSight Mini's cloud: no k-d tree needed at the default 0.2 mm pixel
+                assert tactile_spacing_at_most(local, 0.0002 / 1.5)
+            if measured > 0.0002 / 1.5:
+                assert not tactile_spacing_at_most(local, 0.0002 / 1.5)
+
+
+def test_mask_only_sampling_matches_sampling(fruit_contacts):
+    _, contacts = fruit_contacts
+    image = tactile_height_image(contacts[0][0], 0.0105, 0.0002, 1)
+    x, y = np.meshgrid(np.linspace(-0.012, 0.012, 41), np.linspace(-0.012, 0.012, 37), indexing="ij")
+    for mask in (image.mask, ~image.filled):
+        _, expected = image.sample(x, y, mask)
+        np.testing.assert_array_equal(image.covered(x, y, mask), expected)

@@ -74,11 +74,11 @@ def plane_distances(
     gaps, index = surface.kdtree.query(flat, distance_upper_bound=reach_m)
     found = np.isfinite(gaps)
     index = np.where(found, index, 0)
-    nearest = surface.points_object[index].astype(np.float64)
-    normals = surface.normals_object[index].astype(np.float64)
+    nearest = surface.points_object.take(index, axis=0).astype(np.float64)  # take: faster than fancy indexing
+    normals = surface.normals_object.take(index, axis=0).astype(np.float64)
     if facing_surface is not None:
-        expected = np.broadcast_to(facing_surface, points_surface.shape).reshape(-1, 3)
-        found &= np.einsum("ij,ij->i", normals, expected) > NORMAL_AGREEMENT
+        agreement = np.einsum("...i,...i->...", normals.reshape(points_surface.shape), facing_surface)
+        found &= agreement.reshape(-1) > NORMAL_AGREEMENT
     distance = np.where(found, np.einsum("ij,ij->i", flat - nearest, normals), 0.0)
     return distance.reshape(shape), found.reshape(shape), nearest.reshape(shape + (3,)), normals.reshape(shape + (3,))
 
@@ -194,13 +194,11 @@ def point_to_plane_gauss_newton(
         weights = np.where(use, np.minimum(1.0, scale[:, None] / np.maximum(magnitude, 1e-12)), 0.0)
         weights /= config.surface_noise_m**2
         jacobian = _jacobian(p - centres[:, None, :], n)
-        deviation = np.concatenate(
-            [
-                so3_log(rotation @ np.transpose(start[active, :3, :3], (0, 2, 1))),
-                anchor_now - anchor_start[active],
-            ],
-            axis=1,
-        )
+        # The prior's deviation from the start (none before the first step).
+        deviation = np.zeros((count, 6))
+        if iteration > 0:
+            deviation[:, :3] = so3_log(rotation @ np.transpose(start[active, :3, :3], (0, 2, 1)))
+            deviation[:, 3:] = anchor_now - anchor_start[active]
         weighted = jacobian * weights[:, :, None]
         hessian = np.transpose(weighted, (0, 2, 1)) @ jacobian + prior
         gradient = (np.transpose(weighted, (0, 2, 1)) @ r[:, :, None])[:, :, 0] + deviation @ prior
@@ -213,8 +211,9 @@ def point_to_plane_gauss_newton(
         # p -> delta (p - c) + c + tau, composed onto each pose
         poses[active, :3, :3] = delta @ rotation
         poses[active, :3, 3] = np.einsum("kij,kj->ki", delta, translation - centres) + centres + step[:, 3:]
-        moving = (np.linalg.norm(step[:, 3:], axis=1) >= config.step_tolerance_m) | (
-            np.linalg.norm(step[:, :3], axis=1) >= config.step_tolerance_rad
+        squared = step * step  # squared norms against squared tolerances: no square roots
+        moving = (squared[:, 3:].sum(axis=1) >= config.step_tolerance_m**2) | (
+            squared[:, :3].sum(axis=1) >= config.step_tolerance_rad**2
         )
         active = active[moving]
         if len(active) == 0:

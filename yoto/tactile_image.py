@@ -24,11 +24,30 @@ X_AXIS = np.array([1.0, 0.0, 0.0])
 def tactile_spacing_m(local: np.ndarray, samples: int = 512) -> float:
     """Median in-plane distance between neighbouring tactile points (the cloud's own resolution), measured on the
     `samples` points nearest the contact centre, their neighbours found among the 4 x `samples` nearest."""
+    near = _central_points(local, samples)
+    distances, _ = cKDTree(near).query(near[:samples], k=2)
+    return float(np.median(distances[:, 1]))
+
+
+def _central_points(local: np.ndarray, samples: int) -> np.ndarray:
+    """(<= 4 samples, 2) in-plane coordinates of the 4 x `samples` points nearest the contact centre, nearest first."""
     radial = local[:, 0] ** 2 + local[:, 1] ** 2
     near = np.argpartition(radial, min(4 * samples, len(local)) - 1)[: 4 * samples]
-    near = near[np.argsort(radial[near])]
-    distances, _ = cKDTree(local[near, :2]).query(local[near[:samples], :2], k=2)
-    return float(np.median(distances[:, 1]))
+    return local[near[np.argsort(radial[near])], :2]
+
+
+def tactile_spacing_at_most(local: np.ndarray, spacing_m: float, samples: int = 512) -> bool:
+    """True when `tactile_spacing_m(local, samples)` is certainly at most `spacing_m`, without a k-d tree: a point
+    that shares a square cell of diagonal `spacing_m` with another lies at most that far from its nearest
+    neighbour, and when more than half of the measured points do, so does the median. (False: not known.)"""
+    near = _central_points(local, samples)
+    cells = np.floor(near / (spacing_m / np.sqrt(2.0))).astype(np.int64)
+    cells -= cells.min(axis=0)
+    _, inverse, counts = np.unique(
+        cells[:, 0] * (cells[:, 1].max() + 1) + cells[:, 1], return_inverse=True, return_counts=True
+    )
+    measured = min(samples, len(near))
+    return int(np.count_nonzero(counts[inverse[:measured]] > 1)) > measured // 2
 
 
 @dataclass
@@ -46,11 +65,7 @@ class TactileHeightImage:
 
     def sample(self, x: np.ndarray, y: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Bilinear heights at local (x, y) and whether all four pixels are in `mask`."""
-        side = len(self.heights)
-        fx = (x + self.half_m) / self.pixel_m - 0.5
-        fy = (y + self.half_m) / self.pixel_m - 0.5
-        x0 = np.clip(np.floor(fx).astype(np.int64), 0, side - 2)
-        y0 = np.clip(np.floor(fy).astype(np.int64), 0, side - 2)
+        x0, y0, fx, fy = self._corner(x, y)
         wx = np.clip(fx - x0, 0.0, 1.0)
         wy = np.clip(fy - y0, 0.0, 1.0)
         corners = (
@@ -62,8 +77,25 @@ class TactileHeightImage:
         heights = np.zeros(np.shape(wx))
         for i, j, w in corners:
             heights += self.heights[i, j] * w
-        inside = np.logical_and.reduce([mask[i, j] for i, j, _ in corners])
-        return heights, inside
+        return heights, self._all_corners(mask, x0, y0)
+
+    def covered(self, x: np.ndarray, y: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """Whether all four pixels around local (x, y) are in `mask` (`sample`'s second answer, without heights)."""
+        x0, y0, _, _ = self._corner(x, y)
+        return self._all_corners(mask, x0, y0)
+
+    def _corner(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The low corner pixel (row, column) of the bilinear cell of each local (x, y), and (x, y) in pixels."""
+        side = len(self.heights)
+        fx = (x + self.half_m) / self.pixel_m - 0.5
+        fy = (y + self.half_m) / self.pixel_m - 0.5
+        x0 = np.clip(np.floor(fx).astype(np.int64), 0, side - 2)
+        y0 = np.clip(np.floor(fy).astype(np.int64), 0, side - 2)
+        return x0, y0, fx, fy
+
+    @staticmethod
+    def _all_corners(mask: np.ndarray, x0: np.ndarray, y0: np.ndarray) -> np.ndarray:
+        return mask[x0, y0] & mask[x0 + 1, y0] & mask[x0, y0 + 1] & mask[x0 + 1, y0 + 1]
 
     def pixel_of(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The pixel (row, column) nearest each local (x, y), clipped to the image."""
@@ -85,7 +117,8 @@ def tactile_height_image(
     u, v = tangent_basis(-normal, reference=X_AXIS)
     basis = np.stack([u, v, -normal], axis=1)
     local = (points_sensor - centre) @ basis
-    pixel = max(pixel_m, 1.5 * tactile_spacing_m(local))
+    # A dense cloud (the usual case) is told from a sparse one without measuring its spacing.
+    pixel = pixel_m if tactile_spacing_at_most(local, pixel_m / 1.5) else max(pixel_m, 1.5 * tactile_spacing_m(local))
     half = radius_m + 2.0 * pixel
     side = int(np.ceil(2.0 * half / pixel))
     ix = np.floor((local[:, 0] + half) / pixel).astype(np.int64)

@@ -54,11 +54,11 @@ class MatchConfig:
     pad_size_m: tuple[float, float] = GELSIGHT_MINI.pad_size_m  # sensed area of the gel (x, y extents)
     refine_candidates: int = 20  # best matched-filter candidates refined by ICP
     icp_points: int = 60  # tactile points used by the per-candidate ICP
-    icp: GaussNewtonConfig = replace(CANDIDATE_REFINEMENT, iterations=5)  # the per-candidate point-to-plane ICP, on
-    # few points (the best are polished below), its start as a weak prior
+    icp: GaussNewtonConfig = replace(CANDIDATE_REFINEMENT, iterations=3)  # the per-candidate point-to-plane ICP, on
+    # few points and few iterations (the best are polished below), its start as a weak prior
     polish_candidates: int = 3  # the best distinct candidates after ICP are refined again ...
     polish_points: int = 300  # ... on this many tactile points ...
-    polish_iterations: int = 8  # ... for this many more iterations
+    polish_iterations: int = 4  # ... for this many more iterations
     residual_tau_m: float = 0.0005  # truncation of the ranking residual
     belief: BeliefConfig = BeliefConfig()  # distinct candidates and their beliefs from the ranking residuals
     normal_neighbours: int = 20  # k of the aggregated model normal reported with a candidate

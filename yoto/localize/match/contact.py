@@ -67,7 +67,7 @@ def contact_maps(image: ContactImage, centres: np.ndarray, roll_count: int, conf
     x = cos * centres[:, 0] + sin * centres[:, 1]  # Rz(-roll) applied to the cell centres
     y = -sin * centres[:, 0] + cos * centres[:, 1]
     heights, covered = image.sample(x, y, image.mask)
-    _, near = image.sample(x, y, ~image.touched)
+    near = image.covered(x, y, ~image.touched)
     basis, centre = image.basis_sensor, image.centre_sensor
     on_pad = centre[:2, None, None] + basis[:2, 0, None, None] * x + basis[:2, 1, None, None] * y
     pad = np.asarray(config.pad_size_m) / 2.0

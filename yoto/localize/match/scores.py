@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from yoto.localize.match.anchors import AnchorMaps
@@ -108,13 +110,17 @@ def free_space_violation(
     if counts.sum() == 0:
         return np.zeros(len(T_object_sensor))
     owner = np.repeat(np.arange(len(T_object_sensor)), counts)
-    p_object = anchors.points_object[np.concatenate([np.asarray(m, dtype=np.int64) for m in members])]
-    offsets = p_object - T_object_sensor[owner, :3, 3]
-    p_sensor = np.einsum("ni,nij->nj", offsets, T_object_sensor[owner, :3, :3])
+    index = np.fromiter(itertools.chain.from_iterable(members), dtype=np.int64, count=int(counts.sum()))
+    p_object = anchors.points_object.take(index, axis=0)
+    # Each pose's anchors into its sensor frame: one small product per pose (the members lie in pose order).
+    p_sensor = np.empty_like(p_object)
+    ends = np.cumsum(counts)
+    for k, (start, end) in enumerate(zip(ends - counts, ends, strict=True)):
+        p_sensor[start:end] = (p_object[start:end] - T_object_sensor[k, :3, 3]) @ T_object_sensor[k, :3, :3]
     depth = -p_sensor[:, 2] - image.free_margin_m
     over = (np.abs(p_sensor[:, 0]) <= pad[0]) & (np.abs(p_sensor[:, 1]) <= pad[1]) & (depth > 0)
     local = (p_sensor[over] - image.centre_sensor) @ image.basis_sensor
-    _, away = image.sample(local[:, 0], local[:, 1], ~image.touched)
+    away = image.covered(local[:, 0], local[:, 1], ~image.touched)
     depth = np.minimum(depth[over][away], config.residual_tau_m)
     violation = np.bincount(owner[over][away], weights=depth**2, minlength=len(T_object_sensor))
     return violation * anchors.area_m2 / sample_area / tactile_samples
