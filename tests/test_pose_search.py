@@ -26,7 +26,7 @@ from yoto.objects.model import ObjectModelConfig, build_object_model
 from yoto.objects.symmetry import Symmetry
 from yoto.pose.confidence import FEATURES, fit_logistic, load_confidence_model, read_confidence_model
 from yoto.pose.field import FieldConfig, build_surface_field
-from yoto.pose.hypotheses import HypothesisConfig, group_hypotheses, is_ambiguous, pose_distances
+from yoto.pose.hypotheses import Hypotheses, HypothesisConfig, group_hypotheses, is_ambiguous, pose_distances, spread
 from yoto.pose.refine import Refined
 from yoto.pose.search import SearchConfig, contact_shape, search_poses
 from yoto.pose.solver import direction_angles, procrustes_rotations, solve_poses
@@ -157,6 +157,23 @@ def test_hypotheses_are_grouped_modulo_symmetry(box, rng):
     tempered = group_hypotheses(_refined(poses, np.array([[3e-5] * 2, [3e-5] * 2, [4e-5] * 2])), symmetry, config)
     gap = tempered.log_likelihood[0] - tempered.log_likelihood[1]
     assert gap > 1.0 and tempered.probability[0] / tempered.probability[1] == pytest.approx(np.exp(gap / 4.0))
+
+
+def test_spread_weighs_each_hypothesis_by_its_distance_from_the_first_modulo_symmetry(rng):
+    T = make_transform(random_rotations(rng, 1)[0], [0.5, 0.0, 0.2])
+    turned = T @ make_transform(rotation_about_axis(np.array([0, 0, 1.0]), np.radians(10.0)), np.zeros(3))
+    slid = T @ make_transform(np.eye(3), [0.003, 0.0, 0.0])
+    far = T @ make_transform(np.eye(3), [0.1, 0.0, 0.0])
+    poses = np.array([T, turned, slid, far])
+    hypotheses = Hypotheses(poses, np.array([0.4, 0.3, 0.2, 0.1]), np.zeros(4), np.arange(4), np.ones(4, np.int64))
+    scale_m, scale_rad = 0.005, np.radians(5.0)
+    # 10 deg is 2 units, 3 mm 0.6, 100 mm is capped at 4: 0.3 * 2 + 0.2 * 0.6 + 0.1 * 4.
+    assert spread(hypotheses, Symmetry(), scale_m, scale_rad, 4.0) == pytest.approx(1.12, abs=1e-9)
+    # About a continuous symmetry axis (z) the turn is the same pose: it no longer counts.
+    about_z = Symmetry(axis_object=np.array([0.0, 0.0, 1.0]))
+    assert spread(hypotheses, about_z, scale_m, scale_rad, 4.0) == pytest.approx(0.52, abs=1e-9)
+    one = Hypotheses(poses[:1], np.ones(1), np.zeros(1), np.zeros(1, np.int64), np.ones(1, np.int64))
+    assert spread(one, Symmetry(), scale_m, scale_rad, 4.0) == 0.0
 
 
 def test_neighbour_poses_turn_and_slide_each_pose_about_its_own_axes(rng):

@@ -22,7 +22,8 @@ import numpy as np
 from yoto.contacts import SIDES, ContactEstimate
 from yoto.errors import InputError
 from yoto.io import write_json_atomic
-from yoto.pose.hypotheses import Hypotheses
+from yoto.objects.symmetry import Symmetry
+from yoto.pose.hypotheses import Hypotheses, spread
 from yoto.pose.refine import Refined
 from yoto.pose.search import LocalShape
 from yoto.pose.solver import PoseSolution
@@ -42,7 +43,10 @@ FEATURES = (
     "featureless",  # how many of the two contacts are featureless (a quadric fits them within 30 um)
     "belief",  # log10 of the product of the localizers' beliefs at the chosen contacts (floored at 1e-4)
     "searched",  # whether the joint search ran (the localizers did not settle it)
+    "spread",  # log(1 + probability-weighted distance of the hypotheses from the first, in 5 mm / 5 deg, capped at 4)
 )
+SPREAD_SCALE_M, SPREAD_SCALE_RAD = 0.005, float(np.radians(5.0))  # the unit of `spread`: what "right" allows ...
+SPREAD_CAP = 4.0  # ... and the distance at which a hypothesis counts as elsewhere
 
 
 def featureless(shape: LocalShape) -> bool:
@@ -58,6 +62,7 @@ def confidence_features(
     contacts: dict[str, ContactEstimate],
     shapes: dict[str, LocalShape],
     searched: bool,
+    symmetry: Symmetry,
 ) -> dict[str, float]:
     """The numbers the confidence is computed from (see FEATURES)."""
     best = int(hypotheses.member[0])
@@ -76,6 +81,7 @@ def confidence_features(
         "featureless": float(sum(featureless(shapes[side]) for side in SIDES)),
         "belief": float(np.log10(belief)),
         "searched": float(searched),
+        "spread": float(np.log1p(spread(hypotheses, symmetry, SPREAD_SCALE_M, SPREAD_SCALE_RAD, SPREAD_CAP))),
     }
 
 
