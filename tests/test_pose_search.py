@@ -25,7 +25,7 @@ from yoto.geometry import (
 from yoto.objects.model import ObjectModelConfig, build_object_model
 from yoto.objects.symmetry import Symmetry
 from yoto.pose.confidence import FEATURES, fit_logistic, load_confidence_model, read_confidence_model
-from yoto.pose.field import FieldConfig, build_surface_field
+from yoto.pose.field import FieldConfig, build_surface_field, surface_field
 from yoto.pose.hypotheses import Hypotheses, HypothesisConfig, group_hypotheses, is_ambiguous, pose_distances, spread
 from yoto.pose.refine import Refined
 from yoto.pose.search import SearchConfig, contact_shape, search_poses
@@ -235,6 +235,27 @@ def test_next_touch_separates_two_slid_hypotheses(box, rng):
     assert np.allclose(
         touch.to_json(box)["n_object"], rotate_vectors(box.T_mesh_object, touch.n_object), atol=TOL["float"]
     )
+
+
+def test_press_clearance_follows_the_approach_however_far_it_starts(box):
+    """A sensor moves along its z until its gel touches, presses, and its housing must clear the object: a press
+    tilted 30 deg on the box's top face puts the housing into the box whether it starts touching or 20 mm back
+    (beyond the distance field's band); a square press clears and makes a contact; one that meets nothing is
+    clear but makes no contact."""
+    from yoto.pose.next_touch import NextTouchConfig, presses_clear, sensor_pose_at
+
+    field, config = surface_field(box), NextTouchConfig()
+    top = sensor_pose_at(np.array([0.0, 0.0, 0.025]), np.array([0.0, 0.0, 1.0]))
+    back = make_transform(np.eye(3), [0.0, 0.0, -0.02])
+    tilted = top @ make_transform(rotation_about_axis(np.array([1.0, 0.0, 0.0]), np.radians(30.0)), np.zeros(3))
+    poses = np.array([top, top @ back, tilted, tilted @ back])
+    assert presses_clear(field, poses, config).tolist() == [True, True, False, False]
+    assert presses_clear(field, poses, config, contact=True).tolist() == [True, True, False, False]
+    up = make_transform(np.eye(3), [0.0, 0.0, 0.1])  # above the box, facing away from it
+    assert presses_clear(field, up[None], config).tolist() == [True]
+    assert presses_clear(field, up[None], config, contact=True).tolist() == [False]
+    corner = sensor_pose_at(np.array([0.06, 0.04, 0.025]), np.array([1.0, 1.0, 1.0]) / np.sqrt(3.0))
+    assert presses_clear(field, corner[None], config, contact=True).tolist() == [False]  # a tip, not a patch
 
 
 def test_solve_poses_recovers_exact_poses(rng):
