@@ -1,12 +1,14 @@
 """Calibrated confidence: the probability that a pose is within 5 mm and 5 deg of the truth (SPEC "Pose result").
 
 The pose stage describes its result by a few numbers (`confidence_features`): how much of the probability the
-first hypothesis holds and by what margin, how well the clouds fit under it and how large the sensor corrections
-had to be, how well the two contacts' directions condition the rotation, whether the contacts have features of
-their own, what the localizers believed. A logistic model maps them to the probability of being right. It is
-fitted on simulated contacts of many objects under realistic calibration error (`yoto bench calibrate`, see
-docs/pose.md), held-out objects check it, and its parameters ship with YOTO (`confidence.json`), so a threshold
-means the same on every object. A reliability diagram in the benchmark shows how well it holds.
+first hypothesis holds and by what margin, how far the others lie from it (near neighbours along a family of
+poses, or poses elsewhere; modulo the object's symmetries), how well the clouds fit under it and how large the
+sensor corrections had to be, how well the two contacts' directions condition the rotation, whether the contacts
+have features of their own, what the localizers believed. A logistic model maps them to the probability of being
+right. It is fitted on simulated contacts of many objects under realistic calibration error (`yoto
+calibrate-confidence`, see docs/pose.md), held-out objects check it, and its parameters ship with YOTO
+(`confidence.json`), so a threshold means the same on every object. A reliability diagram in the benchmark shows
+how well it holds.
 """
 
 from __future__ import annotations
@@ -152,7 +154,7 @@ def read_confidence_model(path: str | Path) -> ConfidenceModel:
     if payload.get("format") != FORMAT_NAME or payload.get("format_version") != FORMAT_VERSION:
         raise InputError(
             f"not a YOTO confidence model of version {FORMAT_VERSION} (format {payload.get('format')!r}, "
-            f"version {payload.get('format_version')!r}); refit it with `yoto bench calibrate`",
+            f"version {payload.get('format_version')!r}); refit it with `yoto calibrate-confidence`",
             path,
         )
     features = tuple(payload["features"])
