@@ -25,8 +25,8 @@ from yoto.geometry import (
 from yoto.objects.model import ObjectModelConfig, build_object_model
 from yoto.objects.symmetry import Symmetry
 from yoto.pose.confidence import FEATURES, fit_logistic, load_confidence_model, read_confidence_model
-from yoto.pose.field import FieldConfig, build_surface_field
-from yoto.pose.hypotheses import HypothesisConfig, group_hypotheses, is_ambiguous, pose_distances
+from yoto.pose.field import FieldConfig, build_surface_field, surface_field
+from yoto.pose.hypotheses import Hypotheses, HypothesisConfig, group_hypotheses, is_ambiguous, pose_distances, spread
 from yoto.pose.refine import Refined
 from yoto.pose.search import SearchConfig, contact_shape, search_poses
 from yoto.pose.solver import direction_angles, procrustes_rotations, solve_poses
@@ -159,6 +159,23 @@ def test_hypotheses_are_grouped_modulo_symmetry(box, rng):
     assert gap > 1.0 and tempered.probability[0] / tempered.probability[1] == pytest.approx(np.exp(gap / 4.0))
 
 
+def test_spread_weighs_each_hypothesis_by_its_distance_from_the_first_modulo_symmetry(rng):
+    T = make_transform(random_rotations(rng, 1)[0], [0.5, 0.0, 0.2])
+    turned = T @ make_transform(rotation_about_axis(np.array([0, 0, 1.0]), np.radians(10.0)), np.zeros(3))
+    slid = T @ make_transform(np.eye(3), [0.003, 0.0, 0.0])
+    far = T @ make_transform(np.eye(3), [0.1, 0.0, 0.0])
+    poses = np.array([T, turned, slid, far])
+    hypotheses = Hypotheses(poses, np.array([0.4, 0.3, 0.2, 0.1]), np.zeros(4), np.arange(4), np.ones(4, np.int64))
+    scale_m, scale_rad = 0.005, np.radians(5.0)
+    # 10 deg is 2 units, 3 mm 0.6, 100 mm is capped at 4: 0.3 * 2 + 0.2 * 0.6 + 0.1 * 4.
+    assert spread(hypotheses, Symmetry(), scale_m, scale_rad, 4.0) == pytest.approx(1.12, abs=1e-9)
+    # About a continuous symmetry axis (z) the turn is the same pose: it no longer counts.
+    about_z = Symmetry(axis_object=np.array([0.0, 0.0, 1.0]))
+    assert spread(hypotheses, about_z, scale_m, scale_rad, 4.0) == pytest.approx(0.52, abs=1e-9)
+    one = Hypotheses(poses[:1], np.ones(1), np.zeros(1), np.zeros(1, np.int64), np.ones(1, np.int64))
+    assert spread(one, Symmetry(), scale_m, scale_rad, 4.0) == 0.0
+
+
 def test_neighbour_poses_turn_and_slide_each_pose_about_its_own_axes(rng):
     from yoto.pose.hypotheses import neighbour_poses
 
@@ -218,6 +235,27 @@ def test_next_touch_separates_two_slid_hypotheses(box, rng):
     assert np.allclose(
         touch.to_json(box)["n_object"], rotate_vectors(box.T_mesh_object, touch.n_object), atol=TOL["float"]
     )
+
+
+def test_press_clearance_follows_the_approach_however_far_it_starts(box):
+    """A sensor moves along its z until its gel touches, presses, and its housing must clear the object: a press
+    tilted 30 deg on the box's top face puts the housing into the box whether it starts touching or 20 mm back
+    (beyond the distance field's band); a square press clears and makes a contact; one that meets nothing is
+    clear but makes no contact."""
+    from yoto.pose.next_touch import NextTouchConfig, presses_clear, sensor_pose_at
+
+    field, config = surface_field(box), NextTouchConfig()
+    top = sensor_pose_at(np.array([0.0, 0.0, 0.025]), np.array([0.0, 0.0, 1.0]))
+    back = make_transform(np.eye(3), [0.0, 0.0, -0.02])
+    tilted = top @ make_transform(rotation_about_axis(np.array([1.0, 0.0, 0.0]), np.radians(30.0)), np.zeros(3))
+    poses = np.array([top, top @ back, tilted, tilted @ back])
+    assert presses_clear(field, poses, config).tolist() == [True, True, False, False]
+    assert presses_clear(field, poses, config, contact=True).tolist() == [True, True, False, False]
+    up = make_transform(np.eye(3), [0.0, 0.0, 0.1])  # above the box, facing away from it
+    assert presses_clear(field, up[None], config).tolist() == [True]
+    assert presses_clear(field, up[None], config, contact=True).tolist() == [False]
+    corner = sensor_pose_at(np.array([0.06, 0.04, 0.025]), np.array([1.0, 1.0, 1.0]) / np.sqrt(3.0))
+    assert presses_clear(field, corner[None], config, contact=True).tolist() == [False]  # a tip, not a patch
 
 
 def test_solve_poses_recovers_exact_poses(rng):

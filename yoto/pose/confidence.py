@@ -1,12 +1,14 @@
 """Calibrated confidence: the probability that a pose is within 5 mm and 5 deg of the truth (SPEC "Pose result").
 
 The pose stage describes its result by a few numbers (`confidence_features`): how much of the probability the
-first hypothesis holds and by what margin, how well the clouds fit under it and how large the sensor corrections
-had to be, how well the two contacts' directions condition the rotation, whether the contacts have features of
-their own, what the localizers believed. A logistic model maps them to the probability of being right. It is
-fitted on simulated contacts of many objects under realistic calibration error (`yoto bench calibrate`, see
-docs/pose.md), held-out objects check it, and its parameters ship with YOTO (`confidence.json`), so a threshold
-means the same on every object. A reliability diagram in the benchmark shows how well it holds.
+first hypothesis holds and by what margin, how far the others lie from it (near neighbours along a family of
+poses, or poses elsewhere; modulo the object's symmetries), how well the clouds fit under it and how large the
+sensor corrections had to be, how well the two contacts' directions condition the rotation, whether the contacts
+have features of their own, what the localizers believed. A logistic model maps them to the probability of being
+right. It is fitted on simulated contacts of many objects under realistic calibration error (`yoto
+calibrate-confidence`, see docs/pose.md), held-out objects check it, and its parameters ship with YOTO
+(`confidence.json`), so a threshold means the same on every object. A reliability diagram in the benchmark shows
+how well it holds.
 """
 
 from __future__ import annotations
@@ -22,7 +24,8 @@ import numpy as np
 from yoto.contacts import SIDES, ContactEstimate
 from yoto.errors import InputError
 from yoto.io import write_json_atomic
-from yoto.pose.hypotheses import Hypotheses
+from yoto.objects.symmetry import Symmetry
+from yoto.pose.hypotheses import Hypotheses, spread
 from yoto.pose.refine import Refined
 from yoto.pose.search import LocalShape
 from yoto.pose.solver import PoseSolution
@@ -42,7 +45,10 @@ FEATURES = (
     "featureless",  # how many of the two contacts are featureless (a quadric fits them within 30 um)
     "belief",  # log10 of the product of the localizers' beliefs at the chosen contacts (floored at 1e-4)
     "searched",  # whether the joint search ran (the localizers did not settle it)
+    "spread",  # log(1 + probability-weighted distance of the hypotheses from the first, in 5 mm / 5 deg, capped at 4)
 )
+SPREAD_SCALE_M, SPREAD_SCALE_RAD = 0.005, float(np.radians(5.0))  # the unit of `spread`: what "right" allows ...
+SPREAD_CAP = 4.0  # ... and the distance at which a hypothesis counts as elsewhere
 
 
 def featureless(shape: LocalShape) -> bool:
@@ -58,6 +64,7 @@ def confidence_features(
     contacts: dict[str, ContactEstimate],
     shapes: dict[str, LocalShape],
     searched: bool,
+    symmetry: Symmetry,
 ) -> dict[str, float]:
     """The numbers the confidence is computed from (see FEATURES)."""
     best = int(hypotheses.member[0])
@@ -76,6 +83,7 @@ def confidence_features(
         "featureless": float(sum(featureless(shapes[side]) for side in SIDES)),
         "belief": float(np.log10(belief)),
         "searched": float(searched),
+        "spread": float(np.log1p(spread(hypotheses, symmetry, SPREAD_SCALE_M, SPREAD_SCALE_RAD, SPREAD_CAP))),
     }
 
 
@@ -146,7 +154,7 @@ def read_confidence_model(path: str | Path) -> ConfidenceModel:
     if payload.get("format") != FORMAT_NAME or payload.get("format_version") != FORMAT_VERSION:
         raise InputError(
             f"not a YOTO confidence model of version {FORMAT_VERSION} (format {payload.get('format')!r}, "
-            f"version {payload.get('format_version')!r}); refit it with `yoto bench calibrate`",
+            f"version {payload.get('format_version')!r}); refit it with `yoto calibrate-confidence`",
             path,
         )
     features = tuple(payload["features"])

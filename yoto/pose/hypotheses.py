@@ -118,6 +118,20 @@ def neighbour_poses(T_world_object: np.ndarray, config: HypothesisConfig) -> np.
     return np.einsum("hij,sjk->hsik", np.asarray(T_world_object).reshape(-1, 4, 4), np.array(steps)).reshape(-1, 4, 4)
 
 
+def spread(hypotheses: Hypotheses, symmetry: Symmetry, scale_m: float, scale_rad: float, cap: float) -> float:
+    """How far the probability reaches from the first hypothesis: the probability-weighted distance of every
+    hypothesis from the first (modulo symmetry: poses a symmetry maps onto each other are one pose for a robot), in
+    units of (`scale_m`, `scale_rad`) (the larger of the two ratios), each capped at `cap` (a hypothesis far off is
+    simply elsewhere). Near 0 when the other hypotheses are close neighbours of the first along a family of poses
+    (a rotation of a few degrees about a rounded contact), large when they are poses elsewhere on the object."""
+    if len(hypotheses) < 2:
+        return 0.0
+    translation, rotation = pose_distances(hypotheses.T_world_object, hypotheses.T_world_object[0], symmetry)
+    distance = np.minimum(np.maximum(translation / scale_m, rotation / scale_rad), cap)
+    weights = hypotheses.probability / hypotheses.probability.sum()
+    return float(np.sum(weights * distance))
+
+
 def reported(hypotheses: Hypotheses, config: HypothesisConfig) -> Hypotheses:
     """The hypotheses worth reporting: at least `min_probability`, at most `max_hypotheses` (the first is kept)."""
     keep = np.flatnonzero(hypotheses.probability >= config.min_probability)[: config.max_hypotheses]

@@ -51,6 +51,14 @@ class NextTouchConfig:
     press_depth_m: float = 0.0015  # the deepest press (the contact simulator's, and SPEC's, range ends here)
     clearance_m: float = 0.0002  # ... after which the sensor body must stay this far outside the object
     body_spacing_m: float = 0.003  # spacing of the points checked on the sensor body's boxes
+    approach_travel_m: float = 0.05  # a sensor whose gel meets nothing within this travel misses the object
+    approach_steps: int = 40  # steps of the approach's sphere tracing at most
+    touch_tolerance_m: float = 5e-5  # the gel touches when its nearest point is this close to the surface
+    contact_depth_m: float = 0.0005  # a press this shallow (SPEC's shallowest) ...
+    min_contact_m2: float = 6e-6  # ... must make a contact this large where it must be informative (not a tip,
+    # a corner or a rim, which a sensor cannot read as a patch)
+    contact_spacing_m: float = 0.001  # spacing of the gel points that measure the contact
+    informative_probability: float = 0.05  # under hypotheses holding at least this, the press must make a contact
     checked: int = 300  # most valuable candidates checked for reachability under every hypothesis (best first)
 
 
@@ -125,7 +133,7 @@ def touch_sites(model: ObjectModel, config: NextTouchConfig = NextTouchConfig())
         stride = max(1, len(samples.points_object) // config.candidates)
         p, n = samples.points_object[::stride], samples.normals_object[::stride]
         T_object_sensor = np.stack([sensor_pose_at(point, normal) for point, normal in zip(p, n)])
-        clear = presses_clear(surface_field(model), T_object_sensor, config)
+        clear = presses_clear(surface_field(model), T_object_sensor, config, contact=True)
         cached = TouchSites(p[clear], n[clear], T_object_sensor[clear])
         with _SITES_LOCK:
             _SITES[key] = cached
@@ -162,11 +170,18 @@ def suggest_next_touch(
     disagreement = np.sqrt(2.0 * np.maximum(variance, 0.0)).mean(axis=1)
     order = np.argsort(-disagreement, kind="stable")[: config.checked]
     order = order[disagreement[order] > 1e-6]
-    # The press planned under the first hypothesis must clear the object under every other one too.
+    # The press planned under the first hypothesis must clear the object under every other one too, and make a
+    # contact under each probable one (a press that misses, or touches a rim or a tip, tells nothing if that one is
+    # the truth).
     T_world_new = T0 @ sites.T_object_sensor[order]
     clear = np.ones(len(order), dtype=bool)
-    for T_object_world in inverse[1:][probability[1:] >= config.min_probability]:
-        clear[clear] = presses_clear(field, T_object_world @ T_world_new[clear], config)
+    for T_object_world, share in zip(inverse[1:], probability[1:]):
+        if share < config.min_probability:
+            continue
+        if not clear.any():
+            break
+        contact = bool(share >= config.informative_probability)
+        clear[clear] = presses_clear(field, T_object_world @ T_world_new[clear], config, contact)
     T_world_sensor = {side: pair.contact(side).T_world_sensor for side in SIDES}
     boxes = SensorBody().boxes(GELSIGHT_MINI, with_gel=True)
     for index, T_new in zip(order[clear], T_world_new[clear]):
@@ -178,29 +193,63 @@ def suggest_next_touch(
     return None
 
 
-def _gel_points(config: NextTouchConfig) -> np.ndarray:
-    """Points on the undeformed gel surface (z = 0) over the pad, sensor frame."""
+def _gel_points(spacing_m: float) -> np.ndarray:
+    """Points on the undeformed gel surface (z = 0) over the pad, about `spacing_m` apart, sensor frame."""
     width, height = GELSIGHT_MINI.pad_size_m
     x, y = np.meshgrid(
-        np.linspace(-width / 2, width / 2, int(width / config.body_spacing_m) + 1),
-        np.linspace(-height / 2, height / 2, int(height / config.body_spacing_m) + 1),
+        np.linspace(-width / 2, width / 2, int(width / spacing_m) + 1),
+        np.linspace(-height / 2, height / 2, int(height / spacing_m) + 1),
     )
     return np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
 
 
-def presses_clear(field: SurfaceField, T_object_sensor: np.ndarray, config: NextTouchConfig) -> np.ndarray:
+def presses_clear(
+    field: SurfaceField, T_object_sensor: np.ndarray, config: NextTouchConfig, contact: bool = False
+) -> np.ndarray:
     """(C,) whether sensors approaching along their z toward these poses (object frame, (C, 4, 4)) press the
-    object with their gel before any part of their body meets it: each sensor stops where its gel first touches,
-    presses `press_depth_m` further, and its body must then stay `clearance_m` outside the object. An approach
-    that meets nothing within the field's band cannot collide there either."""
+    object with their gel before any part of their body meets it: each sensor moves along its z until its gel first
+    touches (however far that is, `approach_travel_m` at most), presses `press_depth_m` further, and its body must
+    then stay `clearance_m` outside the object. An approach that meets nothing cannot collide either; with
+    `contact`, it must meet the object, and pressed `contact_depth_m` make a contact of `min_contact_m2`."""
     if not len(T_object_sensor):
         return np.zeros(0, dtype=bool)
-    gel, body = _gel_points(config), _body_points(config, SensorBody())
-    gel_object = np.einsum("cij,gj->cgi", T_object_sensor[:, :3, :3], gel) + T_object_sensor[:, None, :3, 3]
-    gel_distance, _ = field.distance(gel_object, with_gradient=False)
-    first_touch = gel_distance.min(axis=1)  # how far each sensor still moves (negative: back) until the gel touches
-    shift = first_touch + config.press_depth_m
-    origin = T_object_sensor[:, :3, 3] + shift[:, None] * T_object_sensor[:, :3, 2]
-    body_object = np.einsum("cij,bj->cbi", T_object_sensor[:, :3, :3], body) + origin[:, None, :]
-    body_distance, _ = field.distance(body_object, with_gradient=False)
-    return (first_touch >= field.band_m) | (body_distance.min(axis=1) >= config.clearance_m)
+    gel, body = _gel_points(config.body_spacing_m), _body_points(config, SensorBody())
+    travel, touched, missed = _approach(field, T_object_sensor, gel, config)
+    rotation, axis = T_object_sensor[:, :3, :3], T_object_sensor[:, :3, 2]
+    origin = T_object_sensor[:, :3, 3] + (travel + config.press_depth_m)[:, None] * axis
+    body_distance, _ = field.distance(
+        np.einsum("cij,bj->cbi", rotation, body) + origin[:, None, :], with_gradient=False
+    )
+    pressed = touched & (body_distance.min(axis=1) >= config.clearance_m)
+    if not contact:
+        return missed | pressed
+    fine = _gel_points(config.contact_spacing_m)
+    origin = T_object_sensor[:, :3, 3] + (travel + config.contact_depth_m)[:, None] * axis
+    depth, _ = field.distance(np.einsum("cij,gj->cgi", rotation, fine) + origin[:, None, :], with_gradient=False)
+    area = np.count_nonzero(depth < 0.0, axis=1) * config.contact_spacing_m**2
+    return pressed & (area >= config.min_contact_m2)
+
+
+def _approach(
+    field: SurfaceField, T_object_sensor: np.ndarray, gel: np.ndarray, config: NextTouchConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How far each sensor moves along its z (negative: back) until its gel first touches the object, whether it
+    touched, and whether it met nothing within `approach_travel_m` (an approach that neither touched nor missed
+    within `approach_steps` is neither, and counts as blocked). Sphere tracing: the gel's nearest distance to the
+    surface is a step it can always take; the field is clamped at its band, so a sensor far off advances a band
+    per step."""
+    count = len(T_object_sensor)
+    travel = np.zeros(count)
+    moving = np.ones(count, dtype=bool)
+    for _ in range(config.approach_steps):
+        index = np.flatnonzero(moving)
+        rotation, axis = T_object_sensor[index, :3, :3], T_object_sensor[index, :3, 2]
+        origin = T_object_sensor[index, :3, 3] + travel[index, None] * axis
+        distance, _ = field.distance(np.einsum("cij,gj->cgi", rotation, gel) + origin[:, None, :], with_gradient=False)
+        step = distance.min(axis=1)
+        travel[index] += step
+        moving[index] = (np.abs(step) > config.touch_tolerance_m) & (np.abs(travel[index]) < config.approach_travel_m)
+        if not moving.any():
+            break
+    missed = np.abs(travel) >= config.approach_travel_m
+    return travel, ~moving & ~missed, missed

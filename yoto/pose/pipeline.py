@@ -438,7 +438,7 @@ def _estimate(
         hypotheses=reported(hypotheses, config.hypotheses),
         ambiguous=is_ambiguous(hypotheses, config.hypotheses),
         confidence=float("nan"),
-        features=confidence_features(hypotheses, refined, solution, chosen, shapes, searched),
+        features=confidence_features(hypotheses, refined, solution, chosen, shapes, searched, model.symmetry),
         fit_rms_m=(float(refined.fit_rms_m[best, 0]), float(refined.fit_rms_m[best, 1])),
         corrections=corrections,
         searched=searched,
