@@ -4,8 +4,10 @@ For each object, N trajectories (`yoto.simulate.trajectory`, a fixed seed): the 
 then the open loop and the closed loop on the same streams and frames. Rows like the paper's Table 3 (mean +- std
 over the trajectories of the error during motion), plus the peak, the settled error and drift, the simulated slip,
 and the closed loop's speed; a figure like its Fig. 4 (one trajectory per object); and, when several path lengths
-are asked for, the settled drift against path length (the same touches and path shapes, scaled). Finished
-trajectories are cached in OUT/cache, so an interrupted run resumes.
+are asked for, the settled drift against path length (the same touches and path shapes, scaled); and beside the
+drift, how much the frames themselves move over the motion when registered from the true pose (what no closed loop
+can tell from slip, `registration_at_truth`). Finished trajectories are cached in OUT/cache, so an interrupted run
+resumes.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from yoto.geometry import transform_points, twist_of_pose
 from yoto.io import read_json, write_json_atomic, write_text_atomic
 from yoto.objects.model import ObjectModel
 from yoto.provenance import run_info
+from yoto.registration import point_to_plane_gauss_newton
 from yoto.simulate.trajectory import SimulatedTrajectory, TrajectoryConfig, TrajectorySimulator
 from yoto.tracking.evaluate import ErrorCurve, motion_interval, plot_tracking, summarize_errors, tracking_errors
 from yoto.tracking.streams import TactileStream
@@ -113,8 +116,6 @@ def registration_at_truth(
     What remains is the measurement's own error (the reconstruction's smooth depth errors, the rim), which no
     filter can tell from slip. `offset_*`: its mean before the motion and after it; `change`: how much it moved
     between the two, the drift a closed loop that believed its frames exactly would show."""
-    from yoto.registration import point_to_plane_gauss_newton
-
     tactile = tactile_streams(trajectory)
     instants = [
         frames
@@ -130,23 +131,17 @@ def registration_at_truth(
         )
         offsets.append(twist_of_pose(point_to_plane_gauss_newton(model, points, np.eye(4)[None], solver)[0]))
         times.append(max(f.timestamp_s for f in chosen))
-    if motion is None or not offsets:
-        return {"instants": len(offsets), "offset_before": None, "offset_after": None, "change": None}
-    stamps, twists = np.array(times), np.array(offsets)
-    before, after = twists[stamps < motion[0]], twists[stamps > motion[1]]
-    if len(before) == 0 or len(after) == 0:
-        return {"instants": len(offsets), "offset_before": None, "offset_after": None, "change": None}
+    result: dict[str, Any] = {"instants": len(offsets), "offset_before": None, "offset_after": None, "change": None}
+    stamps, twists = np.array(times), np.array(offsets).reshape(-1, 6)
+    if motion is None or not (stamps < motion[0]).any() or not (stamps > motion[1]).any():
+        return result
 
     def size(twist: np.ndarray) -> dict[str, float]:
         return {"mm": 1e3 * float(np.linalg.norm(twist[3:])), "deg": float(np.degrees(np.linalg.norm(twist[:3])))}
 
-    start, end = before.mean(axis=0), after.mean(axis=0)
-    return {
-        "instants": len(offsets),
-        "offset_before": size(start),
-        "offset_after": size(end),
-        "change": size(end - start),
-    }
+    start, end = twists[stamps < motion[0]].mean(axis=0), twists[stamps > motion[1]].mean(axis=0)
+    result.update(offset_before=size(start), offset_after=size(end), change=size(end - start))
+    return result
 
 
 def touch_estimate(trajectory: SimulatedTrajectory, model: ObjectModel, localizer) -> np.ndarray:
