@@ -13,7 +13,7 @@ from yoto.contacts import SIDES, read_contact_pair
 from yoto.geometry import invert_transform, rotation_angle_rad, transform_points
 from yoto.io import write_ply_points
 from yoto.simulate.trajectory import TrajectoryConfig, TrajectorySimulator, write_trajectories, write_trajectory
-from yoto.tracking.bench import tactile_streams
+from yoto.tracking.bench import registration_at_truth, tactile_streams
 from yoto.tracking.evaluate import motion_interval, summarize_errors, tracking_errors
 from yoto.tracking.track import TrackConfig, touch_from_pair, track
 from yoto.trajectory import read_tum, tactile_frame_name
@@ -235,3 +235,25 @@ def test_a_touch_of_low_confidence_is_tracked_with_a_warning(builtin_models, fru
         out = capsys.readouterr().out
         assert (f"the touch's pose has confidence {confidence:.2f}" in out) is warned
         assert (tmp_path / f"object_{confidence}.tum").exists()
+
+
+def test_the_benchmark_measures_how_far_the_frames_themselves_move_from_the_truth(builtin_models, fruit_trajectory):
+    """`registration_at_truth` registers frames starting from the true pose. Noise-free frames stay on the truth
+    (what remains is the gel model's rim and smoothing); the reconstruction's smooth depth errors move them by
+    tenths of a degree, and as the contact slides over the pad the offset changes: drift no filter can remove."""
+    model = builtin_models["fruit"]
+    noise = SHORT.scenario.press.noise
+    clean = dataclasses.replace(noise, pixel_std_m=0.0, bias_std_m=0.0, scale_std=0.0)
+    scenario = dataclasses.replace(SHORT.scenario, press=dataclasses.replace(SHORT.scenario.press, noise=clean))
+    noise_free = TrajectorySimulator(model, dataclasses.replace(SHORT, scenario=scenario)).trajectory(3, 1)
+    config = TrackConfig().correction
+    measured = {}
+    for label, trajectory in (("noise-free", noise_free), ("noisy", fruit_trajectory)):
+        stamps = np.union1d(trajectory.streams["left"].timestamps_s, trajectory.streams["right"].timestamps_s)
+        motion = motion_interval(trajectory.streams, stamps)
+        measured[label] = registration_at_truth(trajectory, model, motion, config, every=1)
+        assert measured[label]["instants"] >= 5
+    assert measured["noise-free"]["offset_before"]["deg"] < 0.1
+    assert measured["noise-free"]["offset_before"]["mm"] < 0.03
+    assert measured["noise-free"]["change"]["deg"] < 0.1
+    assert measured["noisy"]["offset_before"]["deg"] > 3 * measured["noise-free"]["offset_before"]["deg"]

@@ -330,6 +330,19 @@ def contact_samples(points_sensor: np.ndarray, config: CorrectionConfig) -> np.n
     return points
 
 
+def registration_solver(config: CorrectionConfig) -> GaussNewtonConfig:
+    """The Gauss-Newton settings with which the closed loop registers a tactile instant."""
+    return GaussNewtonConfig(
+        iterations=config.iterations,
+        max_distance_m=config.max_distance_m,
+        surface_noise_m=config.surface_noise_m,
+        prior_rotation_rad=config.registration_prior_rotation_rad,
+        prior_translation_m=config.registration_prior_translation_m,
+        step_tolerance_m=config.step_tolerance_m,
+        step_tolerance_rad=config.step_tolerance_rad,
+    )
+
+
 class _Corrector:
     """The closed loop's state: the grasps, and a Kalman filter on (error, slip rate, measurement bias).
 
@@ -360,15 +373,7 @@ class _Corrector:
             + [c.slip_rate_translation**2] * 3
             + [0.0] * 6
         )
-        self.solver = GaussNewtonConfig(
-            iterations=c.iterations,
-            max_distance_m=c.max_distance_m,
-            surface_noise_m=c.surface_noise_m,
-            prior_rotation_rad=c.registration_prior_rotation_rad,
-            prior_translation_m=c.registration_prior_translation_m,
-            step_tolerance_m=c.step_tolerance_m,
-            step_tolerance_rad=c.step_tolerance_rad,
-        )
+        self.solver = registration_solver(c)
         self.last_correction = (0.0, 0.0)  # (metres, radians) of the latest applied correction
         self.last_time = touch.time_s
         self.last_sensors = sensor_poses(streams, np.array([touch.time_s]), config.fusion, jitter)
