@@ -186,7 +186,7 @@ def load_calibration(path: str | Path, spec: GelSightSpec | None = None) -> Sens
             mm_per_px=float(sensor["mm_per_px"]),
         )
         model = meta["model"]
-        gradient_config = GradientModelConfig(**{"extrapolation_limit": 0.0, **model["gradient"]})  # older files: 0
+        gradient_config = GradientModelConfig(**model["gradient"])
         image_config = ImageModelConfig(**{"gain_degree": 1, **model["image"]})  # files before gain_degree: 1
         mask = MaskConfig(**meta["mask"])
         background = arrays["background"]

@@ -141,8 +141,6 @@ class GradientModelConfig:
     lut_offset: int = 128  # colour change -lut_offset maps to cell 0; the table covers [-128, 128)
     occupied_radius: int = 2  # table cells within this many cells of a training colour count as seen
     ridge: float = 1e-6  # Tikhonov weight (relative to the sample count)
-    extrapolation_limit: float = 1.5  # unseen table cells continue the nearest seen cell's trend, their gradient
-    # magnitude at most this multiple of the seen cells' largest (0: copy the nearest seen cell)
 
 
 @dataclass
@@ -263,50 +261,10 @@ def bake_gradient_model(
         seen = ndimage.binary_dilation(seen, iterations=config.occupied_radius)
     _, nearest = ndimage.distance_transform_edt(~seen, return_indices=True)
     flat_nearest = np.ravel_multi_index(tuple(nearest.reshape(3, -1)), (n, n, n))
-    if config.extrapolation_limit > 0:
-        table = _extrapolated_table(table, grid, flat_nearest, seen.ravel(), c_colour, colour_exps, config)
-    else:
-        table = table[flat_nearest]
+    table = table[flat_nearest]
 
     bias, gains = _position_maps(coefficients, image_shape, config)
     return GradientModel(np.ascontiguousarray(table.T, dtype=np.float32), bias, gains, coefficients, config)
-
-
-def _extrapolated_table(
-    table: np.ndarray,
-    grid: np.ndarray,
-    flat_nearest: np.ndarray,
-    seen: np.ndarray,
-    c_colour: np.ndarray,
-    colour_exps: np.ndarray,
-    config: GradientModelConfig,
-) -> np.ndarray:
-    """The table with each unseen cell continued from its nearest seen cell to first order.
-
-    Steeper slopes than the ball presses reached change the colour further along the same trend (measured on a
-    shading sensor: clamped at the nearest seen cell, slopes of 0.6-0.8 came back at 0.71 of their value, 0.8-1.0
-    at 0.56). The cubic's own Jacobian at the nearest seen cell carries the trend on (a cubic evaluated there would
-    turn); the result is limited to `extrapolation_limit` times the largest gradient magnitude of the seen cells.
-    """
-    out = table[flat_nearest]
-    unseen = np.flatnonzero(~seen)
-    if len(unseen) == 0:
-        return out
-    anchors = np.unique(flat_nearest[unseen])
-    step = 0.5 * config.lut_step
-    jacobian = np.empty((len(anchors), 2, 3))
-    for k in range(3):
-        offset = np.zeros(3)
-        offset[k] = step
-        ahead = monomials((grid[anchors] + offset) / config.colour_scale, colour_exps) @ c_colour
-        behind = monomials((grid[anchors] - offset) / config.colour_scale, colour_exps) @ c_colour
-        jacobian[:, :, k] = (ahead - behind) / (2 * step)
-    row = np.searchsorted(anchors, flat_nearest[unseen])
-    continued = out[unseen] + np.einsum("nij,nj->ni", jacobian[row], grid[unseen] - grid[flat_nearest[unseen]])
-    limit = config.extrapolation_limit * float(np.max(np.linalg.norm(table[seen], axis=1)))
-    magnitude = np.linalg.norm(continued, axis=1, keepdims=True)
-    out[unseen] = continued * np.minimum(1.0, limit / np.maximum(magnitude, 1e-12))
-    return out
 
 
 def _position_maps(
