@@ -13,7 +13,8 @@ Steps, for one 320x240 RGB frame:
 3. height map by Poisson integration in the touched box: the Laplacian of z equals the divergence of the
    gradients, solved with discrete cosine/sine transforms using precomputed eigenvalues, float32; box edges
    inside the frame lie on flat gel (zero height), edges on the frame's border are free (a press cut by the
-   frame's edge is not forced to zero there). Heights are then clamped to z <= 0.
+   frame's edge is not forced to zero there). Where an edge is free, untouched gel inside the box is brought back
+   to zero by a harmonic correction (`anchor_untouched`). Heights are then clamped to z <= 0.
 4. contact masks: if at least `min_area_px` pixels changed colour by `colour_threshold`, the core (pixels
    pressed at least half as deep as the deepest point: a ball's contact, for sphere fits) and the contact the
    gel felt (pixels deeper than the noise floor, connected to the core: what localization needs, the whole
@@ -460,11 +461,11 @@ def _harmonic_fill(known: np.ndarray, values: np.ndarray) -> np.ndarray:
         entries_j.append(me)
         entries_v.append(np.ones(len(me)))
         neighbour = index[r, c]
-        free_neighbour = neighbour >= 0
-        entries_i.append(me[free_neighbour])
-        entries_j.append(neighbour[free_neighbour])
-        entries_v.append(-np.ones(int(free_neighbour.sum())))
-        np.add.at(rhs, me[~free_neighbour], values[r[~free_neighbour], c[~free_neighbour]])
+        unknown_neighbour = neighbour >= 0
+        entries_i.append(me[unknown_neighbour])
+        entries_j.append(neighbour[unknown_neighbour])
+        entries_v.append(-np.ones(int(unknown_neighbour.sum())))
+        np.add.at(rhs, me[~unknown_neighbour], values[r[~unknown_neighbour], c[~unknown_neighbour]])
     matrix = coo_matrix(
         (np.concatenate(entries_v), (np.concatenate(entries_i), np.concatenate(entries_j))), shape=(n, n)
     ).tocsc()
