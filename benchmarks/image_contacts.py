@@ -85,9 +85,15 @@ def draw(path: Path, title: str, image, recon, model, estimate, truth_p, T_objec
     figure.suptitle(title, fontsize=10)
     figure.tight_layout()
     buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=80)
+    figure.savefig(buffer, format="png", dpi=64)
     plt.close(figure)
-    write_bytes_atomic(path, buffer.getvalue())
+    # A 256-colour palette: the figures live in the repository, a third of the size and the same to the eye.
+    from PIL import Image
+
+    buffer.seek(0)
+    small = io.BytesIO()
+    Image.open(buffer).convert("RGB").quantize(256).save(small, format="png", optimize=True)
+    write_bytes_atomic(path, small.getvalue())
 
 
 def main() -> None:

@@ -13,7 +13,8 @@ Steps, for one 320x240 RGB frame:
 3. height map by Poisson integration in the touched box: the Laplacian of z equals the divergence of the
    gradients, solved with discrete cosine/sine transforms using precomputed eigenvalues, float32; box edges
    inside the frame lie on flat gel (zero height), edges on the frame's border are free (a press cut by the
-   frame's edge is not forced to zero there). Heights are then clamped to z <= 0.
+   frame's edge is not forced to zero there). Where an edge is free, untouched gel inside the box is brought back
+   to zero by a harmonic correction (`anchor_untouched`). Heights are then clamped to z <= 0.
 4. contact masks: if at least `min_area_px` pixels changed colour by `colour_threshold`, the core (pixels
    pressed at least half as deep as the deepest point: a ball's contact, for sphere fits) and the contact the
    gel felt (pixels deeper than the noise floor, connected to the core: what localization needs, the whole
@@ -70,6 +71,10 @@ MAX_SATURATED_FRACTION = 0.05
 BLOCK_PX = 8
 TOUCHED_LEVEL = 3.0
 BOX_MARGIN_PX = 8
+# Untouched gel inside a touched box that reaches the frame's border is brought back to z = 0 (`anchor_untouched`)
+# where it lies at most this fraction of the deepest point deep: a broad contact's flat middle barely changes colour
+# too, but lies deep.
+ANCHOR_RELATIVE_DEPTH = 0.3
 
 
 @dataclass
@@ -366,8 +371,9 @@ def integrate_box(
     """Full-frame height map, z <= 0: the Poisson solution inside the touched box, zero outside.
 
     The box's edges inside the frame lie on flat gel: fixed at zero height. Edges on the frame's border
-    are free (a contact cut by the border is not forced to zero there). When all four are on the border
-    (the box is the whole frame), the level comes from the untouched blocks (`level_height`).
+    are free (a contact cut by the border is not forced to zero there). Where an edge is free, untouched gel
+    inside the box is no longer held at zero and drifts with the gradients' errors integrated across the contact
+    (0.1 mm over a mug's contact crossing the pad); `anchor_untouched` pulls it back.
     """
     row0, row1, col0, col1 = box
     rows, cols = gx.shape
@@ -375,29 +381,95 @@ def integrate_box(
     inside = (slice(row0, row1), slice(col0, col1))
     height = np.zeros((rows, cols), np.float32)
     height[inside] = poisson_integrate(gx[inside], gy[inside], pixel_size_m, free)
-    if all(free):
-        level_height(height, blocks)
+    if any(free):
+        anchor_untouched(height, blocks, box)
     np.minimum(height, 0.0, out=height)
     return height
 
 
-def level_height(height: np.ndarray, blocks: np.ndarray, block: int = BLOCK_PX) -> None:
-    """Shift a height map in place so that the untouched gel sits at z = 0.
-
-    The reference is the median height at the centres of blocks that are neither touched nor next to a
-    touched block. When almost every block is touched (an object covering the pad), the 95th percentile of
-    those block-centre heights is used instead.
-    """
+def untouched_blocks(blocks: np.ndarray) -> np.ndarray:
+    """Blocks that are neither touched nor next to a touched block (8-neighbourhood): flat gel, z = 0."""
     touched = blocks > TOUCHED_LEVEL
-    near = touched.copy()
-    near[1:] |= touched[:-1]
-    near[:-1] |= touched[1:]
-    near[:, 1:] |= near[:, :-1].copy()
-    near[:, :-1] |= near[:, 1:].copy()
-    centres = height[block // 2 :: block, block // 2 :: block][: blocks.shape[0], : blocks.shape[1]]
-    reference = centres[~near]
-    level = np.median(reference) if reference.size >= 20 else np.percentile(centres, 95)
-    height -= np.float32(level)
+    return ~ndimage.binary_dilation(touched, structure=np.ones((3, 3), bool))
+
+
+def anchor_untouched(height: np.ndarray, blocks: np.ndarray, box: tuple[int, int, int, int]) -> None:
+    """Bring untouched gel inside the box back to z = 0, in place, by subtracting a harmonic correction.
+
+    A Poisson solve with other edge conditions differs from this one by a harmonic function, so the drift is
+    removed as one: on the block grid, the correction equals each untouched block's mean height (and zero
+    outside the box), is harmonic (5-point Laplace) over the touched blocks and their neighbours, with free
+    (zero-slope) frame borders; it is interpolated bilinearly to the pixels. With no untouched block in the box
+    and the box covering the frame (a contact over the whole pad) the least-pressed block (95th percentile of the
+    block means) is taken as the gel's level; with none and edges inside the frame, those hold the level.
+    """
+    row0, row1, col0, col1 = box
+    grid_rows, grid_cols = blocks.shape
+    means = height[: grid_rows * BLOCK_PX, : grid_cols * BLOCK_PX]
+    means = means.reshape(grid_rows, BLOCK_PX, grid_cols, BLOCK_PX).mean(axis=(1, 3))
+    centre_rows = np.arange(grid_rows) * BLOCK_PX + (BLOCK_PX - 1) / 2
+    centre_cols = np.arange(grid_cols) * BLOCK_PX + (BLOCK_PX - 1) / 2
+    in_box = ((centre_rows >= row0) & (centre_rows < row1))[:, None] & ((centre_cols >= col0) & (centre_cols < col1))
+    # The flat middle of a broad contact barely changes colour either; it lies deep, drift does not.
+    deepest = float(-height.min())
+    shallow = means >= -ANCHOR_RELATIVE_DEPTH * deepest
+    known = (untouched_blocks(blocks) & shallow) | ~in_box
+    if not (known & in_box).any():
+        if in_box.all():
+            height -= np.float32(np.percentile(means, 95.0))
+        return
+    values = np.where(in_box, means, 0.0).astype(np.float64)
+    correction = np.where(known, values, 0.0)
+    unknown = np.flatnonzero(~known)
+    if len(unknown):
+        correction.flat[unknown] = _harmonic_fill(known, values)
+    # Bilinear interpolation from block centres to pixels (clamped at the frame's edges), inside the box only.
+    pixel_rows = np.interp(np.arange(row0, row1), centre_rows, np.arange(grid_rows))
+    pixel_cols = np.interp(np.arange(col0, col1), centre_cols, np.arange(grid_cols))
+    r0 = np.minimum(np.floor(pixel_rows).astype(int), grid_rows - 2)
+    c0 = np.minimum(np.floor(pixel_cols).astype(int), grid_cols - 2)
+    wr = (pixel_rows - r0)[:, None]
+    wc = (pixel_cols - c0)[None, :]
+    top = correction[r0][:, c0] * (1 - wc) + correction[r0][:, c0 + 1] * wc
+    bottom = correction[r0 + 1][:, c0] * (1 - wc) + correction[r0 + 1][:, c0 + 1] * wc
+    height[row0:row1, col0:col1] -= (top * (1 - wr) + bottom * wr).astype(np.float32)
+
+
+def _harmonic_fill(known: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Values at the unknown cells of a grid that make them harmonic (5-point Laplace), given the known cells.
+
+    Neighbours beyond the grid's edge are left out (zero normal slope there). A small diagonal term keeps a region
+    that no known cell reaches at zero instead of undetermined.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.linalg import spsolve
+
+    grid_rows, grid_cols = known.shape
+    index = np.full(known.shape, -1, dtype=np.int64)
+    unknown = ~known
+    index[unknown] = np.arange(int(unknown.sum()))
+    rows_u, cols_u = np.nonzero(unknown)
+    n = len(rows_u)
+    entries_i, entries_j, entries_v = [np.arange(n)], [np.arange(n)], [np.full(n, 1e-6)]
+    rhs = np.zeros(n)
+    for d_row, d_col in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        r, c = rows_u + d_row, cols_u + d_col
+        on_grid = (r >= 0) & (r < grid_rows) & (c >= 0) & (c < grid_cols)
+        me = np.flatnonzero(on_grid)
+        r, c = r[on_grid], c[on_grid]
+        entries_i.append(me)
+        entries_j.append(me)
+        entries_v.append(np.ones(len(me)))
+        neighbour = index[r, c]
+        unknown_neighbour = neighbour >= 0
+        entries_i.append(me[unknown_neighbour])
+        entries_j.append(neighbour[unknown_neighbour])
+        entries_v.append(-np.ones(int(unknown_neighbour.sum())))
+        np.add.at(rhs, me[~unknown_neighbour], values[r[~unknown_neighbour], c[~unknown_neighbour]])
+    matrix = coo_matrix(
+        (np.concatenate(entries_v), (np.concatenate(entries_i), np.concatenate(entries_j))), shape=(n, n)
+    ).tocsc()
+    return np.asarray(spsolve(matrix, rhs, permc_spec="NATURAL"))  # banded: the natural order is the fastest
 
 
 def colour_distance2(change: np.ndarray) -> np.ndarray:
