@@ -288,11 +288,13 @@ def search_poses(
         np.subtract(squared, np.matmul(2.0 * left.p_object[rows], right.p_object.T, out=product), out=squared)
         shell = np.greater_equal(squared, low2, out=low_buffer[:count])
         shell &= np.less_equal(squared, high2, out=high_buffer[:count])
-        i, j = np.nonzero(shell)
-        if not len(i):
+        flat = np.flatnonzero(shell)  # far faster than a 2-D nonzero; the same pairs in the same order
+        if not len(flat):
             continue
-        distance = np.sqrt(np.maximum(squared[i, j], 0.0))
-        i = i + first
+        distance = np.sqrt(np.maximum(squared.reshape(-1)[flat], 0.0))
+        i = flat // len(right.p_object)
+        j = flat - i * len(right.p_object)
+        i += first
         blur = left.blur_m[i] + right.blur_m[j]
         mismatch = np.abs(distance - separation) / np.hypot(config.distance_tolerance_m, blur)
         keep = np.flatnonzero((mismatch <= 1.0) & (distance >= MIN_CONTACT_SEPARATION_M))
