@@ -98,10 +98,9 @@ def group_hypotheses(refined: Refined, symmetry: Symmetry, config: HypothesisCon
         if len(close) > 1:
             rotation = symmetry.rotation_errors_rad(poses[close], np.broadcast_to(poses[k], (len(close), 4, 4)))
             close = close[rotation <= config.distinct_rotation_rad]
-        unassigned[close] = False
+        unassigned[close] = False  # k among them (at distance 0)
         members.append(k)
-        support.append(len(close) + int(unassigned[k]))  # k itself is always a member
-        unassigned[k] = False
+        support.append(len(close))
     best = np.array(members, dtype=np.int64)
     log_l = score[best]
     weights = np.exp((log_l - log_l.max()) / config.temperature) if len(best) else np.empty(0)
