@@ -268,7 +268,7 @@ def search_poses(
     squared_left, squared_right = np.sum(left.p_object**2, axis=1), np.sum(right.p_object**2, axis=1)
     own_left = np.sum(left.p_object * n_left, axis=1)  # pL . nL
     own_right = np.sum(right.p_object * n_right, axis=1)  # pR . nR
-    # Per-pair dot products from coordinate columns: contiguous (3, L) rows gathered one by one
+    # Coordinates as contiguous (3, L) rows, for the per-pair dot products (`_dot`).
     p_left_columns, p_right_columns = np.ascontiguousarray(left.p_object.T), np.ascontiguousarray(right.p_object.T)
     n_left_columns, n_right_columns = np.ascontiguousarray(n_left.T), np.ascontiguousarray(n_right.T)
     angle_variance = config.angle_tolerance_rad**2
@@ -282,7 +282,7 @@ def search_poses(
     high_buffer = np.empty_like(low_buffer)
     for first in range(0, len(left.p_object), chunk):
         rows = slice(first, first + chunk)
-        count = len(squared_left[rows])
+        count = min(chunk, len(left.p_object) - first)
         squared, product = squared_buffer[:count], product_buffer[:count]
         np.add(squared_left[rows, None], squared_right[None, :], out=squared)
         np.subtract(squared, np.matmul(2.0 * left.p_object[rows], right.p_object.T, out=product), out=squared)
