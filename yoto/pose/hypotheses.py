@@ -86,17 +86,21 @@ def group_hypotheses(refined: Refined, symmetry: Symmetry, config: HypothesisCon
     score = log_likelihoods(refined, config)
     order = np.argsort(-score, kind="stable")
     poses = refined.T_world_object
+    position = poses[:, :3, 3]
     unassigned = np.ones(len(order), dtype=bool)
     members, support = [], []
     for k in order:
         if not unassigned[k]:
             continue
-        translation, rotation = pose_distances(poses, poses[k], symmetry)
-        close = unassigned & (translation <= config.distinct_translation_m) & (rotation <= config.distinct_rotation_rad)
-        close[k] = True
-        unassigned &= ~close
+        # The rotation (the costly part, modulo symmetry) only of the unassigned poses close enough in translation.
+        close = np.flatnonzero(unassigned)
+        close = close[np.linalg.norm(position[close] - position[k], axis=1) <= config.distinct_translation_m]
+        if len(close) > 1:
+            rotation = symmetry.rotation_errors_rad(poses[close], np.broadcast_to(poses[k], (len(close), 4, 4)))
+            close = close[rotation <= config.distinct_rotation_rad]
+        unassigned[close] = False  # k among them (at distance 0)
         members.append(k)
-        support.append(int(close.sum()))
+        support.append(len(close))
     best = np.array(members, dtype=np.int64)
     log_l = score[best]
     weights = np.exp((log_l - log_l.max()) / config.temperature) if len(best) else np.empty(0)

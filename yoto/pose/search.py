@@ -268,36 +268,52 @@ def search_poses(
     squared_left, squared_right = np.sum(left.p_object**2, axis=1), np.sum(right.p_object**2, axis=1)
     own_left = np.sum(left.p_object * n_left, axis=1)  # pL . nL
     own_right = np.sum(right.p_object * n_right, axis=1)  # pR . nR
+    # Coordinates as contiguous (3, L) rows, for the per-pair dot products (`_dot`).
+    p_left_columns, p_right_columns = np.ascontiguousarray(left.p_object.T), np.ascontiguousarray(right.p_object.T)
+    n_left_columns, n_right_columns = np.ascontiguousarray(n_left.T), np.ascontiguousarray(n_right.T)
     angle_variance = config.angle_tolerance_rad**2
+    left_variance, right_turn2 = angle_variance + left_turn**2, right_turn**2
     found = []
     chunk = max(1, 400_000 // max(len(right.p_object), 1))
+    # Work buffers reused by every chunk (fresh multi-megabyte arrays cost page faults each time).
+    squared_buffer = np.empty((min(chunk, len(left.p_object)), len(right.p_object)))
+    product_buffer = np.empty_like(squared_buffer)
+    low_buffer = np.empty(squared_buffer.shape, dtype=bool)
+    high_buffer = np.empty_like(low_buffer)
     for first in range(0, len(left.p_object), chunk):
         rows = slice(first, first + chunk)
-        squared = squared_left[rows, None] + squared_right[None, :] - 2.0 * left.p_object[rows] @ right.p_object.T
-        i, j = np.nonzero((squared >= low2) & (squared <= high2))
-        if not len(i):
+        count = min(chunk, len(left.p_object) - first)
+        squared, product = squared_buffer[:count], product_buffer[:count]
+        np.add(squared_left[rows, None], squared_right[None, :], out=squared)
+        np.subtract(squared, np.matmul(2.0 * left.p_object[rows], right.p_object.T, out=product), out=squared)
+        shell = np.greater_equal(squared, low2, out=low_buffer[:count])
+        shell &= np.less_equal(squared, high2, out=high_buffer[:count])
+        flat = np.flatnonzero(shell)  # far faster than a 2-D nonzero; the same pairs in the same order
+        if not len(flat):
             continue
-        distance = np.sqrt(np.maximum(squared[i, j], 0.0))
-        i = i + first
+        distance = np.sqrt(np.maximum(squared.reshape(-1)[flat], 0.0))
+        i = flat // len(right.p_object)
+        j = flat - i * len(right.p_object)
+        i += first
         blur = left.blur_m[i] + right.blur_m[j]
         mismatch = np.abs(distance - separation) / np.hypot(config.distance_tolerance_m, blur)
-        keep = (mismatch <= 1.0) & (distance >= MIN_CONTACT_SEPARATION_M)
+        keep = np.flatnonzero((mismatch <= 1.0) & (distance >= MIN_CONTACT_SEPARATION_M))
         i, j, distance, blur, mismatch = i[keep], j[keep], distance[keep], blur[keep], mismatch[keep]
         # (nL, nR)
-        key = np.arccos(np.clip(np.sum(n_left[i] * n_right[j], axis=1), -1.0, 1.0))
-        part = np.abs(key - angles[2]) / np.sqrt(angle_variance + left_turn[i] ** 2 + right_turn[j] ** 2)
-        keep = part <= 1.0
+        key = np.arccos(np.clip(_dot(n_left_columns, i, n_right_columns, j), -1.0, 1.0))
+        part = np.abs(key - angles[2]) / np.sqrt(left_variance[i] + right_turn2[j])
+        keep = np.flatnonzero(part <= 1.0)
         i, j, distance, blur = i[keep], j[keep], distance[keep], blur[keep]
         mismatch = np.maximum(mismatch[keep], part[keep])
         turn2 = (blur / max(separation, 1e-3)) ** 2  # the direction d turns as the locations move within their blur
         # (d, nL) and (d, nR), d = (pR - pL) / distance
-        p_left, p_right = left.p_object[i], right.p_object[j]
-        cosine = (np.sum(p_right * n_left[i], axis=1) - own_left[i]) / np.maximum(distance, 1e-12)
+        length = np.maximum(distance, 1e-12)
+        cosine = (_dot(p_right_columns, j, n_left_columns, i) - own_left[i]) / length
         key = np.arccos(np.clip(cosine, -1.0, 1.0))
-        part = np.abs(key - angles[0]) / np.sqrt(angle_variance + left_turn[i] ** 2 + turn2)
-        cosine = (own_right[j] - np.sum(p_left * n_right[j], axis=1)) / np.maximum(distance, 1e-12)
+        part = np.abs(key - angles[0]) / np.sqrt(left_variance[i] + turn2)
+        cosine = (own_right[j] - _dot(p_left_columns, i, n_right_columns, j)) / length
         key = np.arccos(np.clip(cosine, -1.0, 1.0))
-        part = np.maximum(part, np.abs(key - angles[1]) / np.sqrt(angle_variance + right_turn[j] ** 2 + turn2))
+        part = np.maximum(part, np.abs(key - angles[1]) / np.sqrt(angle_variance + right_turn2[j] + turn2))
         keep = part <= 1.0
         found.append((i[keep], j[keep], np.maximum(mismatch[keep], part[keep])))
     if found:
@@ -311,3 +327,10 @@ def search_poses(
         left.p_object[a], n_left[a], right.p_object[b], n_right[b], world["left"], world["right"]
     )
     return PairMatches(mismatch, T_world_object)
+
+
+def _dot(first: np.ndarray, i: np.ndarray, second: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Dot products of the vectors i of `first` and j of `second` ((3, L) columns): the sum of the coordinates'
+    products in order, as `np.sum(a * b, axis=1)` adds them, without gathering (N, 3) rows and summing along their
+    short axis."""
+    return first[0][i] * second[0][j] + first[1][i] * second[1][j] + first[2][i] * second[2][j]

@@ -1,0 +1,67 @@
+"""Grouping refined poses into hypotheses: the fast grouping (rotations only of the poses close in translation)
+against its definition, every founder absorbing every unassigned pose within both distances of it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from yoto.geometry import make_transform, random_rotations, rotation_about_axis
+from yoto.objects.symmetry import Symmetry
+from yoto.pose.hypotheses import HypothesisConfig, group_hypotheses, log_likelihoods, pose_distances
+from yoto.pose.refine import Refined
+
+
+def _grouped_by_definition(refined: Refined, symmetry: Symmetry, config: HypothesisConfig):
+    """Members and supports of the greedy grouping, every pose's distance to every founder computed."""
+    order = np.argsort(-log_likelihoods(refined, config), kind="stable")
+    unassigned = np.ones(len(order), dtype=bool)
+    members, support = [], []
+    for k in order:
+        if unassigned[k]:
+            translation, rotation = pose_distances(refined.T_world_object, refined.T_world_object[k], symmetry)
+            close = unassigned & (translation <= config.distinct_translation_m)
+            close &= rotation <= config.distinct_rotation_rad
+            close[k] = True
+            unassigned &= ~close
+            members.append(k)
+            support.append(int(close.sum()))
+    return np.array(members), np.array(support)
+
+
+@pytest.mark.parametrize(
+    "symmetry",
+    [
+        Symmetry(),
+        Symmetry(rotations=np.array([np.eye(3), rotation_about_axis(np.array([1.0, 0, 0]), np.pi)])),
+        Symmetry(axis_object=np.array([0, 0, 1.0])),
+    ],
+    ids=["none", "flip", "continuous"],
+)
+def test_grouping_matches_its_definition(symmetry, rng):
+    # Clusters of poses a few millimetres and degrees around a few centres: many lie within the distinct
+    # distances of one another in translation but not in rotation, and the other way round.
+    centres = [make_transform(rotation, rng.normal(scale=0.01, size=3)) for rotation in random_rotations(rng, 4)]
+    poses = []
+    for centre in centres:
+        for _ in range(60):
+            turn = rotation_about_axis(rng.normal(size=3) / np.sqrt(3), np.radians(rng.uniform(0, 12)))
+            poses.append(centre @ make_transform(turn, rng.normal(scale=0.003, size=3)))
+    poses = np.array(poses)
+    count = len(poses)
+    refined = Refined(
+        poses,
+        np.zeros((count, 2, 6)),
+        rng.uniform(2e-5, 8e-5, size=(count, 2)),
+        np.ones((count, 2)),
+        np.zeros((count, 2)),
+        np.zeros(count),
+        np.zeros((count, 6)),
+    )
+    config = HypothesisConfig()
+    grouped = group_hypotheses(refined, symmetry, config)
+    members, support = _grouped_by_definition(refined, symmetry, config)
+    assert 10 < len(members) < count  # the clusters split into several hypotheses, and absorb many poses
+    np.testing.assert_array_equal(grouped.member, members)
+    np.testing.assert_array_equal(grouped.support, support)
+    assert grouped.support.sum() == count
