@@ -215,19 +215,22 @@ def presses_clear(
         return np.zeros(0, dtype=bool)
     gel, body = _gel_points(config.body_spacing_m), _body_points(config, SensorBody())
     travel, touched, missed = _approach(field, T_object_sensor, gel, config)
-    rotation, axis = T_object_sensor[:, :3, :3], T_object_sensor[:, :3, 2]
-    origin = T_object_sensor[:, :3, 3] + (travel + config.press_depth_m)[:, None] * axis
-    body_distance, _ = field.distance(
-        np.einsum("cij,bj->cbi", rotation, body) + origin[:, None, :], with_gradient=False
-    )
+    body_object = _advanced(T_object_sensor, travel + config.press_depth_m, body)
+    body_distance, _ = field.distance(body_object, with_gradient=False)
     pressed = touched & (body_distance.min(axis=1) >= config.clearance_m)
     if not contact:
         return missed | pressed
-    fine = _gel_points(config.contact_spacing_m)
-    origin = T_object_sensor[:, :3, 3] + (travel + config.contact_depth_m)[:, None] * axis
-    depth, _ = field.distance(np.einsum("cij,gj->cgi", rotation, fine) + origin[:, None, :], with_gradient=False)
+    fine = _advanced(T_object_sensor, travel + config.contact_depth_m, _gel_points(config.contact_spacing_m))
+    depth, _ = field.distance(fine, with_gradient=False)
     area = np.count_nonzero(depth < 0.0, axis=1) * config.contact_spacing_m**2
     return pressed & (area >= config.min_contact_m2)
+
+
+def _advanced(T_object_sensor: np.ndarray, travel: np.ndarray, points_sensor: np.ndarray) -> np.ndarray:
+    """(C, P, 3) object-frame places of the sensor-frame points (P, 3) once each of the C sensors has moved `travel`
+    (C,) along its z from its pose (C, 4, 4)."""
+    origin = T_object_sensor[:, :3, 3] + travel[:, None] * T_object_sensor[:, :3, 2]
+    return np.einsum("cij,pj->cpi", T_object_sensor[:, :3, :3], points_sensor) + origin[:, None, :]
 
 
 def _approach(
@@ -243,9 +246,7 @@ def _approach(
     moving = np.ones(count, dtype=bool)
     for _ in range(config.approach_steps):
         index = np.flatnonzero(moving)
-        rotation, axis = T_object_sensor[index, :3, :3], T_object_sensor[index, :3, 2]
-        origin = T_object_sensor[index, :3, 3] + travel[index, None] * axis
-        distance, _ = field.distance(np.einsum("cij,gj->cgi", rotation, gel) + origin[:, None, :], with_gradient=False)
+        distance, _ = field.distance(_advanced(T_object_sensor[index], travel[index], gel), with_gradient=False)
         step = distance.min(axis=1)
         travel[index] += step
         moving[index] = (np.abs(step) > config.touch_tolerance_m) & (np.abs(travel[index]) < config.approach_travel_m)
