@@ -186,7 +186,7 @@ def load_calibration(path: str | Path, spec: GelSightSpec | None = None) -> Sens
             mm_per_px=float(sensor["mm_per_px"]),
         )
         model = meta["model"]
-        gradient_config = GradientModelConfig(**model["gradient"])
+        gradient_config = GradientModelConfig(**{"anchored": False, **model["gradient"]})  # older files: not anchored
         image_config = ImageModelConfig(**{"gain_degree": 1, **model["image"]})  # files before gain_degree: 1
         mask = MaskConfig(**meta["mask"])
         background = arrays["background"]

@@ -141,6 +141,9 @@ class GradientModelConfig:
     lut_offset: int = 128  # colour change -lut_offset maps to cell 0; the table covers [-128, 128)
     occupied_radius: int = 2  # table cells within this many cells of a training colour count as seen
     ridge: float = 1e-6  # Tikhonov weight (relative to the sample count)
+    anchored: bool = True  # no constant or position bias: zero colour change reads as zero slope (the background is
+    # flat gel), and the linear part is applied exactly per pixel, the table holds only the rest (False: files
+    # written before, with the whole cubic and a bias in the table)
 
 
 @dataclass
@@ -200,12 +203,8 @@ class GradientModel:
         """The fitted polynomial evaluated directly (slow, no table): the reference of the fast path."""
         rows, cols = diff.shape[:2]
         x, y = normalised_xy(rows, cols)
-        design = _mixed_design(
-            diff.reshape(-1, 3).astype(np.float64),
-            np.stack([x.ravel(), y.ravel()], 1),
-            self.config.colour_scale,
-            self.config.colour_degree,
-            self.config.position_degree,
+        design = gradient_design(
+            diff.reshape(-1, 3).astype(np.float64), np.stack([x.ravel(), y.ravel()], 1), self.config
         )
         g = (design @ self.coefficients).reshape(rows, cols, 2)
         return g[..., 0], g[..., 1]
@@ -236,7 +235,9 @@ def fit_gradient_model(
 
 def gradient_design(diffs: np.ndarray, xy: np.ndarray, config: GradientModelConfig) -> np.ndarray:
     """Design matrix of the colour -> gradient model for colour changes (N, 3) at normalised positions (N, 2)."""
-    return _mixed_design(diffs, xy, config.colour_scale, config.colour_degree, config.position_degree)
+    return _mixed_design(
+        diffs, xy, config.colour_scale, config.colour_degree, config.position_degree, anchored=config.anchored
+    )
 
 
 def bake_gradient_model(
@@ -245,14 +246,20 @@ def bake_gradient_model(
     image_shape: tuple[int, int],
     config: GradientModelConfig,
 ) -> GradientModel:
-    """Turn fitted coefficients into the lookup table and per-pixel maps."""
-    colour_exps = monomial_exponents(3, config.colour_degree)
-    c_colour = coefficients[: len(colour_exps)]
+    """Turn fitted coefficients into the lookup table and per-pixel maps.
+
+    Anchored models keep the linear part of T out of the table (the per-pixel gains apply it exactly): a faint
+    colour change of a level or two is then not read at its table cell's centre, up to half a cell away.
+    """
+    colour_exps, c_colour = _colour_part(coefficients, config)
 
     # Table: T(c) at each cell's centre colour; cells far from any training colour copy the nearest seen cell.
     n = 256 // config.lut_step
     centres = np.arange(n) * config.lut_step - config.lut_offset + (config.lut_step - 1) / 2.0
     grid = np.stack(np.meshgrid(centres, centres, centres, indexing="ij"), axis=-1).reshape(-1, 3)
+    if config.anchored:
+        c_colour = c_colour.copy()
+        c_colour[1:4] = 0.0  # the linear monomials (c_r, c_g, c_b) follow the constant: in the gain maps
     table = monomials(grid / config.colour_scale, colour_exps) @ c_colour  # (n^3, 2)
     seen = np.zeros((n, n, n), dtype=bool)
     cells = np.clip((np.round(seen_diffs).astype(np.int64) + config.lut_offset) // config.lut_step, 0, n - 1)
@@ -270,18 +277,38 @@ def bake_gradient_model(
 def _position_maps(
     coefficients: np.ndarray, image_shape: tuple[int, int], config: GradientModelConfig
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pixel bias b(x, y) (2, rows, cols) and gains M_j(x, y) (2, 3, rows, cols) of the raw change."""
-    n_colour = len(monomial_exponents(3, config.colour_degree))
+    """Per-pixel bias b(x, y) (2, rows, cols) and gains M_j(x, y) (2, 3, rows, cols) of the raw change.
+
+    An anchored model has no bias (zero maps), and its gains include T's linear part (see `bake_gradient_model`).
+    """
+    colour_exps, c_colour = _colour_part(coefficients, config)
+    n_colour = len(colour_exps) - int(config.anchored)
     position_exps = monomial_exponents(2, config.position_degree)[1:]
     n_pos = len(position_exps)
-    c_pos = coefficients[n_colour : n_colour + n_pos]
-    c_gain = coefficients[n_colour + n_pos :].reshape(3, n_pos, 2)
     rows, cols = image_shape
     x, y = normalised_xy(rows, cols)
     pos = monomials(np.stack([x.ravel(), y.ravel()], 1), position_exps)  # (pixels, n_pos)
-    bias = (pos @ c_pos).T.reshape(2, rows, cols)
-    gains = np.stack([(pos @ c_gain[j]).T.reshape(2, rows, cols) for j in range(3)], axis=1) / config.colour_scale
+    if config.anchored:
+        bias = np.zeros((2, rows, cols))
+        c_gain = coefficients[n_colour:].reshape(3, n_pos, 2)
+    else:
+        bias = (pos @ coefficients[n_colour : n_colour + n_pos]).T.reshape(2, rows, cols)
+        c_gain = coefficients[n_colour + n_pos :].reshape(3, n_pos, 2)
+    gains = np.stack([(pos @ c_gain[j]).T.reshape(2, rows, cols) for j in range(3)], axis=1)
+    if config.anchored:
+        gains += c_colour[1:4][:, :, None, None].transpose(1, 0, 2, 3)  # (2, 3): T's linear part, every pixel
+    gains /= config.colour_scale
     return bias.astype(np.float32), np.ascontiguousarray(gains, dtype=np.float32)
+
+
+def _colour_part(coefficients: np.ndarray, config: GradientModelConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Exponents of T's monomials (constant first) and their coefficients (an anchored model's constant is 0)."""
+    colour_exps = monomial_exponents(3, config.colour_degree)
+    if config.anchored:
+        c_colour = np.vstack([np.zeros((1, coefficients.shape[1])), coefficients[: len(colour_exps) - 1]])
+    else:
+        c_colour = coefficients[: len(colour_exps)]
+    return colour_exps, c_colour
 
 
 def load_gradient_model(
@@ -291,7 +318,7 @@ def load_gradient_model(
     coefficients = np.asarray(arrays[f"{prefix}coefficients"], dtype=np.float64)
     lut = np.ascontiguousarray(arrays[f"{prefix}lut"], dtype=np.float32)
     cells = (256 // config.lut_step) ** 3
-    expected = _design_width(3, config.colour_degree, config.position_degree)
+    expected = _design_width(3, config.colour_degree, config.position_degree, config.anchored)
     if lut.shape != (2, cells) or coefficients.shape != (expected, 2):
         raise ValueError(
             f"model arrays have shapes {lut.shape} and {coefficients.shape}, expected (2, {cells}) and ({expected}, 2)"
@@ -300,8 +327,10 @@ def load_gradient_model(
     return GradientModel(lut, bias, gains, coefficients, config)
 
 
-def _design_width(num_inputs: int, degree: int, position_degree: int) -> int:
+def _design_width(num_inputs: int, degree: int, position_degree: int, anchored: bool) -> int:
     n_pos = len(monomial_exponents(2, position_degree)) - 1
+    if anchored:
+        return len(monomial_exponents(num_inputs, degree)) - 1 + n_pos * num_inputs
     return len(monomial_exponents(num_inputs, degree)) + n_pos * (1 + num_inputs)
 
 
