@@ -106,6 +106,45 @@ def test_a_contact_over_the_whole_pad_is_a_contact_and_a_lighting_change_is_not(
         reconstruct(np.roll(image, 1, axis=2), calibration)
 
 
+def tilted_face(slope_x: float, slope_y: float, depth_m: float) -> np.ndarray:
+    """The gel under a flat face pressed tilted (slopes along x and y) so that it leaves the pad on one side."""
+    x, y = SPEC.pixel_xy_sensor()
+    height, _, _ = gel_surface(-depth_m + slope_x * x + slope_y * y, GelModel(), SPEC)
+    return height
+
+
+@pytest.mark.parametrize("slope_x, slope_y, depth_m", [(0.04, 0.0, 0.1e-3), (-0.015, 0.035, 0.15e-3)])
+def test_a_faint_tilted_face_reads_as_tilted_and_a_flat_press_is_no_contact(shading, slope_x, slope_y, depth_m):
+    """A flat face pressed with a slight tilt changes the colour by a few levels over half the pad, no pixel by the
+    mask's colour threshold: it is a contact, and it reads as tilted (the gradient model reads zero colour change as
+    zero slope, and a faint change at its linear gain). A face pressed flat changes no colour and a lighting change
+    is no surface: both are "no contact"."""
+    sensor, calibration = shading
+    truth = tilted_face(slope_x, slope_y, depth_m)
+    felt = truth < -0.05e-3
+    assert 0.3 < felt.mean() < 0.9
+    x, y = SPEC.pixel_xy_sensor()
+
+    def tilt(height_m: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        design = np.stack([np.ones(int(mask.sum())), x[mask], y[mask]], axis=1)
+        return np.linalg.lstsq(design, height_m[mask].astype(np.float64), rcond=None)[0][1:]
+
+    images = (
+        sensor.render(truth, np.random.default_rng(3)),
+        render_varied(truth, calibration, np.random.default_rng(4), OpticsVariation.of(1.0)),
+    )
+    for image in images:
+        assert np.abs(image.astype(int) - calibration.background).max() < 20  # a faint change
+        recon = reconstruct(image, calibration)
+        assert recon.contact, recon.reason
+        assert (recon.mask & felt).sum() > 0.9 * felt.sum() and (recon.mask & ~felt).sum() < 0.03 * felt.sum()
+        error = tilt(recon.height_map_m, recon.mask & felt) - (slope_x, slope_y)
+        assert np.hypot(*error) < 0.2 * np.hypot(slope_x, slope_y), error
+    flat = np.full(truth.shape, -0.5e-3)
+    for image in (sensor.render(flat, np.random.default_rng(3)), np.clip(calibration.background * 1.03, 0, 255)):
+        assert not reconstruct(image.astype(np.uint8), calibration).contact
+
+
 def cylinder_band(angle_deg: float, offset_m: float, radius_m: float = 0.015, depth_m: float = 0.6e-3) -> np.ndarray:
     """The gel under a cylinder (a mug's side) pressed along a line across the pad: a band that reaches two of the
     pad's edges and leaves untouched gel on both sides of it."""

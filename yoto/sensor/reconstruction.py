@@ -75,6 +75,12 @@ BOX_MARGIN_PX = 8
 # where it lies at most this fraction of the deepest point deep: a broad contact's flat middle barely changes colour
 # too, but lies deep.
 ANCHOR_RELATIVE_DEPTH = 0.3
+# A faint contact: a face pressed tilted across the pad changes colour by a few levels over thousands of pixels, no
+# pixel by the mask's colour threshold. Such a frame shows a contact when at least FAINT_MIN_BLOCKS blocks are touched
+# (each mean changed by more than TOUCHED_LEVEL, ten times an 8x8 mean's noise) and a lighting or exposure change does
+# not explain them (`lighting_explained` below LIGHTING_EXPLAINED: tilted faces 0.34-0.77, lighting 0.99). A flat
+# press changes no colour at all and stays "no contact".
+FAINT_MIN_BLOCKS = 8
 
 
 @dataclass
@@ -245,6 +251,27 @@ def pad_wide_contact(image: np.ndarray, calibration: SensorCalibration) -> str:
 
     See LIGHTING_EXPLAINED, MAX_NONINTEGRABLE and MAX_FRAME_SLOPE. Runs only on such frames (about 6 ms CPU).
     """
+    explained = lighting_explained(image, calibration)
+    if explained >= LIGHTING_EXPLAINED:
+        why = f"a gain and offset on the background explain {explained:.1%} of its colour change"
+        return why + f", limit {LIGHTING_EXPLAINED:.0%}: the lighting or exposure changed"
+    gx, gy, _ = box_gradients(image, calibration, (0, image.shape[0], 0, image.shape[1]))
+    z = poisson_integrate(gx, gy)
+    zy, zx = np.gradient(z)
+    slope = float(np.sqrt(np.mean(gx * gx + gy * gy)))
+    misfit = float(np.sqrt(np.mean((zx - gx) ** 2 + (zy - gy) ** 2))) / max(slope, 1e-12)
+    if misfit > MAX_NONINTEGRABLE:
+        return f"gradients not a surface's: Poisson residual {misfit:.2f} of their RMS (limit {MAX_NONINTEGRABLE})"
+    if slope > MAX_FRAME_SLOPE:
+        return f"RMS slope {slope:.2f} over the frame, steeper than a contact's (limit {MAX_FRAME_SLOPE})"
+    return ""
+
+
+def lighting_explained(image: np.ndarray, calibration: SensorCalibration) -> float:
+    """Share of the frame's block colour change (energy) a per-channel gain and offset on the background explain.
+
+    A lighting or exposure change is such a gain and offset (0.99-1.0 measured); a contact's shading is not.
+    """
     background = calibration.background.astype(np.float64)
     rows = (image.shape[0] // BLOCK_PX) * BLOCK_PX
     cols = (image.shape[1] // BLOCK_PX) * BLOCK_PX
@@ -259,20 +286,7 @@ def pad_wide_contact(image: np.ndarray, calibration: SensorCalibration) -> str:
         design = np.stack([np.ones(len(level)), level[:, channel]], axis=1)
         coefficients, *_ = np.linalg.lstsq(design, change[:, channel], rcond=None)
         residual += float(np.sum((change[:, channel] - design @ coefficients) ** 2))
-    explained = 1.0 - residual / max(float(np.sum(change**2)), 1e-12)
-    if explained >= LIGHTING_EXPLAINED:
-        why = f"a gain and offset on the background explain {explained:.1%} of its colour change"
-        return why + f", limit {LIGHTING_EXPLAINED:.0%}: the lighting or exposure changed"
-    gx, gy, _ = box_gradients(image, calibration, (0, image.shape[0], 0, image.shape[1]))
-    z = poisson_integrate(gx, gy)
-    zy, zx = np.gradient(z)
-    slope = float(np.sqrt(np.mean(gx * gx + gy * gy)))
-    misfit = float(np.sqrt(np.mean((zx - gx) ** 2 + (zy - gy) ** 2))) / max(slope, 1e-12)
-    if misfit > MAX_NONINTEGRABLE:
-        return f"gradients not a surface's: Poisson residual {misfit:.2f} of their RMS (limit {MAX_NONINTEGRABLE})"
-    if slope > MAX_FRAME_SLOPE:
-        return f"RMS slope {slope:.2f} over the frame, steeper than a contact's (limit {MAX_FRAME_SLOPE})"
-    return ""
+    return 1.0 - residual / max(float(np.sum(change**2)), 1e-12)
 
 
 def touched_box(
@@ -328,8 +342,20 @@ def reconstruct(
             empty.gradients = (np.zeros(shape, np.float32), np.zeros(shape, np.float32))
         return empty
     gx, gy, changed = box_gradients(image, calibration, box)
-    height = integrate_box(gx, gy, box, blocks, spec.pixel_size_m)
-    mask, core, reason = contact_masks(changed, height, calibration.mask, box)
+    faint = (
+        changed < calibration.mask.min_area_px
+        and int(np.count_nonzero(blocks > TOUCHED_LEVEL)) >= FAINT_MIN_BLOCKS
+        and lighting_explained(image, calibration) < LIGHTING_EXPLAINED
+    )
+    if faint:
+        # A faint face tilted across the pad changes blocks by less than TOUCHED_LEVEL where it is pressed too: the
+        # whole frame is integrated, its level set by the least-pressed block (every block counts as touched).
+        box = (0, shape[0], 0, shape[1])
+        gx, gy, changed = box_gradients(image, calibration, box)
+        height = integrate_box(gx, gy, box, np.full_like(blocks, np.inf), spec.pixel_size_m)
+    else:
+        height = integrate_box(gx, gy, box, blocks, spec.pixel_size_m)
+    mask, core, reason = contact_masks(changed, height, calibration.mask, box, faint)
     if mask is None or core is None:
         points = np.zeros((0, 3))
         mask = core = np.zeros(shape, dtype=bool)
@@ -482,11 +508,12 @@ def colour_distance2(change: np.ndarray) -> np.ndarray:
 
 
 def contact_masks(
-    changed_px: int, height_m: np.ndarray, config: MaskConfig, box: tuple[int, int, int, int]
+    changed_px: int, height_m: np.ndarray, config: MaskConfig, box: tuple[int, int, int, int], faint: bool = False
 ) -> tuple[np.ndarray | None, np.ndarray | None, str]:
     """The contact the gel felt and its core, or None, None and the reason when the frame shows no contact.
 
-    A frame shows contact when at least `min_area_px` pixels changed colour by `colour_threshold` levels.
+    A frame shows contact when at least `min_area_px` pixels changed colour by `colour_threshold` levels, or when
+    it is `faint`: a broad, faint colour change that is no lighting change (FAINT_MIN_BLOCKS, `reconstruct`).
     The core is the pixels pressed at least `relative_depth` as deep as the deepest point: a ball's contact
     edge lies at half its indentation (Hertz), and it measured best for sphere fits on the real presses
     (docs/sensor.md). The contact (for localization) is every pixel pressed deeper than the reconstruction's
@@ -494,10 +521,10 @@ def contact_masks(
     core pixels: a broad or tilted contact keeps its whole shape, the core alone is a small featureless patch.
     Heights outside `box` are zero, so the regions are found inside it.
     """
-    if changed_px < config.min_area_px:
+    if changed_px < config.min_area_px and not faint:
         reason = (
             f"no contact: {changed_px} pixels changed colour by {config.colour_threshold:g} levels or more, "
-            f"fewer than {config.min_area_px}"
+            f"fewer than {config.min_area_px}, and no broad faint change that is not a lighting change"
         )
         return None, None, reason
     row0, row1, col0, col1 = box
