@@ -101,6 +101,7 @@ def main() -> None:
     parser.add_argument("--renderer", required=True, help="calibration file, or shading[:SEED]")
     parser.add_argument("--objects", nargs="+", default=["fruit", "figurine", "tool"])
     parser.add_argument("-n", type=int, default=10, help="contacts per object")
+    parser.add_argument("--pairs", type=int, nargs="+", help="these pair indices (both sides), not the first")
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--workspace", help="workspace holding the object models")
     parser.add_argument("--figures", help="write one PNG per contact into this folder")
@@ -136,13 +137,17 @@ def main() -> None:
     for name in args.objects:
         model = resolve_object(name, args.workspace)
         simulator = PairSimulator(model)
-        index = 0
+        indices = iter(args.pairs) if args.pairs else iter(range(10**6))
         done = 0
-        while done < args.n:
+        limit = 2 * len(args.pairs) if args.pairs else args.n
+        while done < limit:
+            index = next(indices, None)
+            if index is None:
+                break
             simulated = simulator.pair(args.seed, index)
             index += 1
             for side in ("left", "right"):
-                if done >= args.n:
+                if done >= limit:
                     break
                 press = simulated.contacts[side].press
                 truth = press.height_map_m

@@ -141,6 +141,25 @@ def test_fast_gradients_match_the_polynomial_reference(synthetic):
     np.testing.assert_allclose(window[0], fast[0][40:120, 100:260], atol=1e-6)
 
 
+def test_unchanged_colour_reads_as_flat_and_faint_changes_at_their_linear_gain(synthetic):
+    """The gradient model is anchored: zero colour change is flat gel, exactly, everywhere on the pad; and a change
+    of a level or two is read at the model's gain, not at its table cell's centre (cells are 4 levels wide)."""
+    model = synthetic["calibration"].gradient_model
+    assert model.config.anchored
+    shape = (SPEC.height_px, SPEC.width_px, 3)
+    zero = model.predict(np.zeros(shape, np.int16))
+    assert np.abs(zero).max() < 1e-3
+    for channel in range(3):
+        reads = []
+        for level in (1, 2, 4):
+            change = np.zeros(shape, np.int16)
+            change[..., channel] = level
+            reads.append(np.stack(model.predict(change)))
+        gain = reads[2] / 4
+        for level, read in zip((1, 2), reads[:2], strict=True):
+            assert np.abs(read - level * gain).max() < 0.1 * np.abs(level * gain).max()
+
+
 def test_no_contact_is_an_explicit_empty_result(synthetic, rng):
     calibration = synthetic["calibration"]
     frame = np.clip(synthetic["background"] + rng.normal(0, 2.0, synthetic["background"].shape), 0, 255)

@@ -6,12 +6,15 @@ terms that let the colour-to-gradient gain vary with pixel position (the LEDs li
 and a small MLP did no better than the cubic while taking minutes to train on this CPU.
 
 Forward model (reconstruction, must be fast):
-    g(c, x, y) = T(c) + b(x, y) + sum_j c_j M_j(x, y)
-with c the RGB colour change against the background, T a cubic in c, b and M_j polynomials in pixel position
-(degree 2 to 4, chosen per calibration by held-out error on its presses: ball_calibration).
-After fitting it is baked into a 3D lookup table for T (indexed by the quantised colour change; cells no
-training colour came near take the value of the nearest cell that one did, so the cubic never extrapolates)
-and per-pixel maps for b and M_j: inference is one table gather and three multiply-adds per output.
+    g(c, x, y) = T(c) + sum_j c_j M_j(x, y)
+with c the RGB colour change against the background, T a cubic in c without constant term (zero colour change is
+flat gel: zero slope), M_j polynomials in pixel position (degree 2 to 4, chosen per calibration by held-out error
+on its presses: ball_calibration). After fitting it is baked into a 3D lookup table for T's terms of degree 2 and 3
+(indexed by the quantised colour change; cells no training colour came near take the value of the nearest cell
+that one did, so the cubic never extrapolates) and per-pixel maps for M_j plus T's linear part, applied exactly
+(a faint colour change is not read at its table cell's centre): inference is one table gather and three
+multiply-adds per output. Calibrations written before (`anchored` False) also have a position bias b(x, y) and the
+whole cubic, with its constant, in the table.
 
 Inverse model (the optical simulator):
     c(g, x, y) = S(g) + sum_k m_k(g) N_k(x, y)

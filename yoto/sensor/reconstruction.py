@@ -15,7 +15,9 @@ Steps, for one 320x240 RGB frame:
    inside the frame lie on flat gel (zero height), edges on the frame's border are free (a press cut by the
    frame's edge is not forced to zero there). Where an edge is free, untouched gel inside the box is brought back
    to zero by a harmonic correction (`anchor_untouched`). Heights are then clamped to z <= 0.
-4. contact masks: if at least `min_area_px` pixels changed colour by `colour_threshold`, the core (pixels
+4. contact masks: if at least `min_area_px` pixels changed colour by `colour_threshold` (or the frame is a faint
+   contact: a tilted face's colour change of a few levels over many blocks that no lighting change explains,
+   integrated over the whole frame), the core (pixels
    pressed at least half as deep as the deepest point: a ball's contact, for sphere fits) and the contact the
    gel felt (pixels deeper than the noise floor, connected to the core: what localization needs, the whole
    shape of a broad or tilted contact). Depth, not colour: the middle of a contact is flat, so its colour
