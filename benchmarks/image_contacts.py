@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -137,26 +138,23 @@ def main() -> None:
     for name in args.objects:
         model = resolve_object(name, args.workspace)
         simulator = PairSimulator(model)
-        indices = iter(args.pairs) if args.pairs else iter(range(10**6))
-        done = 0
         limit = 2 * len(args.pairs) if args.pairs else args.n
-        while done < limit:
-            index = next(indices, None)
-            if index is None:
+        done = 0
+        for index in args.pairs or itertools.count():
+            if done >= limit:
                 break
             simulated = simulator.pair(args.seed, index)
-            index += 1
             for side in ("left", "right"):
                 if done >= limit:
                     break
                 press = simulated.contacts[side].press
                 truth = press.height_map_m
-                image = render(truth, np.random.default_rng(1000 * index + done))
+                image = render(truth, np.random.default_rng(1000 * (index + 1) + done))
                 recon = reconstruct(image, calibration)
                 felt = truth < -5e-5
                 row = {
                     "object": model.name,
-                    "pair": index - 1,
+                    "pair": index,
                     "side": side,
                     "contact_mm2": float(press.contact_mask.sum() * spec.pixel_size_m**2 * 1e6),
                     "touches_border": bool(recon.touches_border),

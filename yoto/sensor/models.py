@@ -299,7 +299,7 @@ def _position_maps(
         c_gain = coefficients[n_colour + n_pos :].reshape(3, n_pos, 2)
     gains = np.stack([(pos @ c_gain[j]).T.reshape(2, rows, cols) for j in range(3)], axis=1)
     if config.anchored:
-        gains += c_colour[1:4][:, :, None, None].transpose(1, 0, 2, 3)  # (2, 3): T's linear part, every pixel
+        gains += c_colour[1:4].T[:, :, None, None]  # T's linear part (gx, gy by channel), the same at every pixel
     gains /= config.colour_scale
     return bias.astype(np.float32), np.ascontiguousarray(gains, dtype=np.float32)
 
