@@ -32,6 +32,7 @@ convert to the mesh file's frame with `T_world_mesh = T_world_object @ T_object_
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -61,6 +62,7 @@ from yoto.tracking.fusion import (
     smooth_stream,
     stream_jitter,
 )
+from yoto.tracking.pad_error import PadError, PadErrorConfig
 from yoto.tracking.streams import TactileStream
 from yoto.trajectory import PoseStream
 
@@ -105,6 +107,7 @@ class CorrectionConfig:
     turn_radius_m: float = 0.05  # the sensors turning by one radian count as this much travel
     creep_translation_m: float = 1e-5  # 1-sigma slip per second at rest (per square root of a second) ...
     creep_rotation_rad: float = float(np.radians(0.01))  # ... and its rotation
+    pad_error: PadErrorConfig = PadErrorConfig()  # each pad's fixed reconstruction error, learnt at rest, removed
 
 
 @dataclass(frozen=True)
@@ -374,9 +377,17 @@ class _Corrector:
             + [0.0] * 6
         )
         self.solver = registration_solver(c)
+        self.settle_solver = dataclasses.replace(
+            self.solver,
+            prior_rotation_rad=c.pad_error.rest_fit_rotation_rad,
+            prior_translation_m=c.pad_error.rest_fit_translation_m,
+        )
         self.last_correction = (0.0, 0.0)  # (metres, radians) of the latest applied correction
         self.last_time = touch.time_s
         self.last_sensors = sensor_poses(streams, np.array([touch.time_s]), config.fusion, jitter)
+        self.touch_sensors = self.last_sensors
+        self.pads = {side: PadError(c.pad_error) for side in SIDES} if c.pad_error.enabled else {}
+        self.moving = False  # a sensor has left its pose at the touch: the pads' errors are set
 
     def _apply(self, twist: np.ndarray) -> None:
         """Move the object by `twist` (object frame) in both grasps: T_world_object <- T_world_object @ exp^-1."""
@@ -459,6 +470,10 @@ class _Corrector:
         stamps = np.array([stamp for stamp, _ in clouds.values()] + [instant_s])
         sensors = sensor_poses(self.streams, stamps, self.config.fusion, self.jitter)
         self._predict(sensors, instant_s)
+        if self.pads and not self.moving and self._left_rest(sensors):
+            self.moving = True
+            for side, pad in self.pads.items():
+                pad.settle(self.model, invert_transform(self.grasps[side]), self.settle_solver)
         predicted = fuse_object_poses(sensors, self.grasps)[0]
         points_predicted: dict[str, np.ndarray] = {}
         pose_noise: dict[str, np.ndarray] = {}
@@ -467,7 +482,13 @@ class _Corrector:
                 unusable[side] = "no sensor pose at the frame's time"
                 continue
             T_predicted_sensor = invert_transform(predicted[row]) @ sensors.T_world_sensor[side][row]
-            points_predicted[side] = transform_points(T_predicted_sensor, contact_samples(points, c))
+            sampled = contact_samples(points, c)
+            pad = self.pads.get(side)
+            if pad is not None:  # at rest: its frames teach the pad's error; once moving: it is removed
+                if not self.moving:
+                    pad.rest_samples.append(sampled)
+                sampled = pad.correct(sampled)
+            points_predicted[side] = transform_points(T_predicted_sensor, sampled)
             pose_noise[side] = self._pose_noise(side, T_predicted_sensor)
 
         record = Correction(timestamp_s=instant_s, used=(), unusable=unusable)
@@ -496,6 +517,17 @@ class _Corrector:
         record.slip_rad = rotation_angle_rad(slip, np.eye(4))
         record.latency_ms = 1000.0 * (time.perf_counter() - started)
         return record
+
+    def _left_rest(self, sensors: SensorPoses) -> bool:
+        """Whether a sensor has moved more than `pad_error.rest_m` from its pose at the touch (rotation counted at
+        `turn_radius_m`): the frames after that no longer see the object where it rested."""
+        c = self.config.correction
+        for side in SIDES:
+            at_touch, now = self.touch_sensors.T_world_sensor[side][0], sensors.T_world_sensor[side][-1]
+            moved = np.linalg.norm(now[:3, 3] - at_touch[:3, 3]) + c.turn_radius_m * rotation_angle_rad(at_touch, now)
+            if moved > c.pad_error.rest_m:
+                return True
+        return False
 
     def _pose_noise(self, side: str, T_object_sensor: np.ndarray) -> np.ndarray:
         """Covariance (6, 6) of the object-frame twist (rotation about the centroid first) by which the sensor's

@@ -1,0 +1,103 @@
+"""The reconstruction error fixed to a sensor's pad, learnt while the object rests in the gel, removed from the frames
+taken while it slides.
+
+A GelSight reconstruction's smooth depth errors (calibration, lighting, integration) belong to the pad: they stay
+where they are on the image while the object slides over it. A frame registered on the object is off by them, and
+that offset changes as the contact slides (docs/tracking.md, "Why the closed loop still drifts"). While the object
+rests after the touch, every frame sees the same patch of the object at the same place on the pad. Those frames,
+this sensor's alone, are registered on the model from the pose the tracker holds; the depth difference left
+between them and the model's surface, cell by cell over the pad (sensor x, y), is the pad's error there. Frames
+taken later have it subtracted, cell by cell, before the closed loop registers them; points on cells the rest
+never saw stay as they are.
+
+Why the rest frames are registered first: the rigid part of what they disagree with the model by (the touch's
+pose error, a tilt of the error field) is not an error of the pad. Kept in the depth map, it would be right only
+where the contact was: a pose error of a few tenths of a millimetre along a curved surface turns, once the contact
+has slid by millimetres, into depth errors several times the pad's own (measured: the map taken at the tracker's
+pose without that registration drifts more than no map at all).
+
+It cannot absorb slip: the map is set at rest and never changed once the sensors move. Slip moves the contact
+over the pad; the map stays where the error is.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from yoto.geometry import transform_points
+from yoto.objects.model import ObjectModel
+from yoto.registration import GaussNewtonConfig, plane_distances, point_to_plane_gauss_newton
+
+
+@dataclass(frozen=True)
+class PadErrorConfig:
+    """How each sensor's pad-fixed reconstruction error is learnt and removed (closed loop)."""
+
+    enabled: bool = True  # subtract each pad's learnt error from its frames before registering them
+    cell_m: float = 0.0005  # the map's cells on the pad (sensor x and y), finer than the error's smoothness
+    extent_m: float = 0.02  # the map covers |x|, |y| up to this (a GelSight Mini pad is about 18 x 14 mm)
+    rest_m: float = 0.001  # the object counts as at rest until a sensor has moved this far from its pose at the
+    # touch (rotation at the closed loop's turn radius); then the map is set
+    rest_fit_rotation_rad: float = float(np.radians(1.0))  # the rest frames' registration may turn the contact by
+    rest_fit_translation_m: float = 0.001  # about this and move it by this (its priors)
+    min_rest_frames: int = 3  # fewer frames at rest than this: no map for that sensor
+    min_cell_samples: int = 2  # a cell is known once this many residuals fell in it
+    min_facing: float = 0.5  # residuals only where the surface faces the sensor (|normal . sensor z| at least
+    # this): a depth error on a steep flank moves the point mostly along the surface, which says little about it
+    max_residual_m: float = 0.0003  # a larger residual is a bad correspondence, not a reconstruction error
+
+
+class PadError:
+    """One sensor's learnt depth error (metres along the sensor's z) per cell of its pad."""
+
+    def __init__(self, config: PadErrorConfig):
+        self.config = config
+        self.cells = int(np.ceil(2 * config.extent_m / config.cell_m))
+        self.sums = np.zeros(self.cells * self.cells)
+        self.counts = np.zeros(self.cells * self.cells, dtype=np.int64)
+        self.rest_samples: list[np.ndarray] = []  # the frames at rest (sensor frame), until the map is set
+
+    def _cell_index(self, points_sensor: np.ndarray) -> np.ndarray:
+        """Flat cell index of each point, -1 off the map."""
+        c = self.config
+        ij = np.floor((points_sensor[:, :2] + c.extent_m) / c.cell_m).astype(np.int64)
+        inside = ((ij >= 0) & (ij < self.cells)).all(axis=1)
+        return np.where(inside, ij[:, 1] * self.cells + ij[:, 0], -1)
+
+    def correct(self, points_sensor: np.ndarray) -> np.ndarray:
+        """The points with the learnt error of their cells removed (points on unknown cells unchanged)."""
+        index = self._cell_index(points_sensor)
+        known = (index >= 0) & (self.counts[np.maximum(index, 0)] >= self.config.min_cell_samples)
+        if not known.any():
+            return points_sensor
+        corrected = points_sensor.copy()
+        corrected[known, 2] -= self.sums[index[known]] / self.counts[index[known]]
+        return corrected
+
+    def settle(self, model: ObjectModel, T_object_sensor: np.ndarray, solver: GaussNewtonConfig) -> bool:
+        """Set the map from the frames at rest, the sensor at `T_object_sensor` on the object (the pose the tracker
+        holds): register them on the model (this contact alone), and keep the depth residuals left as the pad's
+        error. Returns whether a map was set (enough frames at rest)."""
+        rest, self.rest_samples = self.rest_samples, []
+        if len(rest) < self.config.min_rest_frames:
+            return False
+        stacked = np.vstack(rest)
+        fix = point_to_plane_gauss_newton(model, transform_points(T_object_sensor, stacked), np.eye(4)[None], solver)
+        self._add(model, stacked, fix[0] @ T_object_sensor)
+        return True
+
+    def _add(self, model: ObjectModel, points_sensor: np.ndarray, T_object_sensor: np.ndarray) -> None:
+        """Add each point's depth residual against the model's surface to its cell."""
+        c = self.config
+        distance, matched, _, normals = plane_distances(
+            model, transform_points(T_object_sensor, points_sensor), 2 * c.max_residual_m
+        )
+        facing = normals @ T_object_sensor[:3, 2]
+        use = matched & (np.abs(facing) >= c.min_facing)
+        residual = np.where(use, distance / np.where(use, facing, 1.0), 0.0)
+        index = self._cell_index(points_sensor)
+        use &= (index >= 0) & (np.abs(residual) <= c.max_residual_m)
+        np.add.at(self.sums, index[use], residual[use])
+        np.add.at(self.counts, index[use], 1)
