@@ -346,6 +346,16 @@ def registration_solver(config: CorrectionConfig) -> GaussNewtonConfig:
     )
 
 
+def pad_rest_solver(config: CorrectionConfig) -> GaussNewtonConfig:
+    """The Gauss-Newton settings with which a sensor's frames at rest are registered before its pad's error is
+    read off them (`PadError.settle`)."""
+    return dataclasses.replace(
+        registration_solver(config),
+        prior_rotation_rad=config.pad_error.rest_fit_rotation_rad,
+        prior_translation_m=config.pad_error.rest_fit_translation_m,
+    )
+
+
 class _Corrector:
     """The closed loop's state: the grasps, and a Kalman filter on (error, slip rate, measurement bias).
 
@@ -377,11 +387,7 @@ class _Corrector:
             + [0.0] * 6
         )
         self.solver = registration_solver(c)
-        self.settle_solver = dataclasses.replace(
-            self.solver,
-            prior_rotation_rad=c.pad_error.rest_fit_rotation_rad,
-            prior_translation_m=c.pad_error.rest_fit_translation_m,
-        )
+        self.rest_solver = pad_rest_solver(c)
         self.last_correction = (0.0, 0.0)  # (metres, radians) of the latest applied correction
         self.last_time = touch.time_s
         self.last_sensors = sensor_poses(streams, np.array([touch.time_s]), config.fusion, jitter)
@@ -472,8 +478,8 @@ class _Corrector:
         self._predict(sensors, instant_s)
         if self.pads and not self.moving and self._left_rest(sensors):
             self.moving = True
-            for side, pad in self.pads.items():
-                pad.settle(self.model, invert_transform(self.grasps[side]), self.settle_solver)
+            for side, resting in self.pads.items():
+                resting.settle(self.model, invert_transform(self.grasps[side]), self.rest_solver)
         predicted = fuse_object_poses(sensors, self.grasps)[0]
         points_predicted: dict[str, np.ndarray] = {}
         pose_noise: dict[str, np.ndarray] = {}
