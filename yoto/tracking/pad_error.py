@@ -25,10 +25,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from yoto.geometry import transform_points
 from yoto.objects.model import ObjectModel
 from yoto.registration import GaussNewtonConfig, plane_distances, point_to_plane_gauss_newton
+
+CONTINUATION_FADE = 0.1  # beyond the known cells, the continued error fades where their smoothed weight is below this
 
 
 @dataclass(frozen=True)
@@ -47,6 +50,8 @@ class PadErrorConfig:
     min_facing: float = 0.5  # residuals only where the surface faces the sensor (|normal . sensor z| at least
     # this): a depth error on a steep flank moves the point mostly along the surface, which says little about it
     max_residual_m: float = 0.0003  # a larger residual is a bad correspondence, not a reconstruction error
+    continuation_m: float = 0.001  # beyond the cells the rest saw, the error is continued from them (a Gaussian of
+    # this width) and fades out about twice as far: no step in the corrected surface where the known cells end
 
 
 class PadError:
@@ -58,6 +63,7 @@ class PadError:
         self.sums = np.zeros(self.cells * self.cells)
         self.counts = np.zeros(self.cells * self.cells, dtype=np.int64)
         self.rest_samples: list[np.ndarray] = []  # the frames at rest (sensor frame), until the map is set
+        self.error_m = np.zeros(self.cells * self.cells)  # the error removed in each cell (0: unknown, far away)
 
     def _cell_index(self, points_sensor: np.ndarray) -> np.ndarray:
         """Flat cell index of each point, -1 off the map."""
@@ -67,14 +73,24 @@ class PadError:
         return np.where(inside, ij[:, 1] * self.cells + ij[:, 0], -1)
 
     def correct(self, points_sensor: np.ndarray) -> np.ndarray:
-        """The points with the learnt error of their cells removed (points on unknown cells unchanged)."""
+        """The points with the learnt error of their cells removed."""
         index = self._cell_index(points_sensor)
-        known = (index >= 0) & (self.counts[np.maximum(index, 0)] >= self.config.min_cell_samples)
-        if not known.any():
-            return points_sensor
         corrected = points_sensor.copy()
-        corrected[known, 2] -= self.sums[index[known]] / self.counts[index[known]]
+        corrected[:, 2] -= np.where(index >= 0, self.error_m[np.maximum(index, 0)], 0.0)
         return corrected
+
+    def _set_error(self) -> None:
+        """The error per cell: the mean residual where known; beyond, continued from the known cells nearby
+        (normalized Gaussian smoothing) and faded out where they are far."""
+        c = self.config
+        known = self.counts >= c.min_cell_samples
+        mean = np.where(known, self.sums / np.maximum(self.counts, 1), 0.0)
+        shape = (self.cells, self.cells)
+        sigma = c.continuation_m / c.cell_m
+        weight = ndimage.gaussian_filter(known.astype(np.float64).reshape(shape), sigma, mode="constant").ravel()
+        spread = ndimage.gaussian_filter(mean.reshape(shape), sigma, mode="constant").ravel()
+        faded = spread / np.maximum(weight, 1e-12) * np.minimum(weight / CONTINUATION_FADE, 1.0)
+        self.error_m = np.where(known, mean, np.where(weight > 1e-6, faded, 0.0))
 
     def settle(self, model: ObjectModel, T_object_sensor: np.ndarray, solver: GaussNewtonConfig) -> bool:
         """Set the map from the frames at rest, the sensor at `T_object_sensor` on the object (the pose the tracker
@@ -86,6 +102,7 @@ class PadError:
         stacked = np.vstack(rest)
         fix = point_to_plane_gauss_newton(model, transform_points(T_object_sensor, stacked), np.eye(4)[None], solver)
         self._add(model, stacked, fix[0] @ T_object_sensor)
+        self._set_error()
         return True
 
     def _add(self, model: ObjectModel, points_sensor: np.ndarray, T_object_sensor: np.ndarray) -> None:
