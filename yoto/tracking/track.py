@@ -21,6 +21,9 @@ applied blindly: a small Kalman filter on the object-frame error weighs it again
   - a slip model: slip grows with the sensors' travel at a rate the filter estimates along the way (the paper
     observes drift growing with motion length), plus a random part for elastic, inertial slip. The rate lets the
     evidence of all frames add up, so even a direction a single frame sees poorly is corrected over the path.
+Before registering, each sensor's own reconstruction error, fixed to its pad and learnt from its frames while the
+object rested after the touch (`pad_error.py`), is subtracted from the frame by pad position: as the contact
+slides over the pad, that error would otherwise move the registrations as slip does.
 Both grasps then take the corrected pose. A frame is unusable, and the prediction (open loop) stands, when it has
 too few points (contact lost), when too few of its points lie on the surface after registration (a bad fit),
 or when it asks for a jump larger than slip can make; when one sensor's frame is unusable, the other's is used
