@@ -7,8 +7,8 @@ that offset changes as the contact slides (docs/tracking.md, "Why the closed loo
 rests after the touch, every frame sees the same patch of the object at the same place on the pad. Those frames,
 this sensor's alone, are registered on the model from the pose the tracker holds; the depth difference left
 between them and the model's surface, cell by cell over the pad (sensor x, y), is the pad's error there. Frames
-taken later have it subtracted, cell by cell, before the closed loop registers them; points on cells the rest
-never saw stay as they are.
+taken later have it subtracted, cell by cell, before the closed loop registers them; beyond the cells the rest saw
+it is continued from them for about a millimetre and faded out.
 
 Why the rest frames are registered first: the rigid part of what they disagree with the model by (the touch's
 pose error, a tilt of the error field) is not an error of the pad. Kept in the depth map, it would be right only
