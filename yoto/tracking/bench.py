@@ -28,12 +28,14 @@ from yoto.provenance import run_info
 from yoto.registration import point_to_plane_gauss_newton
 from yoto.simulate.trajectory import SimulatedTrajectory, TrajectoryConfig, TrajectorySimulator
 from yoto.tracking.evaluate import ErrorCurve, motion_interval, plot_tracking, summarize_errors, tracking_errors
+from yoto.tracking.pad_error import PadError
 from yoto.tracking.streams import TactileStream
 from yoto.tracking.track import (
     CorrectionConfig,
     TrackConfig,
     contact_samples,
     group_frames,
+    pad_rest_solver,
     registration_solver,
     touch_from_pair,
     track,
@@ -96,6 +98,10 @@ def evaluate_trajectory(
             "deg": np.round(np.degrees(errors.rotation_rad), 4).tolist(),
         }
     record["registration_at_truth"] = registration_at_truth(trajectory, model, motion, config.correction)
+    if config.correction.pad_error.enabled:
+        record["registration_at_truth_pad_corrected"] = registration_at_truth(
+            trajectory, model, motion, config.correction, pad_corrected=True
+        )
     touch_error = record["open_loop"]["touch"]
     record["right_touch"] = bool(
         touch_error["mm"] <= 1e3 * RIGHT_TOUCH_M and touch_error["deg"] <= np.degrees(RIGHT_TOUCH_RAD)
@@ -109,14 +115,25 @@ def registration_at_truth(
     motion: tuple[float, float] | None,
     config: CorrectionConfig,
     every: int = 4,
+    pad_corrected: bool = False,
 ) -> dict[str, Any]:
     """How far the closed loop's registration of every `every`-th instant with both frames lands from the truth
     when it starts there: each frame's points mapped into the object through the sensor's TRUE pose on it.
 
     What remains is the measurement's own error (the reconstruction's smooth depth errors, the rim), which no
     filter can tell from slip. `offset_*`: its mean before the motion and after it; `change`: how much it moved
-    between the two, the drift a closed loop that believed its frames exactly would show."""
+    between the two, the drift a closed loop that believed its frames exactly would show. `pad_corrected`: each
+    sensor's pad error is learnt from its frames before the motion (`PadError`, from the true pose) and removed
+    from every frame, as the closed loop does."""
     tactile = tactile_streams(trajectory)
+    pads: dict[str, PadError] = {}
+    if pad_corrected and motion is not None:
+        for side in SIDES:
+            resting = [f for f in trajectory.tactile[side] if f.timestamp_s < motion[0] and len(f.points_sensor)]
+            if resting:
+                pads[side] = PadError(config.pad_error)
+                pads[side].rest_samples = [contact_samples(f.points_sensor, config) for f in resting]
+                pads[side].settle(model, resting[-1].T_object_sensor_true, pad_rest_solver(config))
     instants = [
         frames
         for _, frames in group_frames(tactile, trajectory.touch_time_s, config.sync_tolerance_s)
@@ -127,7 +144,12 @@ def registration_at_truth(
     for frames in instants:
         chosen = [trajectory.tactile[side][index] for side, index in frames]
         points = np.vstack(
-            [transform_points(f.T_object_sensor_true, contact_samples(f.points_sensor, config)) for f in chosen]
+            [
+                transform_points(
+                    f.T_object_sensor_true, _pad_corrected(pads, side, contact_samples(f.points_sensor, config))
+                )
+                for (side, _), f in zip(frames, chosen, strict=True)
+            ]
         )
         offsets.append(twist_of_pose(point_to_plane_gauss_newton(model, points, np.eye(4)[None], solver)[0]))
         times.append(max(f.timestamp_s for f in chosen))
@@ -142,6 +164,10 @@ def registration_at_truth(
     start, end = twists[stamps < motion[0]].mean(axis=0), twists[stamps > motion[1]].mean(axis=0)
     result.update(offset_before=size(start), offset_after=size(end), change=size(end - start))
     return result
+
+
+def _pad_corrected(pads: dict[str, PadError], side: str, points_sensor: np.ndarray) -> np.ndarray:
+    return pads[side].correct(points_sensor) if side in pads else points_sensor
 
 
 def touch_estimate(trajectory: SimulatedTrajectory, model: ObjectModel, localizer) -> np.ndarray:
@@ -284,14 +310,13 @@ def build_report(records: dict[str, dict[str, list[dict[str, Any]]]], config: Tr
                 entry[subset]["slip_final"] = {
                     unit: _stats([t["slip"][f"slip_final_{unit}"] for t in chosen]) for unit in ("mm", "deg")
                 }
-                changes = [
-                    t["registration_at_truth"]["change"]
-                    for t in chosen
-                    if (t.get("registration_at_truth") or {}).get("change") is not None
-                ]
-                entry[subset]["registration_at_truth_change"] = {
-                    unit: _stats([change[unit] for change in changes]) for unit in ("mm", "deg")
-                }
+                for field_name in ("registration_at_truth", "registration_at_truth_pad_corrected"):
+                    changes = [
+                        t[field_name]["change"] for t in chosen if (t.get(field_name) or {}).get("change") is not None
+                    ]
+                    entry[subset][f"{field_name}_change"] = {
+                        unit: _stats([change[unit] for change in changes]) for unit in ("mm", "deg")
+                    }
                 entry[subset]["closed_loop_drift_met"] = sum(
                     t["closed_loop"]["settled_drift"]["mm"] < DRIFT_TARGET_MM
                     and t["closed_loop"]["settled_drift"]["deg"] < DRIFT_TARGET_DEG
@@ -397,6 +422,9 @@ def format_markdown(report: dict[str, Any]) -> str:
         "| registration at the truth: its change over the motion, right touches, mean | "
         + " | ".join(cell(results[n][main]["right_touch"]["registration_at_truth_change"]) for n in names)
         + " |",
+        "| ... with each pad's error learnt at rest removed | "
+        + " | ".join(cell(results[n][main]["right_touch"]["registration_at_truth_pad_corrected_change"]) for n in names)
+        + " |",
         "",
     ]
     if len(config["path_lengths_mm"]) > 1:
@@ -414,17 +442,22 @@ def format_markdown(report: dict[str, Any]) -> str:
                     + " | ".join(cell(results[name][key]["right_touch"][loop]["settled_drift"]) for key in lengths)
                     + " |"
                 )
-            lines.append(
-                f"| {name} | registration at the truth: its change | "
-                + " | ".join(cell(results[name][key]["right_touch"]["registration_at_truth_change"]) for key in lengths)
-                + " |"
-            )
+            for field_name, label in (
+                ("registration_at_truth", "registration at the truth: its change"),
+                ("registration_at_truth_pad_corrected", "... pad error removed"),
+            ):
+                lines.append(
+                    f"| {name} | {label} | "
+                    + " | ".join(cell(results[name][key]["right_touch"][f"{field_name}_change"]) for key in lengths)
+                    + " |"
+                )
         lines += [
             "",
             "Registration at the truth: each instant's two frames registered starting from the true pose (the "
             "sensors' true poses on the object); how much that offset changed from before the motion to after it "
             "is the measurement's own drift (the reconstruction's errors under a contact that slid), which a closed "
-            "loop cannot tell from slip.",
+            "loop cannot tell from slip; with the pad error removed: the same with each sensor's error learnt "
+            "from its frames before the motion and removed from all, as the closed loop does (`PadError`).",
         ]
         lines.append("")
     lines += ["## Closed loop speed (one instant: a frame of each sensor, registered together)", ""]

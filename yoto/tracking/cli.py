@@ -87,6 +87,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     bench.add_argument("--workspace", help="workspace folder")
     bench.add_argument("--out", default="bench_tracking", help="output folder (default bench_tracking)")
     bench.add_argument("--overwrite", action="store_true", help="recompute cached trajectories")
+    bench.add_argument(
+        "--no-pad-correction",
+        action="store_true",
+        help="the closed loop without removing each pad's error learnt at rest (to compare; use another --out)",
+    )
     bench.set_defaults(run=run_bench)
 
 
@@ -147,11 +152,13 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_bench(args: argparse.Namespace) -> int:
+    import dataclasses
     from pathlib import Path
 
     from yoto.errors import InputError
     from yoto.evaluation.bench import resolve_object
     from yoto.tracking.bench import TrackBenchConfig, run_track_benchmark
+    from yoto.tracking.pad_error import PadErrorConfig
 
     if args.trajectories < 1:
         raise InputError(f"-n must be at least 1, got {args.trajectories}")
@@ -164,6 +171,9 @@ def run_bench(args: argparse.Namespace) -> int:
         method=args.method,
         path_lengths_m=tuple(length * 1e-3 for length in args.path_lengths_mm),
     )
+    if args.no_pad_correction:
+        correction = dataclasses.replace(config.track.correction, pad_error=PadErrorConfig(enabled=False))
+        config = dataclasses.replace(config, track=dataclasses.replace(config.track, correction=correction))
     run_track_benchmark(models, config, args.out, args.overwrite, progress=not args.quiet)
     print((Path(args.out) / "tracking.md").read_text())
     return 0

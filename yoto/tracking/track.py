@@ -21,6 +21,9 @@ applied blindly: a small Kalman filter on the object-frame error weighs it again
   - a slip model: slip grows with the sensors' travel at a rate the filter estimates along the way (the paper
     observes drift growing with motion length), plus a random part for elastic, inertial slip. The rate lets the
     evidence of all frames add up, so even a direction a single frame sees poorly is corrected over the path.
+Before registering, each sensor's own reconstruction error, fixed to its pad and learnt from its frames while the
+object rested after the touch (`pad_error.py`), is subtracted from the frame by pad position: as the contact
+slides over the pad, that error would otherwise move the registrations as slip does.
 Both grasps then take the corrected pose. A frame is unusable, and the prediction (open loop) stands, when it has
 too few points (contact lost), when too few of its points lie on the surface after registration (a bad fit),
 or when it asks for a jump larger than slip can make; when one sensor's frame is unusable, the other's is used
@@ -32,6 +35,7 @@ convert to the mesh file's frame with `T_world_mesh = T_world_object @ T_object_
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -61,6 +65,7 @@ from yoto.tracking.fusion import (
     smooth_stream,
     stream_jitter,
 )
+from yoto.tracking.pad_error import PadError, PadErrorConfig
 from yoto.tracking.streams import TactileStream
 from yoto.trajectory import PoseStream
 
@@ -105,6 +110,7 @@ class CorrectionConfig:
     turn_radius_m: float = 0.05  # the sensors turning by one radian count as this much travel
     creep_translation_m: float = 1e-5  # 1-sigma slip per second at rest (per square root of a second) ...
     creep_rotation_rad: float = float(np.radians(0.01))  # ... and its rotation
+    pad_error: PadErrorConfig = PadErrorConfig()  # each pad's fixed reconstruction error, learnt at rest, removed
 
 
 @dataclass(frozen=True)
@@ -343,6 +349,16 @@ def registration_solver(config: CorrectionConfig) -> GaussNewtonConfig:
     )
 
 
+def pad_rest_solver(config: CorrectionConfig) -> GaussNewtonConfig:
+    """The Gauss-Newton settings with which a sensor's frames at rest are registered before its pad's error is
+    read off them (`PadError.settle`)."""
+    return dataclasses.replace(
+        registration_solver(config),
+        prior_rotation_rad=config.pad_error.rest_fit_rotation_rad,
+        prior_translation_m=config.pad_error.rest_fit_translation_m,
+    )
+
+
 class _Corrector:
     """The closed loop's state: the grasps, and a Kalman filter on (error, slip rate, measurement bias).
 
@@ -374,9 +390,13 @@ class _Corrector:
             + [0.0] * 6
         )
         self.solver = registration_solver(c)
+        self.rest_solver = pad_rest_solver(c)
         self.last_correction = (0.0, 0.0)  # (metres, radians) of the latest applied correction
         self.last_time = touch.time_s
         self.last_sensors = sensor_poses(streams, np.array([touch.time_s]), config.fusion, jitter)
+        self.touch_sensors = self.last_sensors
+        self.pads = {side: PadError(c.pad_error) for side in SIDES} if c.pad_error.enabled else {}
+        self.moving = False  # a sensor has left its pose at the touch: the pads' errors are set
 
     def _apply(self, twist: np.ndarray) -> None:
         """Move the object by `twist` (object frame) in both grasps: T_world_object <- T_world_object @ exp^-1."""
@@ -459,6 +479,10 @@ class _Corrector:
         stamps = np.array([stamp for stamp, _ in clouds.values()] + [instant_s])
         sensors = sensor_poses(self.streams, stamps, self.config.fusion, self.jitter)
         self._predict(sensors, instant_s)
+        if self.pads and not self.moving and self._left_rest(sensors):
+            self.moving = True
+            for side, resting in self.pads.items():
+                resting.settle(self.model, invert_transform(self.grasps[side]), self.rest_solver)
         predicted = fuse_object_poses(sensors, self.grasps)[0]
         points_predicted: dict[str, np.ndarray] = {}
         pose_noise: dict[str, np.ndarray] = {}
@@ -467,7 +491,13 @@ class _Corrector:
                 unusable[side] = "no sensor pose at the frame's time"
                 continue
             T_predicted_sensor = invert_transform(predicted[row]) @ sensors.T_world_sensor[side][row]
-            points_predicted[side] = transform_points(T_predicted_sensor, contact_samples(points, c))
+            sampled = contact_samples(points, c)
+            pad = self.pads.get(side)
+            if pad is not None:  # at rest: its frames teach the pad's error; once moving: it is removed
+                if not self.moving:
+                    pad.rest_samples.append(sampled)
+                sampled = pad.correct(sampled)
+            points_predicted[side] = transform_points(T_predicted_sensor, sampled)
             pose_noise[side] = self._pose_noise(side, T_predicted_sensor)
 
         record = Correction(timestamp_s=instant_s, used=(), unusable=unusable)
@@ -496,6 +526,17 @@ class _Corrector:
         record.slip_rad = rotation_angle_rad(slip, np.eye(4))
         record.latency_ms = 1000.0 * (time.perf_counter() - started)
         return record
+
+    def _left_rest(self, sensors: SensorPoses) -> bool:
+        """Whether a sensor has moved more than `pad_error.rest_m` from its pose at the touch (rotation counted at
+        `turn_radius_m`): the frames after that no longer see the object where it rested."""
+        c = self.config.correction
+        for side in SIDES:
+            at_touch, now = self.touch_sensors.T_world_sensor[side][0], sensors.T_world_sensor[side][-1]
+            moved = np.linalg.norm(now[:3, 3] - at_touch[:3, 3]) + c.turn_radius_m * rotation_angle_rad(at_touch, now)
+            if moved > c.pad_error.rest_m:
+                return True
+        return False
 
     def _pose_noise(self, side: str, T_object_sensor: np.ndarray) -> np.ndarray:
         """Covariance (6, 6) of the object-frame twist (rotation about the centroid first) by which the sensor's
