@@ -89,7 +89,7 @@ class PoseConfig:
     candidates_refined: int = 6
     neighbours_refined: int = 36  # the neighbours of the most likely hypotheses (hypotheses.neighbour_poses) are
     # screened by the short refinement, and the best of this many distinct ones refined in full (0: all in full)
-    family_screened: int = 200  # poses along the weakest directions of the most likely hypotheses
+    family_screened: int = 100  # poses along the weakest directions of the most likely hypotheses
     # (hypotheses.family_poses): the best by the cheap score get the short refinement, ...
     family_refined: int = 36  # ... the best of this many distinct ones the full one ...
     family_passes: int = 2  # ... this many times (each pass starts where the last stopped: along a family the weak
