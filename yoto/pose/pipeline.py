@@ -126,6 +126,7 @@ class PoseEstimate:
     features: dict[str, float] = field(default_factory=dict)  # what the confidence was computed from
     fit_rms_m: tuple[float, float] = (float("nan"), float("nan"))  # each cloud's residual after its correction
     corrections: np.ndarray | None = None  # (2, 6) each sensor's correction twist (rotation vector, translation)
+    hypothesis_corrections: np.ndarray | None = None  # (H, 2, 6) the same under each hypothesis
     next_touch: NextTouch | None = None
     searched: bool = False  # whether the joint two-contact search ran
     latency_ms: dict[str, float] = field(default_factory=dict)
@@ -465,6 +466,7 @@ def _estimate(
         for s, side in enumerate(SIDES)
     }
     solution = solve_pose(chosen["left"], chosen["right"], world["left"], world["right"])
+    shown = reported(hypotheses, config.hypotheses)
     return PoseEstimate(
         object_name=model.name,
         method=method,
@@ -474,12 +476,13 @@ def _estimate(
         candidates=candidates,
         world=world,
         solution=solution,
-        hypotheses=reported(hypotheses, config.hypotheses),
+        hypotheses=shown,
         ambiguous=is_ambiguous(hypotheses, config.hypotheses),
         confidence=float("nan"),
         features=confidence_features(hypotheses, refined, solution, chosen, shapes, searched, model.symmetry),
         fit_rms_m=(float(refined.fit_rms_m[best, 0]), float(refined.fit_rms_m[best, 1])),
         corrections=corrections,
+        hypothesis_corrections=refined.corrections[shown.member],
         searched=searched,
     )
 
@@ -512,14 +515,26 @@ def fuse_next_touch(
     now = pair
     for contact, side in touches[2:-1]:
         now = _moved(now, contact, side)
-    seeds = estimate.hypotheses.T_world_object
+    # Every earlier hypothesis is refined in full with all the clouds, its sensor corrections starting where its
+    # own refinement left them: a sensor's correction moves its new contact too, often by millimetres far from the
+    # first, and from no correction the refinement can settle beside the truth. The second pair's seeds are
+    # verified beside them.
+    refined = refine_hypotheses(
+        field,
+        contacts,
+        estimate.hypotheses.T_world_object,
+        config.calibration,
+        config.refine_config,
+        estimate.hypothesis_corrections,
+    )
     second_seeds = _second_pair_seeds(now, model, touch, sensor, config, localizer) if localizer else None
-    if second_seeds is None:
-        refined = refine_hypotheses(field, contacts, seeds, config.calibration, config.refine_config)
-    else:
-        seeds = np.concatenate([seeds, second_seeds])
-        screened = config.screened + len(estimate.hypotheses)
-        refined = _verify_and_refine(field, contacts, seeds, model.symmetry, config, screened, config.seeds_refined)
+    if second_seeds is not None and len(second_seeds):
+        more = _verify_and_refine(
+            field, contacts, second_seeds, model.symmetry, config, config.screened, config.seeds_refined
+        )
+        refined = Refined(
+            *(np.concatenate([getattr(refined, n), getattr(more, n)]) for n in refined.__dataclass_fields__)
+        )
     hypotheses = group_hypotheses(refined, model.symmetry, config.hypotheses)
     shapes = _contact_shapes(pair, estimate.world, config)
     fused = _estimate(
