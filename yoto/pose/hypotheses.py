@@ -31,7 +31,9 @@ import numpy as np
 from yoto.geometry import make_transform, rotation_about_axis, se3_exp
 from yoto.objects.symmetry import Symmetry
 from yoto.pose.field import SurfaceField
-from yoto.pose.refine import ContactPoints, Refined
+from yoto.pose.refine import ContactPoints, RefineConfig, Refined
+
+_CAPTURE_M = RefineConfig().max_distance_m  # points further than this from the surface are not on it
 
 
 @dataclass(frozen=True)
@@ -136,13 +138,16 @@ def weak_directions(
     scaled so that its larger part (rotation or translation) is one unit."""
     unit = np.array([config.distinct_rotation_rad] * 3 + [config.distinct_translation_m] * 3)
     information = np.zeros((len(T_world_object), 6, 6))
-    T_object_world = np.linalg.inv(T_world_object)
     for contact in contacts:
-        q = np.einsum("hij,pj->hpi", (T_object_world @ contact.T_world_sensor)[:, :3, :3], contact.points_sensor)
-        q += (T_object_world @ contact.T_world_sensor)[:, None, :3, 3]
+        T_object_sensor = np.linalg.inv(T_world_object) @ contact.T_world_sensor
+        q = (
+            np.einsum("hij,pj->hpi", T_object_sensor[:, :3, :3], contact.points_sensor)
+            + T_object_sensor[:, None, :3, 3]
+        )
         r, n = field.distance(q)
         assert n is not None
-        rows = np.concatenate([np.cross(n, q), -n], axis=2) * (np.abs(r) < 0.003)[..., None]
+        # A point's row (n x q, -n), as the refinement's; points off the surface (beyond its capture) count nothing.
+        rows = np.concatenate([np.cross(n, q), -n], axis=2) * (np.abs(r) < _CAPTURE_M)[..., None]
         information += np.einsum("hpi,hpj->hij", rows, rows)
     information *= unit[None, :, None] * unit[None, None, :]
     _, vectors = np.linalg.eigh(information)

@@ -223,21 +223,16 @@ def presses_clear(
     pressed = touched & (body_distance.min(axis=1) >= config.clearance_m)
     if not contact:
         return missed | pressed
-    gel_fine = _gel_points(config.contact_spacing_m)
-    depth, _ = field.distance(
-        _advanced(T_object_sensor, travel + config.contact_depth_m, gel_fine), with_gradient=False
-    )
-    area = np.count_nonzero(depth < 0.0, axis=1) * config.contact_spacing_m**2
-    informative = pressed & (area >= config.min_contact_m2)
-    # A thin strip across the pad at any depth of the press's range: the shallowest, halfway, the deepest.
-    for pressed_m in (
-        config.contact_depth_m,
-        (config.contact_depth_m + config.press_depth_m) / 2,
-        config.press_depth_m,
-    ):
-        if pressed_m != config.contact_depth_m:
-            depth, _ = field.distance(_advanced(T_object_sensor, travel + pressed_m, gel_fine), with_gradient=False)
-        informative &= ~_thin_crossing(depth < 0.0, gel_fine, config)
+    # Pressed the shallowest, halfway and the deepest: a contact of `min_contact_m2` at the shallowest, and no thin
+    # strip across the pad at any of the three.
+    gel = _gel_points(config.contact_spacing_m)
+    informative = pressed.copy()
+    for depth_m in (config.contact_depth_m, (config.contact_depth_m + config.press_depth_m) / 2, config.press_depth_m):
+        depth, _ = field.distance(_advanced(T_object_sensor, travel + depth_m, gel), with_gradient=False)
+        touching = depth < 0.0
+        if depth_m == config.contact_depth_m:
+            informative &= np.count_nonzero(touching, axis=1) * config.contact_spacing_m**2 >= config.min_contact_m2
+        informative &= ~_thin_crossing(touching, gel, config)
     return informative
 
 

@@ -321,8 +321,13 @@ def _fill_family(
     for _ in range(max(1, config.family_passes)):
         more = refine_hypotheses(field, contacts, near, config.calibration, refine)
         near = more.T_world_object
-    refined = Refined(*(np.concatenate([getattr(refined, n), getattr(more, n)]) for n in refined.__dataclass_fields__))
+    refined = _joined(refined, more)
     return refined, group_hypotheses(refined, symmetry, config.hypotheses)
+
+
+def _joined(first: Refined, second: Refined) -> Refined:
+    """Two sets of refined poses as one."""
+    return Refined(*(np.concatenate([getattr(first, n), getattr(second, n)]) for n in first.__dataclass_fields__))
 
 
 def _best_distinct(refined: Refined, symmetry: Symmetry, config: HypothesisConfig, count: int) -> np.ndarray:
@@ -532,9 +537,7 @@ def fuse_next_touch(
         more = _verify_and_refine(
             field, contacts, second_seeds, model.symmetry, config, config.screened, config.seeds_refined
         )
-        refined = Refined(
-            *(np.concatenate([getattr(refined, n), getattr(more, n)]) for n in refined.__dataclass_fields__)
-        )
+        refined = _joined(refined, more)
     hypotheses = group_hypotheses(refined, model.symmetry, config.hypotheses)
     shapes = _contact_shapes(pair, estimate.world, config)
     fused = _estimate(
