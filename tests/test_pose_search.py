@@ -20,6 +20,7 @@ from yoto.geometry import (
     rotate_vectors,
     rotation_about_axis,
     rotation_between,
+    se3_exp,
     transform_points,
 )
 from yoto.objects.model import ObjectModelConfig, build_object_model
@@ -435,3 +436,81 @@ def test_best_distinct_hypotheses_from_the_most_likely_poses_as_from_all(rng):
         expected = group_hypotheses(refined, Symmetry(), config).member[:count]
         assert np.array_equal(_best_distinct(refined, Symmetry(), config, count), expected)
     assert len(_best_distinct(refined, Symmetry(), config, 70)) == 60  # fewer distinct than asked: all of them
+
+
+def test_family_poses_follow_what_two_contacts_leave_free(rng):
+    """Two contacts on opposite sides of a cylinder's body leave it free to turn about its axis and slide along it:
+    the two weakest directions of the clouds' information are (nearly) that turn and that slide, and the poses along
+    them keep both clouds on the surface, where two units along the strongest directions move them off it."""
+    from yoto.pose.hypotheses import family_poses, weak_directions
+    from yoto.pose.refine import RefineConfig, contact_points
+
+    can = build_object_model(trimesh.creation.cylinder(radius=0.03, height=0.1, sections=128), "can", SMALL)
+    axis = rotate_vectors(can.T_object_mesh, np.array([0.0, 0.0, 1.0]))  # the mesh's z in the canonical frame
+    field = surface_field(can)
+    T = make_transform(random_rotations(rng, 1)[0], [0.5, 0.0, 0.2])
+    side_a = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    side_a /= np.linalg.norm(side_a)
+    contacts = []
+    for sensor, n in enumerate((side_a, -side_a)):
+        contact, _ = _press(can, 0.03 * n + 0.01 * axis, n, T)
+        contacts.append(contact_points(contact.points_sensor, contact.T_world_sensor, sensor, 0.001, RefineConfig()))
+    config = HypothesisConfig(family_of=1, family_directions=2)
+    directions = weak_directions(field, contacts, T[None], config)[0]
+    unit = np.array([config.distinct_rotation_rad] * 3 + [config.distinct_translation_m] * 3)
+    for weak in directions[:2] / unit:  # in units: rotation about the axis, translation along it, or a mix
+        across = np.concatenate([weak[:3] - (weak[:3] @ axis) * axis, weak[3:] - (weak[3:] @ axis) * axis])
+        assert np.linalg.norm(across) < 0.15 * np.linalg.norm(weak)
+    one = Hypotheses(T[None], np.ones(1), np.zeros(1), np.zeros(1, np.int64), np.ones(1, np.int64))
+    family = family_poses(field, contacts, one, config)
+    assert family.shape == (2 * 2 * 36, 4, 4)
+
+    def off_surface(poses):
+        worst = np.zeros(len(poses))
+        for contact in contacts:
+            q = np.einsum(
+                "kij,pj->kpi", (np.linalg.inv(poses) @ contact.T_world_sensor)[:, :3, :3], contact.points_sensor
+            )
+            q += (np.linalg.inv(poses) @ contact.T_world_sensor)[:, None, :3, 3]
+            worst = np.maximum(worst, np.abs(field.distance(q, with_gradient=False)[0]).max(axis=1))
+        return worst
+
+    near = family.reshape(2, 72, 4, 4)[:, 32:40].reshape(-1, 4, 4)  # up to 4 units (20 deg, 20 mm) both ways
+    assert off_surface(near).max() < 3e-4  # the can's facets and the field's interpolation, not the pose
+    strong = T @ se3_exp(directions[-2:] * 2.0)  # two units along the two strongest directions
+    assert off_surface(strong).min() > 2e-3
+
+
+def test_thin_crossings_are_strips_across_the_pad():
+    """A contact crossing the pad as a strip narrower than the limit is a thin crossing; a wide band across the
+    pad, a blob inside it, a blob at one edge and no contact are not."""
+    from yoto.pose.next_touch import NextTouchConfig, _gel_points, _thin_crossing
+
+    config = NextTouchConfig()
+    gel = _gel_points(config.contact_spacing_m)
+    x, y = gel[:, 0], gel[:, 1]
+    masks = [
+        np.abs(x) < 0.0008,  # 1.6 mm strip across the pad
+        np.abs(x - y) < 0.001,  # a diagonal strip
+        np.abs(x) < 0.004,  # an 8 mm band across it
+        np.hypot(x, y) < 0.003,  # a blob inside
+        np.hypot(x - x.max(), y) < 0.004,  # a blob at one edge
+        np.zeros(len(gel), dtype=bool),
+    ]
+    assert _thin_crossing(np.stack(masks), gel, config).tolist() == [True, True, False, False, False, False]
+
+
+def test_refinement_starts_its_corrections_where_asked(box, rng):
+    """With no iteration, the refinement returns its starting corrections and their cost under the prior: the
+    corrections an earlier refinement found are where a fused refinement starts (fuse_next_touch)."""
+    from yoto.pose.refine import CalibrationPrior, RefineConfig, contact_points, refine_hypotheses
+
+    T = make_transform(random_rotations(rng, 1)[0], [0.5, 0.0, 0.2])
+    contact, _ = _press(box, np.array([0.0, 0.0, 0.025]), np.array([0.0, 0.0, 1.0]), T)
+    contacts = [contact_points(contact.points_sensor, contact.T_world_sensor, 0, 0.001, RefineConfig())]
+    start = rng.normal(scale=[0.01] * 3 + [0.001] * 3, size=(2, 2, 6))
+    prior, field = CalibrationPrior(), surface_field(box)
+    refined = refine_hypotheses(field, contacts, np.stack([T, T]), prior, RefineConfig(iterations=0), start)
+    assert np.allclose(refined.corrections, start, atol=1e-12)
+    assert np.allclose(refined.correction_cost, np.einsum("ksi,i,ksi->k", start, prior.information(), start))
+    assert np.allclose(refine_hypotheses(field, contacts, T[None], prior, RefineConfig(iterations=0)).corrections, 0)

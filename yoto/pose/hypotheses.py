@@ -28,9 +28,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from yoto.geometry import make_transform, rotation_about_axis
+from yoto.geometry import make_transform, rotation_about_axis, se3_exp
 from yoto.objects.symmetry import Symmetry
-from yoto.pose.refine import Refined
+from yoto.pose.field import SurfaceField
+from yoto.pose.refine import ContactPoints, RefineConfig, Refined
+
+_CAPTURE_M = RefineConfig().max_distance_m  # points further than this from the surface are not on it
 
 
 @dataclass(frozen=True)
@@ -51,6 +54,10 @@ class HypothesisConfig:
     neighbours_of: int = 12  # the most likely hypotheses whose neighbours are refined as well (0: none) ...
     neighbour_rotation_rad: float = float(np.radians(7.0))  # ... turned by this about each object axis ...
     neighbour_translation_m: float = 0.006  # ... and slid by this along each (both beyond distinct_*)
+    family_of: int = 4  # the most likely hypotheses whose weakest directions are sampled (0: none) ...
+    family_directions: int = 2  # ... this many of the weakest directions of each ...
+    family_reach: float = 36.0  # ... up to this far both ways (in distinct_* units) ...
+    family_step: float = 1.0  # ... every this many units
 
 
 @dataclass
@@ -120,6 +127,53 @@ def neighbour_poses(T_world_object: np.ndarray, config: HypothesisConfig) -> np.
             steps.append(make_transform(rotation_about_axis(axis, sign * config.neighbour_rotation_rad), np.zeros(3)))
             steps.append(make_transform(np.eye(3), sign * config.neighbour_translation_m * axis))
     return np.einsum("hij,sjk->hsik", np.asarray(T_world_object).reshape(-1, 4, 4), np.array(steps)).reshape(-1, 4, 4)
+
+
+def weak_directions(
+    field: SurfaceField, contacts: list[ContactPoints], T_world_object: np.ndarray, config: HypothesisConfig
+) -> np.ndarray:
+    """(H, 6, 6) for each of H poses (H, 4, 4) the object-frame twists (rotation vector, translation; one per row)
+    along which the two clouds constrain the pose least first: eigenvectors of the clouds' point-to-surface
+    information (Gauss-Newton, unit weights), in units of (distinct_rotation_rad, distinct_translation_m), each
+    scaled so that its larger part (rotation or translation) is one unit."""
+    unit = np.array([config.distinct_rotation_rad] * 3 + [config.distinct_translation_m] * 3)
+    information = np.zeros((len(T_world_object), 6, 6))
+    for contact in contacts:
+        T_object_sensor = np.linalg.inv(T_world_object) @ contact.T_world_sensor
+        q = (
+            np.einsum("hij,pj->hpi", T_object_sensor[:, :3, :3], contact.points_sensor)
+            + T_object_sensor[:, None, :3, 3]
+        )
+        r, n = field.distance(q)
+        assert n is not None
+        # A point's row (n x q, -n), as the refinement's; points off the surface (beyond its capture) count nothing.
+        rows = np.concatenate([np.cross(n, q), -n], axis=2) * (np.abs(r) < _CAPTURE_M)[..., None]
+        information += np.einsum("hpi,hpj->hij", rows, rows)
+    information *= unit[None, :, None] * unit[None, None, :]
+    _, vectors = np.linalg.eigh(information)
+    directions = np.swapaxes(vectors, 1, 2)  # rows, weakest first
+    size = np.maximum(np.linalg.norm(directions[..., :3], axis=2), np.linalg.norm(directions[..., 3:], axis=2))
+    return directions / np.maximum(size, 1e-12)[..., None] * unit
+
+
+def family_poses(
+    field: SurfaceField, contacts: list[ContactPoints], hypotheses: Hypotheses, config: HypothesisConfig
+) -> np.ndarray:
+    """(F, 4, 4) poses along the weakest directions of the most likely hypotheses (`weak_directions`), both ways,
+    every `family_step` units up to `family_reach`. Where two contacts leave a family of poses (a body of revolution
+    turned about its axis, a box slid along its faces), the weakest direction is the family's, and the screw motion
+    along it follows the family far beyond where a linear step would: the truth there, however far from the
+    hypotheses found, lies near one of these."""
+    count = min(len(hypotheses), config.family_of)
+    if count == 0:
+        return np.empty((0, 4, 4))
+    T = hypotheses.T_world_object[:count]
+    directions = weak_directions(field, contacts, T, config)[:, : config.family_directions]  # (H, D, 6)
+    steps = np.arange(config.family_step, config.family_reach + 1e-9, config.family_step)
+    steps = np.concatenate([-steps[::-1], steps])
+    twists = directions[:, :, None, :] * steps[None, None, :, None]  # (H, D, S, 6)
+    moves = se3_exp(twists.reshape(count, -1, 6))
+    return np.einsum("hij,hsjk->hsik", T, moves).reshape(-1, 4, 4)
 
 
 def spread(hypotheses: Hypotheses, symmetry: Symmetry, scale_m: float, scale_rad: float, cap: float) -> float:

@@ -58,6 +58,9 @@ class NextTouchConfig:
     min_contact_m2: float = 6e-6  # ... must make a contact this large where it must be informative (not a tip,
     # a corner or a rim, which a sensor cannot read as a patch)
     contact_spacing_m: float = 0.001  # spacing of the gel points that measure the contact
+    min_crossing_width_m: float = 0.0035  # ... and a contact crossing the pad must be at least this wide at every
+    # depth of the press (a thinner one is an edge or a ridge, a line the pad cannot read as a patch). Measured on
+    # the object's penetration, which is ~1 mm wider than the gel's contact (the gel sinks in around a ridge)
     informative_probability: float = 0.05  # under hypotheses holding at least this, the press must make a contact
     checked: int = 300  # most valuable candidates checked for reachability under every hypothesis (best first)
 
@@ -220,10 +223,41 @@ def presses_clear(
     pressed = touched & (body_distance.min(axis=1) >= config.clearance_m)
     if not contact:
         return missed | pressed
-    fine = _advanced(T_object_sensor, travel + config.contact_depth_m, _gel_points(config.contact_spacing_m))
-    depth, _ = field.distance(fine, with_gradient=False)
-    area = np.count_nonzero(depth < 0.0, axis=1) * config.contact_spacing_m**2
-    return pressed & (area >= config.min_contact_m2)
+    # Pressed the shallowest, halfway and the deepest: a contact of `min_contact_m2` at the shallowest, and no thin
+    # strip across the pad at any of the three.
+    gel = _gel_points(config.contact_spacing_m)
+    informative = pressed.copy()
+    for depth_m in (config.contact_depth_m, (config.contact_depth_m + config.press_depth_m) / 2, config.press_depth_m):
+        depth, _ = field.distance(_advanced(T_object_sensor, travel + depth_m, gel), with_gradient=False)
+        touching = depth < 0.0
+        if depth_m == config.contact_depth_m:
+            informative &= np.count_nonzero(touching, axis=1) * config.contact_spacing_m**2 >= config.min_contact_m2
+        informative &= ~_thin_crossing(touching, gel, config)
+    return informative
+
+
+def _thin_crossing(touching: np.ndarray, gel: np.ndarray, config: NextTouchConfig) -> np.ndarray:
+    """(C,) whether each contact (C, P) on the gel grid `gel` (P, 3, `_gel_points`) crosses the pad as a thin strip:
+    it meets the pad's border in two or more separate runs and its mean width (its area over its length along its
+    principal axis) is below `min_crossing_width_m`."""
+    x, y = gel[:, 0], gel[:, 1]
+    columns, rows = len(np.unique(x)), len(np.unique(y))
+    grid = np.arange(len(gel)).reshape(rows, columns)
+    ring = np.concatenate([grid[0, :-1], grid[:-1, -1], grid[-1, :0:-1], grid[:0:-1, 0]])  # circular order
+    border = touching[:, ring]
+    runs = np.count_nonzero(border & ~np.roll(border, 1, axis=1), axis=1)
+    runs[border.all(axis=1)] = 1
+    count = np.maximum(np.count_nonzero(touching, axis=1), 1)
+    mean_x, mean_y = (touching @ x) / count, (touching @ y) / count
+    dx, dy = x[None] - mean_x[:, None], y[None] - mean_y[:, None]
+    sxx, syy, sxy = (np.sum(touching * d, axis=1) for d in (dx * dx, dy * dy, dx * dy))
+    angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # the principal axis of each contact
+    along = dx * np.cos(angle)[:, None] + dy * np.sin(angle)[:, None]
+    length = np.maximum(
+        np.where(touching, along, -np.inf).max(axis=1) - np.where(touching, along, np.inf).min(axis=1), 0
+    )
+    width = count * config.contact_spacing_m**2 / (length + config.contact_spacing_m)
+    return (runs >= 2) & (width < config.min_crossing_width_m)
 
 
 def _advanced(T_object_sensor: np.ndarray, travel: np.ndarray, points_sensor: np.ndarray) -> np.ndarray:

@@ -48,6 +48,7 @@ from yoto.pose.field import FieldConfig, SurfaceField, surface_field
 from yoto.pose.hypotheses import (
     Hypotheses,
     HypothesisConfig,
+    family_poses,
     group_hypotheses,
     is_ambiguous,
     log_likelihoods,
@@ -88,6 +89,11 @@ class PoseConfig:
     candidates_refined: int = 6
     neighbours_refined: int = 36  # the neighbours of the most likely hypotheses (hypotheses.neighbour_poses) are
     # screened by the short refinement, and the best of this many distinct ones refined in full (0: all in full)
+    family_screened: int = 100  # poses along the weakest directions of the most likely hypotheses
+    # (hypotheses.family_poses): the best by the cheap score get the short refinement, ...
+    family_refined: int = 36  # ... the best of this many distinct ones the full one ...
+    family_passes: int = 2  # ... this many times (each pass starts where the last stopped: along a family the weak
+    # prior on the starting pose holds a single pass short of the best fit)
     seed_distinct_m: float = 0.005  # seeds in one cell of this size (object centroid) ...
     seed_distinct_rad: float = float(np.radians(5.0))  # ... and of this (rotation vector) are screened as one
     search_config: SearchConfig = SearchConfig()
@@ -120,6 +126,7 @@ class PoseEstimate:
     features: dict[str, float] = field(default_factory=dict)  # what the confidence was computed from
     fit_rms_m: tuple[float, float] = (float("nan"), float("nan"))  # each cloud's residual after its correction
     corrections: np.ndarray | None = None  # (2, 6) each sensor's correction twist (rotation vector, translation)
+    hypothesis_corrections: np.ndarray | None = None  # (H, 2, 6) the same under each hypothesis
     next_touch: NextTouch | None = None
     searched: bool = False  # whether the joint two-contact search ran
     latency_ms: dict[str, float] = field(default_factory=dict)
@@ -287,6 +294,42 @@ def _verify_and_refine(
     return Refined(*(np.concatenate([getattr(full, name), getattr(more, name)]) for name in full.__dataclass_fields__))
 
 
+def _fill_family(
+    field: SurfaceField,
+    contacts: list[ContactPoints],
+    refined: Refined,
+    hypotheses: Hypotheses,
+    symmetry: Symmetry,
+    config: PoseConfig,
+) -> tuple[Refined, Hypotheses]:
+    """The refined poses and their hypotheses, with poses along the weakest directions of the most likely
+    hypotheses (`hypotheses.family_poses`) refined as well: where the two contacts leave a family of poses (a mug
+    turned about its axis, a box slid along its faces), the truth can lie far along it from every hypothesis the
+    seeds led to. The family's poses are scored cheaply, the best screened by the short refinement, and the best
+    distinct ones refined in full."""
+    family = family_poses(field, contacts, hypotheses, config.hypotheses)
+    if not len(family):
+        return refined, hypotheses
+    refine = config.refine_config
+    score = evaluate_offsets(field, contacts, family, config.calibration, refine)
+    near = family[np.argsort(-score, kind="stable")[: config.family_screened]]
+    short = replace(refine, iterations=refine.screen_iterations)
+    first = refine_hypotheses(
+        field, thinned(contacts, refine.screen_points, refine.screen_free_points), near, config.calibration, short
+    )
+    near = first.T_world_object[_best_distinct(first, symmetry, config.hypotheses, config.family_refined)]
+    for _ in range(max(1, config.family_passes)):
+        more = refine_hypotheses(field, contacts, near, config.calibration, refine)
+        near = more.T_world_object
+    refined = _joined(refined, more)
+    return refined, group_hypotheses(refined, symmetry, config.hypotheses)
+
+
+def _joined(first: Refined, second: Refined) -> Refined:
+    """Two sets of refined poses as one."""
+    return Refined(*(np.concatenate([getattr(first, n), getattr(second, n)]) for n in first.__dataclass_fields__))
+
+
 def _best_distinct(refined: Refined, symmetry: Symmetry, config: HypothesisConfig, count: int) -> np.ndarray:
     """Indices of the best pose of each of the `count` most likely distinct hypotheses (`group_hypotheses`).
 
@@ -389,6 +432,8 @@ def _pose_from_candidates(
                 field, contacts, seeds, model.symmetry, config, config.screened, config.seeds_refined, True
             )
             hypotheses = group_hypotheses(refined, model.symmetry, config.hypotheses)
+    if searched and refined is not None and hypotheses is not None and len(hypotheses) > 1:
+        refined, hypotheses = _fill_family(field, contacts, refined, hypotheses, model.symmetry, config)
     if refined is None or hypotheses is None or not len(hypotheses):
         return _closed_form_estimate(pair, model, candidates, world, config, method, tick)
     estimate = _estimate(pair, model, candidates, world, shapes, refined, hypotheses, searched, config, method)
@@ -426,6 +471,7 @@ def _estimate(
         for s, side in enumerate(SIDES)
     }
     solution = solve_pose(chosen["left"], chosen["right"], world["left"], world["right"])
+    shown = reported(hypotheses, config.hypotheses)
     return PoseEstimate(
         object_name=model.name,
         method=method,
@@ -435,12 +481,13 @@ def _estimate(
         candidates=candidates,
         world=world,
         solution=solution,
-        hypotheses=reported(hypotheses, config.hypotheses),
+        hypotheses=shown,
         ambiguous=is_ambiguous(hypotheses, config.hypotheses),
         confidence=float("nan"),
         features=confidence_features(hypotheses, refined, solution, chosen, shapes, searched, model.symmetry),
         fit_rms_m=(float(refined.fit_rms_m[best, 0]), float(refined.fit_rms_m[best, 1])),
         corrections=corrections,
+        hypothesis_corrections=refined.corrections[shown.member],
         searched=searched,
     )
 
@@ -473,14 +520,24 @@ def fuse_next_touch(
     now = pair
     for contact, side in touches[2:-1]:
         now = _moved(now, contact, side)
-    seeds = estimate.hypotheses.T_world_object
+    # Every earlier hypothesis is refined in full with all the clouds, its sensor corrections starting where its
+    # own refinement left them: a sensor's correction moves its new contact too, often by millimetres far from the
+    # first, and from no correction the refinement can settle beside the truth. The second pair's seeds are
+    # verified beside them.
+    refined = refine_hypotheses(
+        field,
+        contacts,
+        estimate.hypotheses.T_world_object,
+        config.calibration,
+        config.refine_config,
+        estimate.hypothesis_corrections,
+    )
     second_seeds = _second_pair_seeds(now, model, touch, sensor, config, localizer) if localizer else None
-    if second_seeds is None:
-        refined = refine_hypotheses(field, contacts, seeds, config.calibration, config.refine_config)
-    else:
-        seeds = np.concatenate([seeds, second_seeds])
-        screened = config.screened + len(estimate.hypotheses)
-        refined = _verify_and_refine(field, contacts, seeds, model.symmetry, config, screened, config.seeds_refined)
+    if second_seeds is not None and len(second_seeds):
+        more = _verify_and_refine(
+            field, contacts, second_seeds, model.symmetry, config, config.screened, config.seeds_refined
+        )
+        refined = _joined(refined, more)
     hypotheses = group_hypotheses(refined, model.symmetry, config.hypotheses)
     shapes = _contact_shapes(pair, estimate.world, config)
     fused = _estimate(

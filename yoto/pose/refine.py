@@ -231,8 +231,11 @@ def refine_hypotheses(
     T_world_object: np.ndarray,
     prior: CalibrationPrior,
     config: RefineConfig,
+    corrections_start: np.ndarray | None = None,
 ) -> Refined:
-    """Refine K object poses (K, 4, 4) jointly with a correction per sensor (see the module docstring)."""
+    """Refine K object poses (K, 4, 4) jointly with a correction per sensor (see the module docstring), each
+    correction starting from `corrections_start` (K, 2, 6) twists where given (e.g. what an earlier refinement of
+    the same sensors found), else from none."""
     poses = np.array(T_world_object, dtype=np.float64).reshape(-1, 4, 4)
     start_inverse = invert_transform_batch(poses)
     count = len(poses)
@@ -243,6 +246,9 @@ def refine_hypotheses(
     information[6:12, 6:12] = np.diag(calibration)
     information[12:, 12:] = np.diag(calibration)
     deviation = np.zeros((count, 18))  # twists from the start and of the corrections, accumulated to first order
+    if corrections_start is not None:
+        corrections = se3_exp(np.asarray(corrections_start, dtype=np.float64).reshape(count, 2, 6))
+        deviation[:, 6:] = np.asarray(corrections_start).reshape(count, 12)
     for _ in range(config.iterations):
         hessian = np.broadcast_to(information, (count, 18, 18)).copy()
         gradient = deviation @ information
