@@ -258,14 +258,19 @@ def search_poses(
     offset = world["right"].p_world - world["left"].p_world
     separation = float(np.linalg.norm(offset))
     angles = direction_angles(offset, world["left"].n_world, world["right"].n_world)
-    # Squared distances of all left x right pairs by one matrix product per chunk; the shell of the widest
-    # tolerance first, the exact per-pair tolerances on what falls in it. The separation comes from those squared
-    # distances and the key's cosines from dot products (offset . n = pR . n - pL . n, each location's own term
-    # computed once); each part of the key is tested in turn, on the pairs the parts before it kept.
+    # The shell of the widest separation tolerance over all left x right pairs, by one matrix product per chunk:
+    # [pL, 1] . [-2 pR, |pR|^2] = |pR - pL|^2 - |pL|^2, compared with the shell's bounds less |pL|^2 (one pass
+    # fewer over the chunk than forming the squared distances). On what falls in the shell, each part of the key
+    # is tested in turn on the pairs the parts before it kept, the most selective first: the angle (nL, nR), then
+    # the separation with its own tolerance, then the angles (d, nL), (d, nR) from dot products (offset . n =
+    # pR . n - pL . n, each location's own term computed once).
     n_left, n_right = normalize(left.n_object), normalize(right.n_object)
     widest = float(np.hypot(config.distance_tolerance_m, left.blur_m.max(initial=0) + right.blur_m.max(initial=0)))
     low2, high2 = max(separation - widest, 0.0) ** 2, (separation + widest) ** 2
-    squared_left, squared_right = np.sum(left.p_object**2, axis=1), np.sum(right.p_object**2, axis=1)
+    squared_left = np.sum(left.p_object**2, axis=1)
+    left_rows = np.column_stack([left.p_object, np.ones(len(left.p_object))])
+    right_columns = np.vstack([-2.0 * right.p_object.T, np.sum(right.p_object**2, axis=1)])
+    low_rows, high_rows = low2 - squared_left, high2 - squared_left
     own_left = np.sum(left.p_object * n_left, axis=1)  # pL . nL
     own_right = np.sum(right.p_object * n_right, axis=1)  # pR . nR
     # Coordinates as contiguous (3, L) rows, for the per-pair dot products (`_dot`).
@@ -274,35 +279,34 @@ def search_poses(
     angle_variance = config.angle_tolerance_rad**2
     left_variance, right_turn2 = angle_variance + left_turn**2, right_turn**2
     found = []
-    chunk = max(1, 400_000 // max(len(right.p_object), 1))
+    columns = len(right.p_object)
+    chunk = max(1, 400_000 // max(columns, 1))
     # Work buffers reused by every chunk (fresh multi-megabyte arrays cost page faults each time).
-    squared_buffer = np.empty((min(chunk, len(left.p_object)), len(right.p_object)))
-    product_buffer = np.empty_like(squared_buffer)
-    low_buffer = np.empty(squared_buffer.shape, dtype=bool)
+    partial_buffer = np.empty((min(chunk, len(left.p_object)), columns))
+    low_buffer = np.empty(partial_buffer.shape, dtype=bool)
     high_buffer = np.empty_like(low_buffer)
     for first in range(0, len(left.p_object), chunk):
         rows = slice(first, first + chunk)
         count = min(chunk, len(left.p_object) - first)
-        squared, product = squared_buffer[:count], product_buffer[:count]
-        np.add(squared_left[rows, None], squared_right[None, :], out=squared)
-        np.subtract(squared, np.matmul(2.0 * left.p_object[rows], right.p_object.T, out=product), out=squared)
-        shell = np.greater_equal(squared, low2, out=low_buffer[:count])
-        shell &= np.less_equal(squared, high2, out=high_buffer[:count])
+        partial = np.matmul(left_rows[rows], right_columns, out=partial_buffer[:count])
+        shell = np.greater_equal(partial, low_rows[rows, None], out=low_buffer[:count])
+        shell &= np.less_equal(partial, high_rows[rows, None], out=high_buffer[:count])
         flat = np.flatnonzero(shell)  # far faster than a 2-D nonzero; the same pairs in the same order
         if not len(flat):
             continue
-        distance = np.sqrt(np.maximum(squared.reshape(-1)[flat], 0.0))
-        i = flat // len(right.p_object)
-        j = flat - i * len(right.p_object)
+        i = flat // columns
+        j = flat - i * columns
         i += first
-        blur = left.blur_m[i] + right.blur_m[j]
-        mismatch = np.abs(distance - separation) / np.hypot(config.distance_tolerance_m, blur)
-        keep = np.flatnonzero((mismatch <= 1.0) & (distance >= MIN_CONTACT_SEPARATION_M))
-        i, j, distance, blur, mismatch = i[keep], j[keep], distance[keep], blur[keep], mismatch[keep]
         # (nL, nR)
         key = np.arccos(np.clip(_dot(n_left_columns, i, n_right_columns, j), -1.0, 1.0))
-        part = np.abs(key - angles[2]) / np.sqrt(left_variance[i] + right_turn2[j])
-        keep = np.flatnonzero(part <= 1.0)
+        mismatch = np.abs(key - angles[2]) / np.sqrt(left_variance[i] + right_turn2[j])
+        keep = np.flatnonzero(mismatch <= 1.0)
+        i, j, flat, mismatch = i[keep], j[keep], flat[keep], mismatch[keep]
+        # separation
+        distance = np.sqrt(np.maximum(partial.reshape(-1)[flat] + squared_left[i], 0.0))
+        blur = left.blur_m[i] + right.blur_m[j]
+        part = np.abs(distance - separation) / np.hypot(config.distance_tolerance_m, blur)
+        keep = np.flatnonzero((part <= 1.0) & (distance >= MIN_CONTACT_SEPARATION_M))
         i, j, distance, blur = i[keep], j[keep], distance[keep], blur[keep]
         mismatch = np.maximum(mismatch[keep], part[keep])
         turn2 = (blur / max(separation, 1e-3)) ** 2  # the direction d turns as the locations move within their blur
