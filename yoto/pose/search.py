@@ -29,7 +29,7 @@ per-query pair sets small instead.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -129,6 +129,12 @@ class SurfaceSamples:
     shapes: LocalShape  # (M,)
     spacing_m: float
     seconds: float  # time to build
+    curvature_columns: np.ndarray = field(init=False)  # (2, M) the curvatures as contiguous rows (for the queries)
+    largest_curvature: np.ndarray = field(init=False)  # (M,) the larger |curvature| of each sample
+
+    def __post_init__(self) -> None:
+        self.curvature_columns = np.ascontiguousarray(self.shapes.curvatures.T)
+        self.largest_curvature = np.abs(self.shapes.curvatures).max(axis=1)
 
 
 def build_surface_samples(model: ObjectModel, config: SampleConfig = SampleConfig()) -> SurfaceSamples:
@@ -197,29 +203,38 @@ def contact_locations(
     """The localizer's candidates and (`with_samples`) every surface sample whose local shape matches the contact's."""
     fits = np.empty(0, dtype=np.int64)
     if with_samples:
-        difference = np.abs(samples.shapes.curvatures - shape.curvatures[0]).max(axis=1)
         tolerance = (config.curvature_floor + np.abs(shape.curvatures[0]).max()) * (
             config.curvature_share + min(float(shape.rms_m[0]), 1e-3) / config.curvature_residual_scale_m
         )
-        fits = np.flatnonzero(difference <= tolerance)
+        larger, smaller = samples.curvature_columns
+        fits = np.flatnonzero(
+            (np.abs(larger - shape.curvatures[0, 0]) <= tolerance)
+            & (np.abs(smaller - shape.curvatures[0, 1]) <= tolerance)
+        )
     count = len(candidates)
     return Locations(
         np.vstack([np.array([c.p_object for c in candidates]).reshape(-1, 3), samples.points_object[fits]]),
         np.vstack([np.array([c.n_object for c in candidates]).reshape(-1, 3), samples.normals_object[fits]]),
         np.concatenate([np.zeros(count), np.full(len(fits), samples.spacing_m / np.sqrt(2.0))]),
-        np.concatenate([np.zeros(count), np.abs(samples.shapes.curvatures[fits]).max(axis=1)]),
+        np.concatenate([np.zeros(count), samples.largest_curvature[fits]]),
         np.concatenate([np.ones(count, dtype=bool), np.zeros(len(fits), dtype=bool)]),
     )
 
 
 def thin(locations: Locations, spacing_m: float) -> Locations:
-    """Keep one sample per voxel of `spacing_m` (and every candidate): a coarser sampling, blurred accordingly."""
+    """Keep one sample per voxel of `spacing_m` (the first, and every candidate): a coarser sampling, blurred
+    accordingly."""
     samples = np.flatnonzero(~locations.candidate)
     cells = np.floor(locations.p_object[samples] / spacing_m).astype(np.int64)
     cells -= cells.min(axis=0, initial=0)
     span = cells.max(axis=0, initial=0) + 1
-    _, first = np.unique((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2], return_index=True)
-    thinned = locations.subset(np.concatenate([np.flatnonzero(locations.candidate), samples[np.sort(first)]]))
+    key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+    # The first sample of each voxel without sorting: written in reverse order, the first one's index stays.
+    first = np.empty(int(np.prod(span)), dtype=np.int64)
+    order = np.arange(len(key))
+    first[key[::-1]] = order[::-1]
+    kept = samples[first[key] == order]
+    thinned = locations.subset(np.concatenate([np.flatnonzero(locations.candidate), kept]))
     thinned.blur_m = np.where(thinned.candidate, 0.0, np.maximum(thinned.blur_m, spacing_m / np.sqrt(2.0)))
     return thinned
 
