@@ -14,7 +14,7 @@ place of that kind, and the true one is often not among them. The search covers 
    samples, an edge only edges), plus the localizer's candidates.
 3. Per pair (`search_poses`): every left x right location pair whose key fits the measured key within the
    tolerances (the sensors' calibration error, the localizers' error, and the blur of the sampling, which is
-   larger where the normal turns quickly), solved in closed form (`solver.closed_form_poses`, vectorised). Large
+   larger where the normal turns quickly), solved in closed form (`solver.closed_form_quaternions`, vectorised). Large
    location sets are thinned on a coarser grid first (smooth regions first: there a coarser sampling blurs
    only the separation), so a query costs at most `pair_budget` key evaluations.
 
@@ -38,7 +38,13 @@ from yoto.geometry import normalize, tangent_basis
 from yoto.objects.cache import ModelCache
 from yoto.objects.model import ObjectModel
 from yoto.pointcloud import voxel_downsample
-from yoto.pose.solver import MIN_CONTACT_SEPARATION_M, closed_form_poses, direction_angles
+from yoto.pose.solver import (
+    MIN_CONTACT_SEPARATION_M,
+    closed_form_quaternions,
+    direction_angles,
+    poses_from_quaternions,
+    quaternion_rotation_vectors,
+)
 
 
 @dataclass(frozen=True)
@@ -244,10 +250,24 @@ class PairMatches:
     """Pairs of locations that fit a measured pair, and the closed-form pose of each (arrays over K)."""
 
     mismatch: np.ndarray  # (K,) key mismatch in tolerances (0: exact; at most 1)
-    T_world_object: np.ndarray  # (K, 4, 4) the closed-form pose of each
+    quaternions_xyzw: np.ndarray  # (K, 4) the closed-form pose of each: its rotation (w >= 0) ...
+    translations: np.ndarray  # (K, 3) ... and translation (T_world_object)
 
     def __len__(self) -> int:
         return len(self.mismatch)
+
+    @property
+    def T_world_object(self) -> np.ndarray:
+        """(K, 4, 4) the closed-form poses."""
+        return poses_from_quaternions(self.quaternions_xyzw, self.translations)
+
+    @property
+    def rotation_vectors(self) -> np.ndarray:
+        """(K, 3) the poses' rotations as rotation vectors (angles in [0, pi])."""
+        return quaternion_rotation_vectors(self.quaternions_xyzw)
+
+    def subset(self, index: np.ndarray) -> PairMatches:
+        return PairMatches(self.mismatch[index], self.quaternions_xyzw[index], self.translations[index])
 
 
 def search_poses(
@@ -342,10 +362,10 @@ def search_poses(
     if len(mismatch) > config.max_matches:
         best = np.argpartition(mismatch, config.max_matches - 1)[: config.max_matches]
         a, b, mismatch = a[best], b[best], mismatch[best]
-    T_world_object = closed_form_poses(
+    quaternions, translations = closed_form_quaternions(
         left.p_object[a], n_left[a], right.p_object[b], n_right[b], world["left"], world["right"]
     )
-    return PairMatches(mismatch, T_world_object)
+    return PairMatches(mismatch, quaternions, translations)
 
 
 def _dot(first: np.ndarray, i: np.ndarray, second: np.ndarray, j: np.ndarray) -> np.ndarray:
