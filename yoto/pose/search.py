@@ -235,11 +235,14 @@ def thin(locations: Locations, spacing_m: float) -> Locations:
     cells -= cells.min(axis=0, initial=0)
     span = cells.max(axis=0, initial=0) + 1
     key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
-    # The first sample of each voxel without sorting: written in reverse order, the first one's index stays.
-    first = np.empty(int(np.prod(span)), dtype=np.int64)
-    order = np.arange(len(key))
-    first[key[::-1]] = order[::-1]
-    kept = samples[first[key] == order]
+    if np.prod(span) <= 1 << 20:
+        # The first sample of each voxel without sorting: written in reverse order, the first one's index stays.
+        first = np.empty(int(np.prod(span)), dtype=np.int64)
+        order = np.arange(len(key))
+        first[key[::-1]] = order[::-1]
+        kept = samples[first[key] == order]
+    else:  # a grid too large to hold
+        kept = samples[np.sort(np.unique(key, return_index=True)[1])]
     thinned = locations.subset(np.concatenate([np.flatnonzero(locations.candidate), kept]))
     thinned.blur_m = np.where(thinned.candidate, 0.0, np.maximum(thinned.blur_m, spacing_m / np.sqrt(2.0)))
     return thinned
