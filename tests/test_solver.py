@@ -15,9 +15,10 @@ from yoto.geometry import (
     rotate_vectors,
     rotation_about_axis,
     rotation_angle_rad,
+    so3_log,
     transform_points,
 )
-from yoto.pose.solver import solve_pose
+from yoto.pose.solver import procrustes_quaternions, procrustes_rotations, quaternion_rotation_vectors, solve_pose
 
 
 def _observe(T_world_object, p_object, n_object):
@@ -141,3 +142,20 @@ def test_contact_in_sensor_on_a_tilted_plane(rng):
     points = np.column_stack([xy, z])
     _, n_sensor = contact_in_sensor(points)
     assert np.allclose(n_sensor, plane_normal, atol=TOL["float32_unit"])
+
+
+def test_quaternion_procrustes_matches_the_svd_and_handles_degenerate_input(rng):
+    """Horn's quaternion method gives the SVD's proper rotation (reflections included), a rotation for rank-one and
+    zero cross-covariances, and rotation vectors equal to so3_log's."""
+    H = rng.normal(size=(500, 3, 3))  # about half with det < 0: the proper rotation needs the reflection fix
+    u, _, vt = np.linalg.svd(H)
+    u[:, :, 2] *= np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)[:, None]
+    quaternions = procrustes_quaternions(H)
+    assert np.all(quaternions[:, 3] >= 0.0) and np.allclose(np.linalg.norm(quaternions, axis=1), 1.0)
+    assert np.allclose(procrustes_rotations(H), u @ vt, atol=TOL["float"])
+    assert np.allclose(quaternion_rotation_vectors(quaternions), so3_log(procrustes_rotations(H)), atol=TOL["float"])
+    # Rank one (three parallel directions): any rotation taking the axis onto its image is optimal.
+    axis, R = normalize(rng.normal(size=3)), random_rotations(rng, 1)[0]
+    rotation = procrustes_rotations(np.outer(R @ axis, axis)[None])[0]
+    assert np.allclose(rotation @ axis, R @ axis, atol=1e-6) and np.isclose(np.linalg.det(rotation), 1.0)
+    assert np.allclose(procrustes_rotations(np.zeros((1, 3, 3)))[0], np.eye(3))

@@ -14,7 +14,7 @@ place of that kind, and the true one is often not among them. The search covers 
    samples, an edge only edges), plus the localizer's candidates.
 3. Per pair (`search_poses`): every left x right location pair whose key fits the measured key within the
    tolerances (the sensors' calibration error, the localizers' error, and the blur of the sampling, which is
-   larger where the normal turns quickly), solved in closed form (`solver.closed_form_poses`, vectorised). Large
+   larger where the normal turns quickly), solved in closed form (`solver.closed_form_quaternions`, vectorised). Large
    location sets are thinned on a coarser grid first (smooth regions first: there a coarser sampling blurs
    only the separation), so a query costs at most `pair_budget` key evaluations.
 
@@ -29,7 +29,7 @@ per-query pair sets small instead.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -38,7 +38,13 @@ from yoto.geometry import normalize, tangent_basis
 from yoto.objects.cache import ModelCache
 from yoto.objects.model import ObjectModel
 from yoto.pointcloud import voxel_downsample
-from yoto.pose.solver import MIN_CONTACT_SEPARATION_M, closed_form_poses, direction_angles
+from yoto.pose.solver import (
+    MIN_CONTACT_SEPARATION_M,
+    closed_form_quaternions,
+    direction_angles,
+    poses_from_quaternions,
+    quaternion_rotation_vectors,
+)
 
 
 @dataclass(frozen=True)
@@ -129,6 +135,12 @@ class SurfaceSamples:
     shapes: LocalShape  # (M,)
     spacing_m: float
     seconds: float  # time to build
+    curvature_columns: np.ndarray = field(init=False)  # (2, M) the curvatures as contiguous rows (for the queries)
+    largest_curvature: np.ndarray = field(init=False)  # (M,) the larger |curvature| of each sample
+
+    def __post_init__(self) -> None:
+        self.curvature_columns = np.ascontiguousarray(self.shapes.curvatures.T)
+        self.largest_curvature = np.abs(self.shapes.curvatures).max(axis=1)
 
 
 def build_surface_samples(model: ObjectModel, config: SampleConfig = SampleConfig()) -> SurfaceSamples:
@@ -197,29 +209,41 @@ def contact_locations(
     """The localizer's candidates and (`with_samples`) every surface sample whose local shape matches the contact's."""
     fits = np.empty(0, dtype=np.int64)
     if with_samples:
-        difference = np.abs(samples.shapes.curvatures - shape.curvatures[0]).max(axis=1)
         tolerance = (config.curvature_floor + np.abs(shape.curvatures[0]).max()) * (
             config.curvature_share + min(float(shape.rms_m[0]), 1e-3) / config.curvature_residual_scale_m
         )
-        fits = np.flatnonzero(difference <= tolerance)
+        larger, smaller = samples.curvature_columns
+        fits = np.flatnonzero(
+            (np.abs(larger - shape.curvatures[0, 0]) <= tolerance)
+            & (np.abs(smaller - shape.curvatures[0, 1]) <= tolerance)
+        )
     count = len(candidates)
     return Locations(
         np.vstack([np.array([c.p_object for c in candidates]).reshape(-1, 3), samples.points_object[fits]]),
         np.vstack([np.array([c.n_object for c in candidates]).reshape(-1, 3), samples.normals_object[fits]]),
         np.concatenate([np.zeros(count), np.full(len(fits), samples.spacing_m / np.sqrt(2.0))]),
-        np.concatenate([np.zeros(count), np.abs(samples.shapes.curvatures[fits]).max(axis=1)]),
+        np.concatenate([np.zeros(count), samples.largest_curvature[fits]]),
         np.concatenate([np.ones(count, dtype=bool), np.zeros(len(fits), dtype=bool)]),
     )
 
 
 def thin(locations: Locations, spacing_m: float) -> Locations:
-    """Keep one sample per voxel of `spacing_m` (and every candidate): a coarser sampling, blurred accordingly."""
+    """Keep one sample per voxel of `spacing_m` (the first, and every candidate): a coarser sampling, blurred
+    accordingly."""
     samples = np.flatnonzero(~locations.candidate)
     cells = np.floor(locations.p_object[samples] / spacing_m).astype(np.int64)
     cells -= cells.min(axis=0, initial=0)
     span = cells.max(axis=0, initial=0) + 1
-    _, first = np.unique((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2], return_index=True)
-    thinned = locations.subset(np.concatenate([np.flatnonzero(locations.candidate), samples[np.sort(first)]]))
+    key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+    if np.prod(span) <= 1 << 20:
+        # The first sample of each voxel without sorting: written in reverse order, the first one's index stays.
+        first = np.empty(int(np.prod(span)), dtype=np.int64)
+        order = np.arange(len(key))
+        first[key[::-1]] = order[::-1]
+        kept = samples[first[key] == order]
+    else:  # a grid too large to hold
+        kept = samples[np.sort(np.unique(key, return_index=True)[1])]
+    thinned = locations.subset(np.concatenate([np.flatnonzero(locations.candidate), kept]))
     thinned.blur_m = np.where(thinned.candidate, 0.0, np.maximum(thinned.blur_m, spacing_m / np.sqrt(2.0)))
     return thinned
 
@@ -229,10 +253,24 @@ class PairMatches:
     """Pairs of locations that fit a measured pair, and the closed-form pose of each (arrays over K)."""
 
     mismatch: np.ndarray  # (K,) key mismatch in tolerances (0: exact; at most 1)
-    T_world_object: np.ndarray  # (K, 4, 4) the closed-form pose of each
+    quaternions_xyzw: np.ndarray  # (K, 4) the closed-form pose of each: its rotation (w >= 0) ...
+    translations: np.ndarray  # (K, 3) ... and translation (T_world_object)
 
     def __len__(self) -> int:
         return len(self.mismatch)
+
+    @property
+    def T_world_object(self) -> np.ndarray:
+        """(K, 4, 4) the closed-form poses."""
+        return poses_from_quaternions(self.quaternions_xyzw, self.translations)
+
+    @property
+    def rotation_vectors(self) -> np.ndarray:
+        """(K, 3) the poses' rotations as rotation vectors (angles in [0, pi])."""
+        return quaternion_rotation_vectors(self.quaternions_xyzw)
+
+    def subset(self, index: np.ndarray) -> PairMatches:
+        return PairMatches(self.mismatch[index], self.quaternions_xyzw[index], self.translations[index])
 
 
 def search_poses(
@@ -258,14 +296,19 @@ def search_poses(
     offset = world["right"].p_world - world["left"].p_world
     separation = float(np.linalg.norm(offset))
     angles = direction_angles(offset, world["left"].n_world, world["right"].n_world)
-    # Squared distances of all left x right pairs by one matrix product per chunk; the shell of the widest
-    # tolerance first, the exact per-pair tolerances on what falls in it. The separation comes from those squared
-    # distances and the key's cosines from dot products (offset . n = pR . n - pL . n, each location's own term
-    # computed once); each part of the key is tested in turn, on the pairs the parts before it kept.
+    # The shell of the widest separation tolerance over all left x right pairs, by one matrix product per chunk:
+    # [pL, 1] . [-2 pR, |pR|^2] = |pR - pL|^2 - |pL|^2, compared with the shell's bounds less |pL|^2 (one pass
+    # fewer over the chunk than forming the squared distances). On what falls in the shell, each part of the key
+    # is tested in turn on the pairs the parts before it kept, the most selective first: the angle (nL, nR), then
+    # the separation with its own tolerance, then the angles (d, nL), (d, nR) from dot products (offset . n =
+    # pR . n - pL . n, each location's own term computed once).
     n_left, n_right = normalize(left.n_object), normalize(right.n_object)
     widest = float(np.hypot(config.distance_tolerance_m, left.blur_m.max(initial=0) + right.blur_m.max(initial=0)))
     low2, high2 = max(separation - widest, 0.0) ** 2, (separation + widest) ** 2
-    squared_left, squared_right = np.sum(left.p_object**2, axis=1), np.sum(right.p_object**2, axis=1)
+    squared_left = np.sum(left.p_object**2, axis=1)
+    left_rows = np.column_stack([left.p_object, np.ones(len(left.p_object))])
+    right_columns = np.vstack([-2.0 * right.p_object.T, np.sum(right.p_object**2, axis=1)])
+    low_rows, high_rows = low2 - squared_left, high2 - squared_left
     own_left = np.sum(left.p_object * n_left, axis=1)  # pL . nL
     own_right = np.sum(right.p_object * n_right, axis=1)  # pR . nR
     # Coordinates as contiguous (3, L) rows, for the per-pair dot products (`_dot`).
@@ -274,35 +317,34 @@ def search_poses(
     angle_variance = config.angle_tolerance_rad**2
     left_variance, right_turn2 = angle_variance + left_turn**2, right_turn**2
     found = []
-    chunk = max(1, 400_000 // max(len(right.p_object), 1))
+    columns = len(right.p_object)
+    chunk = max(1, 400_000 // max(columns, 1))
     # Work buffers reused by every chunk (fresh multi-megabyte arrays cost page faults each time).
-    squared_buffer = np.empty((min(chunk, len(left.p_object)), len(right.p_object)))
-    product_buffer = np.empty_like(squared_buffer)
-    low_buffer = np.empty(squared_buffer.shape, dtype=bool)
+    partial_buffer = np.empty((min(chunk, len(left.p_object)), columns))
+    low_buffer = np.empty(partial_buffer.shape, dtype=bool)
     high_buffer = np.empty_like(low_buffer)
     for first in range(0, len(left.p_object), chunk):
         rows = slice(first, first + chunk)
         count = min(chunk, len(left.p_object) - first)
-        squared, product = squared_buffer[:count], product_buffer[:count]
-        np.add(squared_left[rows, None], squared_right[None, :], out=squared)
-        np.subtract(squared, np.matmul(2.0 * left.p_object[rows], right.p_object.T, out=product), out=squared)
-        shell = np.greater_equal(squared, low2, out=low_buffer[:count])
-        shell &= np.less_equal(squared, high2, out=high_buffer[:count])
+        partial = np.matmul(left_rows[rows], right_columns, out=partial_buffer[:count])
+        shell = np.greater_equal(partial, low_rows[rows, None], out=low_buffer[:count])
+        shell &= np.less_equal(partial, high_rows[rows, None], out=high_buffer[:count])
         flat = np.flatnonzero(shell)  # far faster than a 2-D nonzero; the same pairs in the same order
         if not len(flat):
             continue
-        distance = np.sqrt(np.maximum(squared.reshape(-1)[flat], 0.0))
-        i = flat // len(right.p_object)
-        j = flat - i * len(right.p_object)
+        i = flat // columns
+        j = flat - i * columns
         i += first
-        blur = left.blur_m[i] + right.blur_m[j]
-        mismatch = np.abs(distance - separation) / np.hypot(config.distance_tolerance_m, blur)
-        keep = np.flatnonzero((mismatch <= 1.0) & (distance >= MIN_CONTACT_SEPARATION_M))
-        i, j, distance, blur, mismatch = i[keep], j[keep], distance[keep], blur[keep], mismatch[keep]
         # (nL, nR)
         key = np.arccos(np.clip(_dot(n_left_columns, i, n_right_columns, j), -1.0, 1.0))
-        part = np.abs(key - angles[2]) / np.sqrt(left_variance[i] + right_turn2[j])
-        keep = np.flatnonzero(part <= 1.0)
+        mismatch = np.abs(key - angles[2]) / np.sqrt(left_variance[i] + right_turn2[j])
+        keep = np.flatnonzero(mismatch <= 1.0)
+        i, j, flat, mismatch = i[keep], j[keep], flat[keep], mismatch[keep]
+        # separation
+        distance = np.sqrt(np.maximum(partial.reshape(-1)[flat] + squared_left[i], 0.0))
+        blur = left.blur_m[i] + right.blur_m[j]
+        part = np.abs(distance - separation) / np.hypot(config.distance_tolerance_m, blur)
+        keep = np.flatnonzero((part <= 1.0) & (distance >= MIN_CONTACT_SEPARATION_M))
         i, j, distance, blur = i[keep], j[keep], distance[keep], blur[keep]
         mismatch = np.maximum(mismatch[keep], part[keep])
         turn2 = (blur / max(separation, 1e-3)) ** 2  # the direction d turns as the locations move within their blur
@@ -323,10 +365,10 @@ def search_poses(
     if len(mismatch) > config.max_matches:
         best = np.argpartition(mismatch, config.max_matches - 1)[: config.max_matches]
         a, b, mismatch = a[best], b[best], mismatch[best]
-    T_world_object = closed_form_poses(
+    quaternions, translations = closed_form_quaternions(
         left.p_object[a], n_left[a], right.p_object[b], n_right[b], world["left"], world["right"]
     )
-    return PairMatches(mismatch, T_world_object)
+    return PairMatches(mismatch, quaternions, translations)
 
 
 def _dot(first: np.ndarray, i: np.ndarray, second: np.ndarray, j: np.ndarray) -> np.ndarray:

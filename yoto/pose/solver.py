@@ -23,7 +23,13 @@ from yoto.contacts import (
     dual_contact_directions,
 )
 from yoto.errors import DegenerateGeometryError, InputError
-from yoto.geometry import invert_transform, normalize, rotation_angle_rad, transform_points
+from yoto.geometry import (
+    invert_transform,
+    normalize,
+    quaternion_xyzw_to_rotation,
+    rotation_angle_rad,
+    transform_points,
+)
 from yoto.objects.model import ObjectModel
 
 MIN_CONTACT_SEPARATION_M = 0.002  # closer contacts leave the contact-to-contact direction undefined
@@ -88,10 +94,106 @@ def direction_angles(offset: np.ndarray, n_left: np.ndarray, n_right: np.ndarray
 
 def procrustes_rotations(cross_covariances: np.ndarray) -> np.ndarray:
     """Proper rotations R maximising trace(R^T H) of (K, 3, 3) matrices H: `geometry.procrustes_rotation` for many
-    at once (R = U diag(1, 1, det(U V^T)) V^T)."""
-    u, _, vt = np.linalg.svd(np.asarray(cross_covariances, dtype=np.float64))
-    u[:, :, 2] *= np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)[:, None]
-    return u @ vt
+    at once (see `procrustes_quaternions`)."""
+    return quaternion_xyzw_to_rotation(procrustes_quaternions(cross_covariances))
+
+
+def procrustes_quaternions(cross_covariances: np.ndarray) -> np.ndarray:
+    """(K, 4) unit quaternions (x, y, z, w; w >= 0) of the proper rotations R maximising trace(R^T H) of (K, 3, 3)
+    matrices H, without an SVD (Horn's quaternion method: 5.9 ms per 8000 where a batched 3 x 3 SVD takes 15.4).
+
+    R's quaternion is the eigenvector of the largest eigenvalue of a symmetric, traceless 4 x 4 matrix N built from
+    H. That eigenvalue is the largest root of N's characteristic polynomial l^4 + c2 l^2 + c1 l + c0, found by
+    Newton's method from an upper bound (it converges from above without overshooting); its eigenvector is any
+    nonzero row of the adjugate of N - l I, the row with the largest diagonal entry being the best conditioned.
+    Where the two largest eigenvalues coincide the rotation about one axis is free and any solution is as good.
+    """
+    h = np.asarray(cross_covariances, dtype=np.float64)
+    # S = H^T: S[a, b] sums source_a target_b (Horn's notation).
+    sxx, sxy, sxz = h[:, 0, 0], h[:, 1, 0], h[:, 2, 0]
+    syx, syy, syz = h[:, 0, 1], h[:, 1, 1], h[:, 2, 1]
+    szx, szy, szz = h[:, 0, 2], h[:, 1, 2], h[:, 2, 2]
+    n = [
+        [sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
+        [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
+        [szx - sxz, sxy + syx, syy - sxx - szz, syz + szy],
+        [sxy - syx, szx + sxz, syz + szy, szz - sxx - syy],
+    ]
+    squared = np.einsum("kij,kij->k", h, h)
+    c2 = -2.0 * squared
+    c1 = -8.0 * (
+        sxx * (syy * szz - syz * szy) - sxy * (syx * szz - syz * szx) + sxz * (syx * szy - syy * szx)
+    )  # -8 det(S)
+    c0, _ = _determinant_and_adjugate(n, rows=False)
+    # sum of |eigenvalues| <= 2 sqrt(sum of squares) = 2 sqrt(4 |H|^2 / 4): an upper bound of the largest root
+    root = np.sqrt(3.0 * squared)
+    active = np.arange(len(h))
+    for _ in range(100):
+        x, a2, a1, a0 = root[active], c2[active], c1[active], c0[active]
+        value = ((x * x + a2) * x + a1) * x + a0
+        slope = (4.0 * x * x + 2.0 * a2) * x + a1
+        step = np.where(slope > 0.0, value / np.where(slope > 0.0, slope, 1.0), 0.0)
+        root[active] = x - step
+        active = active[np.abs(step) > 1e-14 * np.maximum(x, 1e-300)]
+        if not len(active):
+            break
+    shifted = [[entry - root if i == j else entry for j, entry in enumerate(row)] for i, row in enumerate(n)]
+    _, adjugate = _determinant_and_adjugate(shifted, rows=True)
+    diagonal = np.abs(np.stack([adjugate[i][i] for i in range(4)]))
+    best = np.argmax(diagonal, axis=0)
+    rows = np.stack([np.stack(adjugate[i]) for i in range(4)])  # (4, 4, K): row i of the adjugate
+    wxyz = rows[best, :, np.arange(len(h))]  # (K, 4) quaternion (w, x, y, z), unnormalised
+    identity = ~np.any(wxyz != 0.0, axis=1)  # H = 0: every rotation is as good
+    wxyz[identity] = (1.0, 0.0, 0.0, 0.0)
+    wxyz *= np.where(wxyz[:, :1] < 0.0, -1.0, 1.0) / np.linalg.norm(wxyz, axis=1, keepdims=True)
+    return wxyz[:, [1, 2, 3, 0]]
+
+
+def _determinant_and_adjugate(a: list[list[np.ndarray]], rows: bool) -> tuple[np.ndarray, list[list[np.ndarray]]]:
+    """Determinant (K,) of 4 x 4 matrices given entry by entry (a[i][j] of shape (K,)), by Laplace expansion over
+    the 2 x 2 minors of the first two rows and of the last two; with `rows`, also the adjugate (entry by entry)."""
+    s0 = a[0][0] * a[1][1] - a[1][0] * a[0][1]
+    s1 = a[0][0] * a[1][2] - a[1][0] * a[0][2]
+    s2 = a[0][0] * a[1][3] - a[1][0] * a[0][3]
+    s3 = a[0][1] * a[1][2] - a[1][1] * a[0][2]
+    s4 = a[0][1] * a[1][3] - a[1][1] * a[0][3]
+    s5 = a[0][2] * a[1][3] - a[1][2] * a[0][3]
+    c5 = a[2][2] * a[3][3] - a[3][2] * a[2][3]
+    c4 = a[2][1] * a[3][3] - a[3][1] * a[2][3]
+    c3 = a[2][1] * a[3][2] - a[3][1] * a[2][2]
+    c2 = a[2][0] * a[3][3] - a[3][0] * a[2][3]
+    c1 = a[2][0] * a[3][2] - a[3][0] * a[2][2]
+    c0 = a[2][0] * a[3][1] - a[3][0] * a[2][1]
+    determinant = s0 * c5 - s1 * c4 + s2 * c3 + s3 * c2 - s4 * c1 + s5 * c0
+    if not rows:
+        return determinant, []
+    adjugate = [
+        [
+            a[1][1] * c5 - a[1][2] * c4 + a[1][3] * c3,
+            -a[0][1] * c5 + a[0][2] * c4 - a[0][3] * c3,
+            a[3][1] * s5 - a[3][2] * s4 + a[3][3] * s3,
+            -a[2][1] * s5 + a[2][2] * s4 - a[2][3] * s3,
+        ],
+        [
+            -a[1][0] * c5 + a[1][2] * c2 - a[1][3] * c1,
+            a[0][0] * c5 - a[0][2] * c2 + a[0][3] * c1,
+            -a[3][0] * s5 + a[3][2] * s2 - a[3][3] * s1,
+            a[2][0] * s5 - a[2][2] * s2 + a[2][3] * s1,
+        ],
+        [
+            a[1][0] * c4 - a[1][1] * c2 + a[1][3] * c0,
+            -a[0][0] * c4 + a[0][1] * c2 - a[0][3] * c0,
+            a[3][0] * s4 - a[3][1] * s2 + a[3][3] * s0,
+            -a[2][0] * s4 + a[2][1] * s2 - a[2][3] * s0,
+        ],
+        [
+            -a[1][0] * c3 + a[1][1] * c1 - a[1][2] * c0,
+            a[0][0] * c3 - a[0][1] * c1 + a[0][2] * c0,
+            -a[3][0] * s3 + a[3][1] * s1 - a[3][2] * s0,
+            a[2][0] * s3 - a[2][1] * s1 + a[2][2] * s0,
+        ],
+    ]
+    return determinant, adjugate
 
 
 def closed_form_poses(
@@ -105,15 +207,47 @@ def closed_form_poses(
     """(K, 4, 4) T_world_object of K object-side contact pairs ((K, 3) arrays) against one measured pair: the
     Procrustes rotation of Q_object onto Q_world, and the translation that aligns the contact points on average
     (`solve_poses` without its diagnostics)."""
+    return poses_from_quaternions(
+        *closed_form_quaternions(p_left_object, n_left_object, p_right_object, n_right_object, left_world, right_world)
+    )
+
+
+def closed_form_quaternions(
+    p_left_object: np.ndarray,
+    n_left_object: np.ndarray,
+    p_right_object: np.ndarray,
+    n_right_object: np.ndarray,
+    left_world: WorldContact,
+    right_world: WorldContact,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`closed_form_poses` as (K, 4) rotation quaternions (x, y, z, w; w >= 0) and (K, 3) translations."""
     q_object = _object_directions(p_left_object, n_left_object, p_right_object, n_right_object)
     offset_world = right_world.p_world - left_world.p_world
     q_world = dual_contact_directions(offset_world, left_world.n_world, right_world.n_world)
-    rotation = procrustes_rotations(q_world @ np.swapaxes(q_object, 1, 2))
+    quaternions = procrustes_quaternions(q_world @ np.swapaxes(q_object, 1, 2))
     middle = 0.5 * (p_left_object + p_right_object)
-    translation = 0.5 * (left_world.p_world + right_world.p_world) - (rotation @ middle[:, :, None])[:, :, 0]
-    T = np.tile(np.eye(4), (len(rotation), 1, 1))
-    T[:, :3, :3], T[:, :3, 3] = rotation, translation
+    # q middle q*: middle + 2 w (u x middle) + 2 u x (u x middle), u the quaternion's vector part
+    u, w = quaternions[:, :3], quaternions[:, 3:]
+    turn = np.cross(u, middle)
+    rotated = middle + 2.0 * (w * turn + np.cross(u, turn))
+    return quaternions, 0.5 * (left_world.p_world + right_world.p_world) - rotated
+
+
+def poses_from_quaternions(quaternions_xyzw: np.ndarray, translations: np.ndarray) -> np.ndarray:
+    """(K, 4, 4) poses of (K, 4) rotation quaternions (x, y, z, w) and (K, 3) translations."""
+    T = np.zeros((len(translations), 4, 4))
+    T[:, :3, :3] = quaternion_xyzw_to_rotation(quaternions_xyzw)
+    T[:, :3, 3] = translations
+    T[:, 3, 3] = 1.0
     return T
+
+
+def quaternion_rotation_vectors(quaternions_xyzw: np.ndarray) -> np.ndarray:
+    """(K, 3) rotation vectors (angles in [0, pi]) of (K, 4) unit quaternions (x, y, z, w) with w >= 0."""
+    u, w = quaternions_xyzw[:, :3], quaternions_xyzw[:, 3]
+    sine = np.linalg.norm(u, axis=1)  # sin(angle / 2)
+    angle = 2.0 * np.arctan2(sine, w)
+    return u * np.where(sine > 1e-12, angle / np.maximum(sine, 1e-12), 2.0)[:, None]
 
 
 def _object_directions(
