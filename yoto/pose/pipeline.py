@@ -88,6 +88,8 @@ class PoseConfig:
     candidates_refined: int = 6
     neighbours_refined: int = 36  # the neighbours of the most likely hypotheses (hypotheses.neighbour_poses) are
     # screened by the short refinement, and the best of this many distinct ones refined in full (0: all in full)
+    neighbours_if_decisive: bool = False  # refine them even when the most likely hypothesis is decisive by itself
+    # (decisive_probability and decisive_log_likelihood)
     seed_distinct_m: float = 0.005  # seeds in one cell of this size (object centroid) ...
     seed_distinct_rad: float = float(np.radians(5.0))  # ... and of this (rotation vector) are screened as one
     search_config: SearchConfig = SearchConfig()
@@ -278,7 +280,10 @@ def _verify_and_refine(
     full = refine_hypotheses(field, contacts, first.T_world_object[best], config.calibration, refine)
     if not neighbours or not config.hypotheses.neighbours_of:
         return full
-    top = group_hypotheses(full, symmetry, config.hypotheses).member[: config.hypotheses.neighbours_of]
+    grouped = group_hypotheses(full, symmetry, config.hypotheses)
+    if not config.neighbours_if_decisive and _clear_first(grouped, config):
+        return full
+    top = grouped.member[: config.hypotheses.neighbours_of]
     near = neighbour_poses(full.T_world_object[top], config.hypotheses)
     if config.neighbours_refined:
         first = refine_hypotheses(field, screening, near, config.calibration, short)
@@ -540,10 +545,15 @@ def _decisive(hypotheses: Hypotheses | None, shapes: dict[str, LocalShape], conf
     nine objects, no pair that passed was wrong."""
     if hypotheses is None or not len(hypotheses):
         return False
+    return _clear_first(hypotheses, config) and _featured(shapes) >= config.decisive_featured
+
+
+def _clear_first(hypotheses: Hypotheses, config: PoseConfig) -> bool:
+    """Whether the most likely hypothesis holds `decisive_probability` and explains the contacts at least as well
+    as `decisive_log_likelihood`."""
     return bool(
         hypotheses.probability[0] >= config.decisive_probability
         and hypotheses.log_likelihood[0] >= config.decisive_log_likelihood
-        and _featured(shapes) >= config.decisive_featured
     )
 
 
