@@ -83,7 +83,7 @@ class PoseConfig:
     decisive_log_likelihood: float = -10.0  # ... explains the contacts this well (hypotheses.log_likelihoods) ...
     decisive_featured: int = 1  # ... and at least this many of the two contacts have features of their own
     screened: int = 400  # seeds (the best by a cheap score) that get a short refinement
-    seeds_refined: int = 40  # distinct hypotheses (the most likely after the short refinement) refined in full
+    seeds_refined: int = 32  # distinct hypotheses (the most likely after the short refinement) refined in full
     candidates_screened: int = 24  # the same two numbers when only the localizers' candidate pairs are verified
     candidates_refined: int = 6
     neighbours_refined: int = 36  # the neighbours of the most likely hypotheses (hypotheses.neighbour_poses) are
