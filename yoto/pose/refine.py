@@ -54,7 +54,7 @@ class RefineConfig:
     """How hypotheses are verified and refined."""
 
     points_per_contact: int = 120  # tactile points used per contact (after down-sampling to the model spacing)
-    verify_points: int = 10  # of these, the points used to score unrefined seeds
+    verify_points: int = 8  # of these, the points used to score unrefined seeds
     seed_tilt_rad: float = float(np.radians(4.0))  # how far an unrefined seed's normals may be off (sampling)
     screen_points: int = 24  # of these, the points used by the short refinement that screens many seeds
     screen_iterations: int = 3  # iterations of that short refinement
