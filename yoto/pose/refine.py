@@ -59,7 +59,7 @@ class RefineConfig:
     screen_points: int = 24  # of these, the points used by the short refinement that screens many seeds
     screen_iterations: int = 3  # iterations of that short refinement
     screen_free_points: int = 24  # free-space points per contact that score that short refinement
-    iterations: int = 6  # Gauss-Newton iterations at most
+    iterations: int = 7  # Gauss-Newton iterations at most
     max_distance_m: float = 0.003  # points further than this from the surface are ignored (the capture range)
     surface_noise_m: float = 5e-5  # 1-sigma of a tactile point's distance from the true surface (weights)
     prior_rotation_rad: float = float(np.radians(10.0))  # the starting pose as a weak prior: rotation ...
