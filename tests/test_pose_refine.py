@@ -1,8 +1,10 @@
-"""The refinement's normal equations against finite differences of the clouds' residuals."""
+"""The refinement: its normal equations against finite differences of the clouds' residuals, and which poses the
+pose stage refines in full."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import trimesh
 
 from yoto.geometry import (
@@ -14,27 +16,39 @@ from yoto.geometry import (
     transform_points,
 )
 from yoto.objects.model import ObjectModelConfig, build_object_model
+from yoto.objects.symmetry import Symmetry
 from yoto.pose.field import surface_field
+from yoto.pose.pipeline import PoseConfig, _verify_and_refine
 from yoto.pose.refine import ContactPoints, RefineConfig, _add_normal_equations
 from yoto.registration import transform_batch
 
 
-def test_normal_equations_match_finite_differences(rng):
-    """Both sensors' correction rows come from the object pose's rows by the adjoint (refine.py): the system they
-    give must be J^T W J and J^T W r of the Jacobian measured by finite differences of the residuals. On a box's
-    faces, away from its edges, the distance field is linear, so the finite differences are exact."""
-    box = build_object_model(
+@pytest.fixture(scope="module")
+def box():
+    return build_object_model(
         trimesh.creation.box(extents=(0.12, 0.08, 0.05)), "box", ObjectModelConfig(num_points=20_000)
     )
-    field = surface_field(box)
-    T_world_object = make_transform(random_rotations(rng, 1)[0], [0.4, -0.1, 0.3])
+
+
+def _box_contacts(box, T_world_object: np.ndarray, points: int = 40) -> list[ContactPoints]:
+    """Two contacts on two faces of the box, away from its edges, each in its own sensor frame."""
     contacts = []
     centre_object = transform_points(box.T_object_mesh, np.array([[0.01, 0.005, 0.025], [0.06, -0.01, 0.0]]))
     for sensor, (centre, normal) in enumerate(zip(centre_object, ([0, 0, 1.0], [1.0, 0, 0]))):
-        patch = box.points_object[np.linalg.norm(box.points_object - centre, axis=1) < 0.005][:40]
+        patch = box.points_object[np.linalg.norm(box.points_object - centre, axis=1) < 0.005][:points]
         T_object_sensor = make_transform(rotation_about_axis(np.array(normal), 0.7 + sensor), centre)
         points_sensor = transform_batch(invert_transform(T_object_sensor)[None], patch)[0]
         contacts.append(ContactPoints(points_sensor, T_world_object @ T_object_sensor, sensor, np.zeros((0, 3))))
+    return contacts
+
+
+def test_normal_equations_match_finite_differences(box, rng):
+    """Both sensors' correction rows come from the object pose's rows by the adjoint (refine.py): the system they
+    give must be J^T W J and J^T W r of the Jacobian measured by finite differences of the residuals. On a box's
+    faces, away from its edges, the distance field is linear, so the finite differences are exact."""
+    field = surface_field(box)
+    T_world_object = make_transform(random_rotations(rng, 1)[0], [0.4, -0.1, 0.3])
+    contacts = _box_contacts(box, T_world_object)
     poses = T_world_object @ se3_exp(rng.normal(scale=[0.003] * 3 + [0.0003] * 3, size=(3, 6)))
     corrections = se3_exp(rng.normal(scale=[0.01] * 3 + [0.0005] * 3, size=(3, 2, 6)))
     config = RefineConfig(surface_noise_m=0.01)  # every residual within the robust scale: all weights 1 / noise^2
@@ -62,3 +76,27 @@ def test_normal_equations_match_finite_differences(rng):
     # The corrections' blocks are not zero: the test sees them.
     assert np.abs(hessian[:, 6:12, 6:12]).max() > 0.1 * np.abs(expected).max()
     assert np.abs(hessian[:, 12:, 12:]).max() > 0.1 * np.abs(expected).max()
+
+
+def test_neighbours_are_refined_only_when_the_first_hypothesis_is_not_decisive(box, rng):
+    """The neighbours of the most likely hypotheses are refined unless the first already holds
+    `decisive_probability` and fits to `decisive_log_likelihood`; then the seeds' full refinement is all there is,
+    and where they are refined, the seeds' part is the same."""
+    field = surface_field(box)
+    T_world_object = make_transform(random_rotations(rng, 1)[0], [0.4, -0.1, 0.3])
+    contacts = _box_contacts(box, T_world_object, points=120)
+    seeds = T_world_object @ se3_exp(rng.normal(scale=[0.05] * 3 + [0.004] * 3, size=(60, 6)))
+    seeds[0] = T_world_object
+
+    def refined(**settings) -> np.ndarray:
+        config = PoseConfig(**settings)
+        return _verify_and_refine(field, contacts, seeds, Symmetry(), config, 30, 8, neighbours=True).T_world_object
+
+    decisive = refined(decisive_probability=0.0, decisive_log_likelihood=-np.inf)
+    undecided = refined(decisive_probability=1.01)
+    forced = refined(decisive_probability=0.0, decisive_log_likelihood=-np.inf, neighbours_if_decisive=True)
+    assert len(decisive) <= 8 and len(undecided) > len(decisive) + 8
+    assert np.array_equal(undecided[: len(decisive)], decisive)
+    assert np.array_equal(forced, undecided)
+    # The true pose was a seed: its refinement stayed there.
+    assert np.linalg.norm(decisive[:, :3, 3] - T_world_object[:3, 3], axis=1).min() < 5e-4

@@ -87,7 +87,7 @@ class PoseConfig:
     # a seed the short refinement brings to the truth ranked within the best 150 in 62, within 400 in 63)
     fused_screened: int = 400  # the same for the second pair's seeds when a re-touch is fused (a flat box face's
     # re-touch needed more than 250)
-    seeds_refined: int = 40  # distinct hypotheses (the most likely after the short refinement) refined in full
+    seeds_refined: int = 32  # distinct hypotheses (the most likely after the short refinement) refined in full
     candidates_screened: int = 24  # the same two numbers when only the localizers' candidate pairs are verified
     candidates_refined: int = 6
     neighbours_refined: int = 36  # the neighbours of the most likely hypotheses (hypotheses.neighbour_poses) are
@@ -97,6 +97,8 @@ class PoseConfig:
     family_refined: int = 36  # ... the best of this many distinct ones the full one ...
     family_passes: int = 2  # ... this many times (each pass starts where the last stopped: along a family the weak
     # prior on the starting pose holds a single pass short of the best fit)
+    neighbours_if_decisive: bool = False  # refine them even when the most likely hypothesis is decisive by itself
+    # (decisive_probability and decisive_log_likelihood)
     seed_distinct_m: float = 0.005  # seeds in one cell of this size (object centroid) ...
     seed_distinct_rad: float = float(np.radians(5.0))  # ... and of this (rotation vector) are screened as one
     search_config: SearchConfig = SearchConfig()
@@ -291,13 +293,16 @@ def _verify_and_refine(
     full = refine_hypotheses(field, contacts, first.T_world_object[best], config.calibration, refine)
     if not neighbours or not config.hypotheses.neighbours_of:
         return full
-    top = group_hypotheses(full, symmetry, config.hypotheses).member[: config.hypotheses.neighbours_of]
+    grouped = group_hypotheses(full, symmetry, config.hypotheses)
+    if not config.neighbours_if_decisive and _clear_first(grouped, config):
+        return full
+    top = grouped.member[: config.hypotheses.neighbours_of]
     near = neighbour_poses(full.T_world_object[top], config.hypotheses)
     if config.neighbours_refined:
         first = refine_hypotheses(field, screening, near, config.calibration, short)
         near = first.T_world_object[_best_distinct(first, symmetry, config.hypotheses, config.neighbours_refined)]
     more = refine_hypotheses(field, contacts, near, config.calibration, refine)
-    return Refined(*(np.concatenate([getattr(full, name), getattr(more, name)]) for name in full.__dataclass_fields__))
+    return _joined(full, more)
 
 
 def _fill_family(
@@ -603,10 +608,15 @@ def _decisive(hypotheses: Hypotheses | None, shapes: dict[str, LocalShape], conf
     nine objects, no pair that passed was wrong."""
     if hypotheses is None or not len(hypotheses):
         return False
+    return _clear_first(hypotheses, config) and _featured(shapes) >= config.decisive_featured
+
+
+def _clear_first(hypotheses: Hypotheses, config: PoseConfig) -> bool:
+    """Whether the most likely hypothesis holds `decisive_probability` and explains the contacts at least as well
+    as `decisive_log_likelihood`."""
     return bool(
         hypotheses.probability[0] >= config.decisive_probability
         and hypotheses.log_likelihood[0] >= config.decisive_log_likelihood
-        and _featured(shapes) >= config.decisive_featured
     )
 
 
