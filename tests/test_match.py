@@ -241,26 +241,26 @@ def test_pose_command_defaults_to_the_matched_filter(builtin_models, tmp_path, r
     assert sum(good) >= 3, errors
 
 
-def test_two_contacts_localized_concurrently_as_one_by_one(builtin_models):
-    """A pair's two contacts on two threads at once give the candidates they give one after the other, and BLAS is
-    left as it was found (each thread's one-thread limit nests inside the pair's)."""
-    from threadpoolctl import threadpool_info
-
+def test_a_helper_process_localizes_a_pair_as_this_process_does(builtin_models):
+    """With a helper process, a pair's right contact gets exactly the candidates and world-side measurement it gets
+    here (the model sent to the helper, its anchor maps built there)."""
+    from yoto.localize.helper import LocalizerProcess
     from yoto.pose.pipeline import localize_contacts
 
     model = builtin_models["fruit"]
     pair = PairSimulator(model).pair(seed=11, index=0).pair
     localizer = make_localizer("match")
-    blas_before = [library["num_threads"] for library in threadpool_info() if library["user_api"] == "blas"]
-    alone, _, _ = localize_contacts(pair, model, localizer)
-    together, world, latency = localize_contacts(pair, model, localizer, concurrent=True)
+    alone, world_alone, _ = localize_contacts(pair, model, localizer)
+    with LocalizerProcess(localizer) as helper:
+        together, world, latency = localize_contacts(pair, model, localizer, helper)
     for side in ("left", "right"):
-        assert len(together[side]) == len(alone[side])
+        assert len(together[side]) == len(alone[side]) > 0
         for a, b in zip(alone[side], together[side], strict=True):
             assert np.array_equal(a.p_object, b.p_object) and a.probability == b.probability
-    assert set(world) == {"left", "right"}
-    assert latency["localize_pair"] > 0
-    assert [library["num_threads"] for library in threadpool_info() if library["user_api"] == "blas"] == blas_before
+            assert a.details["match_T_object_sensor"] == b.details["match_T_object_sensor"]
+        assert np.array_equal(world[side].p_world, world_alone[side].p_world)
+        assert np.array_equal(world[side].n_world, world_alone[side].n_world)
+    assert latency["localize_pair"] >= latency["localize_left"] > 0 and latency["localize_right"] > 0
 
 
 def test_the_dense_cloud_check_agrees_with_the_measured_spacing(rng):
@@ -289,3 +289,27 @@ def test_mask_only_sampling_matches_sampling(fruit_contacts):
     for mask in (image.mask, ~image.filled):
         _, expected = image.sample(x, y, mask)
         np.testing.assert_array_equal(image.covered(x, y, mask), expected)
+
+
+def test_the_helpers_record_of_its_models_mirrors_what_it_keeps(builtin_models, monkeypatch):
+    """The caller sends a model only when the helper does not hold it; both sides forget the oldest beyond
+    MODELS_KEPT in the same order (the helper's side run here, in this process, on the same requests)."""
+    from collections import OrderedDict
+
+    from yoto.localize import helper as helper_module
+
+    monkeypatch.setattr(helper_module, "MODELS_KEPT", 2)
+    monkeypatch.setattr(helper_module, "_models", OrderedDict())
+    process = helper_module.LocalizerProcess(make_localizer("match"))  # its process starts on the first request
+    sent = []
+    try:
+        for name in ("fruit", "tool", "fruit", "figurine", "fruit", "tool"):
+            model = builtin_models[name]
+            to_send = process._model_to_send(model)
+            sent.append(to_send is not None)
+            kept = helper_module._model(model.fingerprint, to_send)  # a missing model would raise KeyError
+            assert kept.fingerprint == model.fingerprint
+            assert "kdtree" not in vars(kept) or to_send is None  # sent without the caller's cached k-d tree
+    finally:
+        process.close()
+    assert sent == [True, True, False, True, True, True]

@@ -11,6 +11,11 @@ the localizer. It receives each object model once and keeps the last `MODELS_KEP
 localizer caches per model (the matched filter's anchor maps are built again there: the first contact of an
 object costs the same seconds in the helper as in the caller; `prepare_object` does it ahead of time). After
 that a contact costs its transfer (the tactile cloud, ~0.5 MB, and the candidates back: about a millisecond).
+A script that starts one needs the usual `if __name__ == "__main__":` guard of spawned processes.
+
+    with LocalizerProcess(localizer) as helper:
+        helper.prepare_object(model)
+        candidates, world, latency = localize_contacts(pair, model, localizer, helper)
 """
 
 from __future__ import annotations
@@ -94,7 +99,6 @@ class LocalizerProcess:
             self._sent.popitem(last=False)
         return replace(model)  # a fresh instance: k-d tree, mesh and ray caster are rebuilt on use there
 
-
     def _forget(self, key: str) -> None:
         """After a failed request: send the model again next time (it may not have arrived)."""
         with self._lock:
@@ -109,6 +113,7 @@ def _start(localizer: ContactLocalizer) -> None:
 def _model(key: str, model: ObjectModel | None) -> ObjectModel:
     """The helper's copy of a model: the one just sent (kept), or the one kept from before."""
     if model is not None:
+        _models.pop(key, None)  # (re)sent: now the newest, as in the caller's record
         _models[key] = model
         while len(_models) > MODELS_KEPT:
             _models.popitem(last=False)
