@@ -44,7 +44,6 @@ class LocalizerProcess:
     """A copy of `localizer` in a helper process; `submit` localizes one contact there while the caller works."""
 
     def __init__(self, localizer: ContactLocalizer):
-        self.localizer = localizer
         self._pool = ProcessPoolExecutor(
             max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_start, initargs=(localizer,)
         )
