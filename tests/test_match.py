@@ -291,25 +291,27 @@ def test_mask_only_sampling_matches_sampling(fruit_contacts):
         np.testing.assert_array_equal(image.covered(x, y, mask), expected)
 
 
-def test_the_helpers_record_of_its_models_mirrors_what_it_keeps(builtin_models, monkeypatch):
-    """The caller sends a model only when the helper does not hold it; both sides forget the oldest beyond
-    MODELS_KEPT in the same order (the helper's side run here, in this process, on the same requests)."""
-    from collections import OrderedDict
+def test_the_helper_keeps_the_models_the_caller_records_and_raises_what_it_raised(builtin_models):
+    """The caller sends a model only when the helper does not hold it, and both forget the oldest beyond
+    `models_kept` in the same order: every answer is computed on its own model (the oracle's normal is the model's
+    own), and an error in the helper is raised by the caller."""
+    from yoto.contacts import TactileContact
+    from yoto.localize.helper import LocalizerProcess
 
-    from yoto.localize import helper as helper_module
-
-    monkeypatch.setattr(helper_module, "MODELS_KEPT", 2)
-    monkeypatch.setattr(helper_module, "_models", OrderedDict())
-    process = helper_module.LocalizerProcess(make_localizer("match"))  # its process starts on the first request
-    sent = []
-    try:
+    oracle = make_localizer("oracle")
+    contact = TactileContact(np.zeros((40, 3)), np.eye(4))  # the oracle reads only the truth
+    held = []
+    with LocalizerProcess(oracle, models_kept=2) as helper:
         for name in ("fruit", "tool", "fruit", "figurine", "fruit", "tool"):
             model = builtin_models[name]
-            to_send = process._model_to_send(model)
-            sent.append(to_send is not None)
-            kept = helper_module._model(model.fingerprint, to_send)  # a missing model would raise KeyError
-            assert kept.fingerprint == model.fingerprint
-            assert "kdtree" not in vars(kept) or to_send is None  # sent without the caller's cached k-d tree
-    finally:
-        process.close()
-    assert sent == [True, True, False, True, True, True]
+            truth = model.points_object[100].astype(np.float64)
+            candidates, _, _ = helper.submit(contact, model, truth).result()
+            assert np.array_equal(
+                candidates[0].n_object, oracle.localize(contact.points_sensor, model, truth)[0].n_object
+            )
+            held.append([key == model.fingerprint for key in helper._sent])
+        with pytest.raises(ValueError, match="ground-truth"):
+            helper.submit(contact, builtin_models["fruit"]).result()
+    # first in, first out: fruit; fruit, tool; (fruit held); tool, figurine; figurine, fruit; fruit, tool
+    assert [row.index(True) for row in held] == [0, 1, 0, 1, 1, 1]
+    assert [len(row) for row in held] == [1, 2, 2, 2, 2, 2]
