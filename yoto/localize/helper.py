@@ -79,6 +79,8 @@ class LocalizerProcess:
     def close(self) -> None:
         """Stop the helper process (after the request it is working on, if any)."""
         with self._lock:
+            if self._connection.closed:
+                return
             if self._process.is_alive():
                 self._connection.send(None)
             self._process.join(timeout=10)
@@ -130,7 +132,7 @@ def _serve(connection: Connection, localizer: ContactLocalizer, models_kept: int
     while True:
         try:
             request = connection.recv()
-        except EOFError:
+        except (EOFError, KeyboardInterrupt):  # the caller is gone, or Ctrl-C reached its whole process group
             return
         if request is None:
             return
