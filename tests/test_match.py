@@ -241,26 +241,26 @@ def test_pose_command_defaults_to_the_matched_filter(builtin_models, tmp_path, r
     assert sum(good) >= 3, errors
 
 
-def test_two_contacts_localized_concurrently_as_one_by_one(builtin_models):
-    """A pair's two contacts on two threads at once give the candidates they give one after the other, and BLAS is
-    left as it was found (each thread's one-thread limit nests inside the pair's)."""
-    from threadpoolctl import threadpool_info
-
+def test_a_helper_process_localizes_a_pair_as_this_process_does(builtin_models):
+    """With a helper process, a pair's right contact gets exactly the candidates and world-side measurement it gets
+    here (the model sent to the helper, its anchor maps built there)."""
+    from yoto.localize.helper import LocalizerProcess
     from yoto.pose.pipeline import localize_contacts
 
     model = builtin_models["fruit"]
     pair = PairSimulator(model).pair(seed=11, index=0).pair
     localizer = make_localizer("match")
-    blas_before = [library["num_threads"] for library in threadpool_info() if library["user_api"] == "blas"]
-    alone, _, _ = localize_contacts(pair, model, localizer)
-    together, world, latency = localize_contacts(pair, model, localizer, concurrent=True)
+    alone, world_alone, _ = localize_contacts(pair, model, localizer)
+    with LocalizerProcess(localizer) as helper:
+        together, world, latency = localize_contacts(pair, model, localizer, helper)
     for side in ("left", "right"):
-        assert len(together[side]) == len(alone[side])
+        assert len(together[side]) == len(alone[side]) > 0
         for a, b in zip(alone[side], together[side], strict=True):
             assert np.array_equal(a.p_object, b.p_object) and a.probability == b.probability
-    assert set(world) == {"left", "right"}
-    assert latency["localize_pair"] > 0
-    assert [library["num_threads"] for library in threadpool_info() if library["user_api"] == "blas"] == blas_before
+            assert a.details["match_T_object_sensor"] == b.details["match_T_object_sensor"]
+        assert np.array_equal(world[side].p_world, world_alone[side].p_world)
+        assert np.array_equal(world[side].n_world, world_alone[side].n_world)
+    assert latency["localize_pair"] >= latency["localize_left"] > 0 and latency["localize_right"] > 0
 
 
 def test_the_dense_cloud_check_agrees_with_the_measured_spacing(rng):
@@ -289,3 +289,29 @@ def test_mask_only_sampling_matches_sampling(fruit_contacts):
     for mask in (image.mask, ~image.filled):
         _, expected = image.sample(x, y, mask)
         np.testing.assert_array_equal(image.covered(x, y, mask), expected)
+
+
+def test_the_helper_keeps_the_models_the_caller_records_and_raises_what_it_raised(builtin_models):
+    """The caller sends a model only when the helper does not hold it, and both forget the oldest beyond
+    `models_kept` in the same order: every answer is computed on its own model (the oracle's normal is the model's
+    own), and an error in the helper is raised by the caller."""
+    from yoto.contacts import TactileContact
+    from yoto.localize.helper import LocalizerProcess
+
+    oracle = make_localizer("oracle")
+    contact = TactileContact(np.zeros((40, 3)), np.eye(4))  # the oracle reads only the truth
+    held = []
+    with LocalizerProcess(oracle, models_kept=2) as helper:
+        for name in ("fruit", "tool", "fruit", "figurine", "fruit", "tool"):
+            model = builtin_models[name]
+            truth = model.points_object[100].astype(np.float64)
+            candidates, _, _ = helper.submit(contact, model, truth).result()
+            assert np.array_equal(
+                candidates[0].n_object, oracle.localize(contact.points_sensor, model, truth)[0].n_object
+            )
+            held.append([key == model.fingerprint for key in helper._sent])
+        with pytest.raises(ValueError, match="ground-truth"):
+            helper.submit(contact, builtin_models["fruit"]).result()
+    # first in, first out: fruit; fruit, tool; (fruit held); tool, figurine; figurine, fruit; fruit, tool
+    assert [row.index(True) for row in held] == [0, 1, 0, 1, 1, 1]
+    assert [len(row) for row in held] == [1, 2, 2, 2, 2, 2]

@@ -21,7 +21,6 @@
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -41,6 +40,7 @@ from yoto.contacts import (
 from yoto.errors import DegenerateGeometryError, YotoError
 from yoto.geometry import invert_transform, rotate_vectors, se3_exp, transform_points
 from yoto.localize.base import ContactLocalizer
+from yoto.localize.helper import LocalizerProcess
 from yoto.objects.model import ObjectModel
 from yoto.objects.symmetry import Symmetry
 from yoto.pose.confidence import ConfidenceModel, confidence_features, featureless, load_confidence_model
@@ -189,36 +189,34 @@ class PoseEstimate:
 
 
 def localize_contacts(
-    pair: ContactPair, model: ObjectModel, localizer: ContactLocalizer, concurrent: bool = False
+    pair: ContactPair, model: ObjectModel, localizer: ContactLocalizer, helper: LocalizerProcess | None = None
 ) -> tuple[dict[str, list[ContactEstimate]], dict[str, WorldContact], dict[str, float]]:
     """Each contact's ranked candidates on the model, its world-side measurement, and the localizer's time (ms).
 
-    With `concurrent`, the two contacts are localized on two threads at once (numpy's and the k-d tree's work
-    runs outside the GIL): a robot waits for both, not for each. Each side's time is then its own wall time
-    while the other runs beside it, and `localize_pair` is the time of both.
+    With `helper` (a `LocalizerProcess` holding a copy of the localizer), the right contact is localized in the
+    helper process while this one localizes the left: a robot waits for both contacts at once, not for each in
+    turn. Each side's time is then measured where it ran, and `localize_pair` is the time of both (with their
+    world-side measurements).
     """
 
-    def localize(side: str) -> tuple[list[ContactEstimate], float]:
-        truth = None
-        if localizer.needs_ground_truth:
-            if side not in pair.p_mesh_true:
-                raise DegenerateGeometryError(f"{pair.path}: the oracle needs ground_truth.{side}_p_object")
-            truth = transform_points(model.T_object_mesh, pair.p_mesh_true[side])
-        tick = time.perf_counter()
-        found = localizer.localize(pair.contact(side).points_sensor, model, truth)
-        return found, 1000.0 * (time.perf_counter() - tick)
+    def truth(side: str) -> np.ndarray | None:
+        if not localizer.needs_ground_truth:
+            return None
+        if side not in pair.p_mesh_true:
+            raise DegenerateGeometryError(f"{pair.path}: the oracle needs ground_truth.{side}_p_object")
+        return transform_points(model.T_object_mesh, pair.p_mesh_true[side])
 
     start = time.perf_counter()
-    if concurrent:
-        # BLAS on one thread for the whole pair: each localizer's own limit then restores one thread, not two.
-        with one_blas_thread(), ThreadPoolExecutor(max_workers=2) as pool:
-            results = list(pool.map(localize, SIDES))
-    else:
-        results = [localize(side) for side in SIDES]
-    latency = {f"localize_{side}": ms for side, (_, ms) in zip(SIDES, results)}
+    remote = None if helper is None else helper.submit(pair.right, model, truth("right"))
+    candidates, world, latency = {}, {}, {}
+    for side in SIDES if remote is None else ("left",):
+        tick = time.perf_counter()
+        candidates[side] = localizer.localize(pair.contact(side).points_sensor, model, truth(side))
+        latency[f"localize_{side}"] = 1000.0 * (time.perf_counter() - tick)
+        world[side] = contact_in_world(pair.contact(side))
+    if remote is not None:
+        candidates["right"], world["right"], latency["localize_right"] = remote.result()
     latency["localize_pair"] = 1000.0 * (time.perf_counter() - start)
-    candidates = {side: found for side, (found, _) in zip(SIDES, results)}
-    world = {side: contact_in_world(pair.contact(side)) for side in SIDES}
     return candidates, world, latency
 
 
