@@ -92,9 +92,9 @@ def test_neighbours_are_refined_only_when_the_first_hypothesis_is_not_decisive(b
         config = PoseConfig(**settings)
         return _verify_and_refine(field, contacts, seeds, Symmetry(), config, 30, 8, neighbours=True).T_world_object
 
-    decisive = refined(decisive_probability=0.0, decisive_log_likelihood=-np.inf)
-    undecided = refined(decisive_probability=1.01)
-    forced = refined(decisive_probability=0.0, decisive_log_likelihood=-np.inf, neighbours_if_decisive=True)
+    decisive = refined(decisive_probability=0.0, decisive_log_likelihood=-np.inf, neighbours_if_decisive=False)
+    undecided = refined(decisive_probability=1.01, neighbours_if_decisive=False)
+    forced = refined(decisive_probability=0.0, decisive_log_likelihood=-np.inf)  # the default refines them anyway
     assert len(decisive) <= 8 and len(undecided) > len(decisive) + 8
     assert np.array_equal(undecided[: len(decisive)], decisive)
     assert np.array_equal(forced, undecided)

@@ -83,11 +83,9 @@ class PoseConfig:
     # holds this probability, ...
     decisive_log_likelihood: float = -10.0  # ... explains the contacts this well (hypotheses.log_likelihoods) ...
     decisive_featured: int = 1  # ... and at least this many of the two contacts have features of their own
-    screened: int = 150  # seeds (the best by a cheap score) that get a short refinement (71 benchmark searches:
-    # a seed the short refinement brings to the truth ranked within the best 150 in 62, within 400 in 63)
-    fused_screened: int = 400  # the same for the second pair's seeds when a re-touch is fused (a flat box face's
-    # re-touch needed more than 250)
-    seeds_refined: int = 32  # distinct hypotheses (the most likely after the short refinement) refined in full
+    screened: int = 400  # seeds (the best by a cheap score) that get a short refinement (150 kept the truth's seed
+    # on the pose benchmark's searches but lost right and confident poses on the trust benchmark's mugs: docs/pose.md)
+    seeds_refined: int = 40  # distinct hypotheses (the most likely after the short refinement) refined in full
     candidates_screened: int = 24  # the same two numbers when only the localizers' candidate pairs are verified
     candidates_refined: int = 6
     neighbours_refined: int = 36  # the neighbours of the most likely hypotheses (hypotheses.neighbour_poses) are
@@ -97,8 +95,8 @@ class PoseConfig:
     family_refined: int = 36  # ... the best of this many distinct ones the full one ...
     family_passes: int = 2  # ... this many times (each pass starts where the last stopped: along a family the weak
     # prior on the starting pose holds a single pass short of the best fit)
-    neighbours_if_decisive: bool = False  # refine them even when the most likely hypothesis is decisive by itself
-    # (decisive_probability and decisive_log_likelihood)
+    neighbours_if_decisive: bool = True  # refine them even when the most likely hypothesis is decisive by itself
+    # (decisive_probability and decisive_log_likelihood; False saves ~10 ms there, see docs/pose.md)
     seed_distinct_m: float = 0.005  # seeds in one cell of this size (object centroid) ...
     seed_distinct_rad: float = float(np.radians(5.0))  # ... and of this (rotation vector) are screened as one
     search_config: SearchConfig = SearchConfig()
@@ -544,7 +542,7 @@ def fuse_next_touch(
     second_seeds = _second_pair_seeds(now, model, touch, sensor, config, localizer) if localizer else None
     if second_seeds is not None and len(second_seeds):
         more = _verify_and_refine(
-            field, contacts, second_seeds, model.symmetry, config, config.fused_screened, config.seeds_refined
+            field, contacts, second_seeds, model.symmetry, config, config.screened, config.seeds_refined
         )
         refined = _joined(refined, more)
     hypotheses = group_hypotheses(refined, model.symmetry, config.hypotheses)

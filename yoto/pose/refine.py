@@ -54,12 +54,12 @@ class RefineConfig:
     """How hypotheses are verified and refined."""
 
     points_per_contact: int = 120  # tactile points used per contact (after down-sampling to the model spacing)
-    verify_points: int = 8  # of these, the points used to score unrefined seeds
+    verify_points: int = 10  # of these, the points used to score unrefined seeds
     seed_tilt_rad: float = float(np.radians(4.0))  # how far an unrefined seed's normals may be off (sampling)
     screen_points: int = 24  # of these, the points used by the short refinement that screens many seeds
     screen_iterations: int = 3  # iterations of that short refinement
-    screen_free_points: int = 24  # free-space points per contact that score that short refinement
-    iterations: int = 7  # Gauss-Newton iterations at most
+    screen_free_points: int = 48  # free-space points per contact that score that short refinement
+    iterations: int = 8  # Gauss-Newton iterations at most
     max_distance_m: float = 0.003  # points further than this from the surface are ignored (the capture range)
     surface_noise_m: float = 5e-5  # 1-sigma of a tactile point's distance from the true surface (weights)
     prior_rotation_rad: float = float(np.radians(10.0))  # the starting pose as a weak prior: rotation ...
