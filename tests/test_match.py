@@ -263,6 +263,36 @@ def test_a_helper_process_localizes_a_pair_as_this_process_does(builtin_models):
     assert latency["localize_pair"] >= latency["localize_left"] > 0 and latency["localize_right"] > 0
 
 
+def test_pose_command_on_both_cores_writes_the_same_poses(builtin_models, tmp_path, rng, monkeypatch):
+    """`yoto pose --both-cores` (each pair's right contact in a helper process) writes the poses, hypotheses and
+    contacts that one process writes."""
+    import json
+
+    from test_pose import write_foreign_pairs
+
+    from yoto.cli import main
+    from yoto.localize.helper import LocalizerProcess
+
+    sent = []
+    submit = LocalizerProcess.submit
+    monkeypatch.setattr(LocalizerProcess, "submit", lambda self, *a, **k: sent.append(1) or submit(self, *a, **k))
+
+    model = builtin_models["fruit"]
+    model_path = model.save(tmp_path / "fruit.npz")
+    paths = write_foreign_pairs(model, tmp_path / "pairs", rng, 2)
+    for out, extra in (("one", []), ("both", ["--both-cores"])):
+        command = ["pose", str(tmp_path / "pairs"), "--model", str(model_path), "--out", str(tmp_path / out)]
+        assert main(command + extra) == 0
+    assert len(sent) == len(paths)  # only --both-cores sent contacts to the helper, one per pair
+    for path in paths:
+        one, both = (
+            json.loads((tmp_path / out / path.with_suffix(".pose.json").name).read_text()) for out in ("one", "both")
+        )
+        assert both["T_world_object"] == one["T_world_object"]
+        assert both["hypotheses"] == one["hypotheses"] and both["confidence"] == one["confidence"]
+        assert both["right"]["p_object"] == one["right"]["p_object"]
+
+
 def test_the_dense_cloud_check_agrees_with_the_measured_spacing(rng):
     """The height image tells a dense cloud from a sparse one without a k-d tree (`tactile_spacing_at_most`):
     whenever it says the spacing is at most a bound, the measured spacing is; and it says so for dense clouds."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from contextlib import nullcontext
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -71,6 +72,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--from-images",
         action="store_true",
         help="reconstruct every side that gives an 'image' from it, even when it also gives 'points'",
+    )
+    parser.add_argument(
+        "--both-cores",
+        action="store_true",
+        help="localize each pair's right contact in a helper process while this one localizes the left (faster "
+        "when a second core is idle, slower on a busy machine; docs/localization.md)",
     )
     parser.set_defaults(run=run)
 
@@ -167,6 +174,7 @@ def run(args: argparse.Namespace) -> int:
     from yoto.errors import NoContactError, YotoError
     from yoto.io import write_json_atomic
     from yoto.localize import make_localizer
+    from yoto.localize.helper import LocalizerProcess
     from yoto.objects.build import load_object_model
     from yoto.objects.model import ObjectModel
     from yoto.pose.pipeline import estimate_pose, pose_result_path
@@ -180,26 +188,27 @@ def run(args: argparse.Namespace) -> int:
     images = ImageSides(args.calibration)
     models: dict[str, ObjectModel] = {}
     failures, no_contact, errors = 0, 0, []
-    for path in find_pair_files(args.pairs):
-        try:
-            pair = read_contact_pair(path, images, args.from_images)
-            key = args.model or pair.object_name
-            if key not in models:
-                models[key] = load_object_model(key, args.workspace)
-            model = models[key]
-            estimate = estimate_pose(pair, model, localizer, pose_config)
-            result = estimate.to_json(model)
-            line = _describe(estimate, model, pair, result)
-            if "error" in result:
-                errors.append(result["error"])
-            write_json_atomic(pose_result_path(path, args.out), result)
-            print(f"{path.name}: {line}")
-        except NoContactError as exc:
-            no_contact += 1
-            print(f"{path}: no pose, a sensor shows no contact: {exc}")
-        except YotoError as exc:
-            failures += 1
-            print(f"{path}: error: {exc}")
+    with LocalizerProcess(localizer) if args.both_cores else nullcontext() as helper:
+        for path in find_pair_files(args.pairs):
+            try:
+                pair = read_contact_pair(path, images, args.from_images)
+                key = args.model or pair.object_name
+                if key not in models:
+                    models[key] = load_object_model(key, args.workspace)
+                model = models[key]
+                estimate = estimate_pose(pair, model, localizer, pose_config, helper)
+                result = estimate.to_json(model)
+                line = _describe(estimate, model, pair, result)
+                if "error" in result:
+                    errors.append(result["error"])
+                write_json_atomic(pose_result_path(path, args.out), result)
+                print(f"{path.name}: {line}")
+            except NoContactError as exc:
+                no_contact += 1
+                print(f"{path}: no pose, a sensor shows no contact: {exc}")
+            except YotoError as exc:
+                failures += 1
+                print(f"{path}: error: {exc}")
     if errors:
         t = np.array([e["translation_mm"] for e in errors])
         r = np.array([e["rotation_deg_modulo_symmetry"] for e in errors])

@@ -675,11 +675,16 @@ def _closed_form_estimate(
 
 
 def estimate_pose(
-    pair: ContactPair, model: ObjectModel, localizer: ContactLocalizer, config: PoseConfig = PoseConfig()
+    pair: ContactPair,
+    model: ObjectModel,
+    localizer: ContactLocalizer,
+    config: PoseConfig = PoseConfig(),
+    helper: LocalizerProcess | None = None,
 ) -> PoseEstimate:
-    """Localize both contacts of `pair` on `model` and estimate T_world_object with its hypotheses."""
+    """Localize both contacts of `pair` on `model` and estimate T_world_object with its hypotheses. With `helper`
+    (a `LocalizerProcess` holding a copy of `localizer`), the right contact is localized there at the same time."""
     start = time.perf_counter()
-    candidates, world, latency = localize_contacts(pair, model, localizer)
+    candidates, world, latency = localize_contacts(pair, model, localizer, helper)
     estimate = pose_from_candidates(pair, model, candidates, world, config, localizer.name)
     estimate.latency_ms = {**latency, **estimate.latency_ms, "total": 1000.0 * (time.perf_counter() - start)}
     return estimate
