@@ -456,13 +456,14 @@ def test_family_poses_follow_what_two_contacts_leave_free(rng):
         contact, _ = _press(can, 0.03 * n + 0.01 * axis, n, T)
         contacts.append(contact_points(contact.points_sensor, contact.T_world_sensor, sensor, 0.001, RefineConfig()))
     config = HypothesisConfig(family_of=1, family_directions=2)
-    directions = weak_directions(field, contacts, T[None], config)[0]
+    capture_m = RefineConfig().max_distance_m
+    directions = weak_directions(field, contacts, T[None], config, capture_m)[0]
     unit = np.array([config.distinct_rotation_rad] * 3 + [config.distinct_translation_m] * 3)
     for weak in directions[:2] / unit:  # in units: rotation about the axis, translation along it, or a mix
         across = np.concatenate([weak[:3] - (weak[:3] @ axis) * axis, weak[3:] - (weak[3:] @ axis) * axis])
         assert np.linalg.norm(across) < 0.15 * np.linalg.norm(weak)
     one = Hypotheses(T[None], np.ones(1), np.zeros(1), np.zeros(1, np.int64), np.ones(1, np.int64))
-    family = family_poses(field, contacts, one, config)
+    family = family_poses(field, contacts, one, config, capture_m)
     assert family.shape == (2 * 2 * 36, 4, 4)
 
     def off_surface(poses):

@@ -31,9 +31,8 @@ import numpy as np
 from yoto.geometry import make_transform, rotation_about_axis, se3_exp
 from yoto.objects.symmetry import Symmetry
 from yoto.pose.field import SurfaceField
-from yoto.pose.refine import ContactPoints, RefineConfig, Refined
-
-_CAPTURE_M = RefineConfig().max_distance_m  # points further than this from the surface are not on it
+from yoto.pose.refine import ContactPoints, Refined, invert_transform_batch
+from yoto.registration import transform_batch
 
 
 @dataclass(frozen=True)
@@ -130,24 +129,26 @@ def neighbour_poses(T_world_object: np.ndarray, config: HypothesisConfig) -> np.
 
 
 def weak_directions(
-    field: SurfaceField, contacts: list[ContactPoints], T_world_object: np.ndarray, config: HypothesisConfig
+    field: SurfaceField,
+    contacts: list[ContactPoints],
+    T_world_object: np.ndarray,
+    config: HypothesisConfig,
+    capture_m: float,
 ) -> np.ndarray:
     """(H, 6, 6) for each of H poses (H, 4, 4) the object-frame twists (rotation vector, translation; one per row)
     along which the two clouds constrain the pose least first: eigenvectors of the clouds' point-to-surface
     information (Gauss-Newton, unit weights), in units of (distinct_rotation_rad, distinct_translation_m), each
-    scaled so that its larger part (rotation or translation) is one unit."""
+    scaled so that its larger part (rotation or translation) is one unit. Points further than `capture_m` from the
+    surface count nothing (the refinement's capture range)."""
     unit = np.array([config.distinct_rotation_rad] * 3 + [config.distinct_translation_m] * 3)
     information = np.zeros((len(T_world_object), 6, 6))
+    T_object_world = invert_transform_batch(T_world_object)
     for contact in contacts:
-        T_object_sensor = np.linalg.inv(T_world_object) @ contact.T_world_sensor
-        q = (
-            np.einsum("hij,pj->hpi", T_object_sensor[:, :3, :3], contact.points_sensor)
-            + T_object_sensor[:, None, :3, 3]
-        )
+        q = transform_batch(T_object_world @ contact.T_world_sensor, contact.points_sensor)
         r, n = field.distance(q)
         assert n is not None
         # A point's row (n x q, -n), as the refinement's; points off the surface (beyond its capture) count nothing.
-        rows = np.concatenate([np.cross(n, q), -n], axis=2) * (np.abs(r) < _CAPTURE_M)[..., None]
+        rows = np.concatenate([np.cross(n, q), -n], axis=2) * (np.abs(r) < capture_m)[..., None]
         information += np.einsum("hpi,hpj->hij", rows, rows)
     information *= unit[None, :, None] * unit[None, None, :]
     _, vectors = np.linalg.eigh(information)
@@ -157,7 +158,11 @@ def weak_directions(
 
 
 def family_poses(
-    field: SurfaceField, contacts: list[ContactPoints], hypotheses: Hypotheses, config: HypothesisConfig
+    field: SurfaceField,
+    contacts: list[ContactPoints],
+    hypotheses: Hypotheses,
+    config: HypothesisConfig,
+    capture_m: float,
 ) -> np.ndarray:
     """(F, 4, 4) poses along the weakest directions of the most likely hypotheses (`weak_directions`), both ways,
     every `family_step` units up to `family_reach`. Where two contacts leave a family of poses (a body of revolution
@@ -168,7 +173,7 @@ def family_poses(
     if count == 0:
         return np.empty((0, 4, 4))
     T = hypotheses.T_world_object[:count]
-    directions = weak_directions(field, contacts, T, config)[:, : config.family_directions]  # (H, D, 6)
+    directions = weak_directions(field, contacts, T, config, capture_m)[:, : config.family_directions]  # (H, D, 6)
     steps = np.arange(config.family_step, config.family_reach + 1e-9, config.family_step)
     steps = np.concatenate([-steps[::-1], steps])
     twists = directions[:, :, None, :] * steps[None, None, :, None]  # (H, D, S, 6)

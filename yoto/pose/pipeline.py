@@ -314,20 +314,12 @@ def _fill_family(
     turned about its axis, a box slid along its faces), the truth can lie far along it from every hypothesis the
     seeds led to. The family's poses are scored cheaply, the best screened by the short refinement, and the best
     distinct ones refined in full."""
-    family = family_poses(field, contacts, hypotheses, config.hypotheses)
+    family = family_poses(field, contacts, hypotheses, config.hypotheses, config.refine_config.max_distance_m)
     if not len(family):
         return refined, hypotheses
-    refine = config.refine_config
-    score = evaluate_offsets(field, contacts, family, config.calibration, refine)
-    near = family[np.argsort(-score, kind="stable")[: config.family_screened]]
-    short = replace(refine, iterations=refine.screen_iterations)
-    first = refine_hypotheses(
-        field, thinned(contacts, refine.screen_points, refine.screen_free_points), near, config.calibration, short
-    )
-    near = first.T_world_object[_best_distinct(first, symmetry, config.hypotheses, config.family_refined)]
-    for _ in range(max(1, config.family_passes)):
-        more = refine_hypotheses(field, contacts, near, config.calibration, refine)
-        near = more.T_world_object
+    more = _verify_and_refine(field, contacts, family, symmetry, config, config.family_screened, config.family_refined)
+    for _ in range(config.family_passes - 1):  # each pass starts where the last stopped
+        more = refine_hypotheses(field, contacts, more.T_world_object, config.calibration, config.refine_config)
     refined = _joined(refined, more)
     return refined, group_hypotheses(refined, symmetry, config.hypotheses)
 
