@@ -28,10 +28,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from yoto.geometry import make_transform, rotation_about_axis, se3_exp
+from yoto.geometry import invert_transform, make_transform, rotation_about_axis, se3_exp
 from yoto.objects.symmetry import Symmetry
 from yoto.pose.field import SurfaceField
-from yoto.pose.refine import ContactPoints, Refined, invert_transform_batch
+from yoto.pose.refine import ContactPoints, Refined
 from yoto.registration import transform_batch
 
 
@@ -142,7 +142,7 @@ def weak_directions(
     surface count nothing (the refinement's capture range)."""
     unit = np.array([config.distinct_rotation_rad] * 3 + [config.distinct_translation_m] * 3)
     information = np.zeros((len(T_world_object), 6, 6))
-    T_object_world = invert_transform_batch(T_world_object)
+    T_object_world = invert_transform(T_world_object)
     for contact in contacts:
         q = transform_batch(T_object_world @ contact.T_world_sensor, contact.points_sensor)
         r, n = field.distance(q)

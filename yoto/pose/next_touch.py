@@ -24,11 +24,17 @@ from typing import Any
 import numpy as np
 
 from yoto.contacts import SIDES, ContactPair
-from yoto.geometry import make_transform, rotate_vectors, rotation_between, tangent_basis, transform_points
+from yoto.geometry import (
+    invert_transform,
+    make_transform,
+    rotate_vectors,
+    rotation_between,
+    tangent_basis,
+    transform_points,
+)
 from yoto.objects.model import ObjectModel
 from yoto.pose.field import SurfaceField, surface_field
 from yoto.pose.hypotheses import Hypotheses
-from yoto.pose.refine import invert_transform_batch
 from yoto.pose.search import surface_samples
 from yoto.sensor.spec import GELSIGHT_MINI
 from yoto.simulate.body import SensorBody
@@ -160,7 +166,7 @@ def suggest_next_touch(
     T0 = hypotheses.T_world_object[0]
     pad_world = transform_points(T0, pad_object)
     probability = hypotheses.probability / hypotheses.probability.sum()
-    inverse = invert_transform_batch(hypotheses.T_world_object)
+    inverse = invert_transform(hypotheses.T_world_object)
     heights = []
     for T_object_world in inverse:
         local = transform_points(T_object_world, pad_world)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from yoto.geometry import se3_exp, se3_log, skew
+from yoto.geometry import invert_transform, se3_exp, se3_log, skew
 from yoto.pointcloud import voxel_downsample
 from yoto.pose.field import SurfaceField
 from yoto.registration import masked_row_medians, transform_batch
@@ -164,7 +164,7 @@ def evaluate_fit(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Truncated RMS residual, inlier fraction and free-space violation (each (K, C)) of every contact under K
     poses (and sensor corrections, or none)."""
-    T_object_world = invert_transform_batch(T_world_object)
+    T_object_world = invert_transform(T_world_object)
     rms, inliers, free = [], [], []
     for contact in contacts:
         T = T_object_world @ contact.T_world_sensor
@@ -195,7 +195,7 @@ def evaluate_offsets(
     distances; what remains is the shape's disagreement, and the offset and tilt are penalised by the calibration
     prior and `seed_tilt_rad`. Uses `verify_points` points per contact.
     """
-    T_object_world = invert_transform_batch(np.asarray(T_world_object, dtype=np.float64).reshape(-1, 4, 4))
+    T_object_world = invert_transform(np.asarray(T_world_object, dtype=np.float64).reshape(-1, 4, 4))
     offset_std = max(prior.translation_m, 1e-5) / _MEAN_NORM_3D
     tilt_std = np.hypot(max(prior.rotation_rad, 1e-4) * _ANGLE_TO_AXIS_STD, config.seed_tilt_rad)
     score = np.zeros(len(T_object_world))
@@ -215,16 +215,6 @@ def evaluate_offsets(
     return score
 
 
-def invert_transform_batch(transforms: np.ndarray) -> np.ndarray:
-    """Inverses of (K, 4, 4) rigid poses."""
-    out = np.zeros_like(transforms)
-    rotation_t = np.transpose(transforms[:, :3, :3], (0, 2, 1))
-    out[:, :3, :3] = rotation_t
-    out[:, :3, 3] = -np.einsum("kij,kj->ki", rotation_t, transforms[:, :3, 3])
-    out[:, 3, 3] = 1.0
-    return out
-
-
 def refine_hypotheses(
     field: SurfaceField,
     contacts: list[ContactPoints],
@@ -237,7 +227,7 @@ def refine_hypotheses(
     correction starting from `corrections_start` (K, 2, 6) twists where given (e.g. what an earlier refinement of
     the same sensors found), else from none."""
     poses = np.array(T_world_object, dtype=np.float64).reshape(-1, 4, 4)
-    start_inverse = invert_transform_batch(poses)
+    start_inverse = invert_transform(poses)
     count = len(poses)
     corrections = np.tile(np.eye(4), (count, 2, 1, 1))  # E per side
     information = np.zeros((18, 18))
@@ -277,7 +267,7 @@ def _add_normal_equations(
 ) -> None:
     """Add the clouds' robustly weighted Gauss-Newton system into `hessian` (K, 18, 18) and `gradient` (K, 18):
     the object pose's twist, then each sensor's correction, at K poses (K, 4, 4) and corrections (K, 2, 4, 4)."""
-    T_object_world = invert_transform_batch(poses)
+    T_object_world = invert_transform(poses)
     weight_scale = 1.0 / config.surface_noise_m**2
     for contact in contacts:
         s = contact.sensor
