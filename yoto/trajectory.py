@@ -21,6 +21,7 @@ from yoto.io import write_text_atomic
 TUM_COLUMNS = "timestamp tx ty tz qx qy qz qw"
 QUATERNION_NORM_TOLERANCE = 0.01  # quaternions further than this from unit norm are refused, not normalised
 LARGEST_PLAUSIBLE_POSITION_M = 50.0  # positions beyond this are most likely millimetres
+LARGEST_PLAUSIBLE_TIMESTAMP_S = 1e11  # frame names beyond this (the year 5138) are not seconds
 
 
 @dataclass
@@ -162,7 +163,13 @@ def read_tum(path: str | Path, name: str | None = None) -> PoseStream:
     table, line_numbers = table[order], line_numbers[order]
     repeated = np.flatnonzero(np.diff(table[:, 0]) == 0.0)
     if len(repeated):
-        differing = [i for i in repeated if not np.allclose(table[i, 1:], table[i + 1, 1:], atol=1e-9)]
+        # q and -q are the same rotation.
+        differing = [
+            i
+            for i in repeated
+            if not np.allclose(table[i, 1:4], table[i + 1, 1:4], atol=1e-9)
+            or not min(np.abs(table[i, 4:] - sign * table[i + 1, 4:]).max() for sign in (1.0, -1.0)) <= 1e-9
+        ]
         if differing:
             i = differing[0]
             raise InputError(
@@ -212,6 +219,12 @@ def list_tactile_frames(folder: str | Path) -> tuple[np.ndarray, list[Path]]:
             ) from None
         if not np.isfinite(timestamp):
             raise InputError("the file name is not a finite timestamp", path)
+        if abs(timestamp) > LARGEST_PLAUSIBLE_TIMESTAMP_S:
+            raise InputError(
+                f"the file name reads as {timestamp:.4g} s, after the year 5000: tactile frames are named by their "
+                "time in seconds (are these nanoseconds or milliseconds since 1970?)",
+                path,
+            )
         stamped.append((timestamp, path))
     if not stamped:
         raise InputError("no tactile frames (<timestamp>.ply files) in the folder", folder)
