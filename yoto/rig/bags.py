@@ -7,8 +7,9 @@ stamps), `resolve_topic` (a topic named outright, or found from a rigid-body / m
 
 Message types understood (SPEC "The real rig"): rigid bodies as `geometry_msgs/PoseStamped` (also
 `TransformStamped`, `PoseWithCovarianceStamped`, `nav_msgs/Odometry`, and TF: `tf2_msgs/TFMessage` by child frame,
-composed up to the root of the TF tree), single markers as `geometry_msgs/PointStamped`, GelSight frames as `sensor_msgs/Image` or `CompressedImage`.
-Header stamps are the clock (the bag's receive time only where a header stamp is zero).
+composed up to the root of the TF tree), single markers as `geometry_msgs/PointStamped`, GelSight frames as
+`sensor_msgs/Image` or `CompressedImage`. Header stamps are the clock (the bag's receive time only where a header
+stamp is zero); messages are sorted by them where they lag the bag's receive order.
 """
 
 from __future__ import annotations
