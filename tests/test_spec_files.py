@@ -237,6 +237,22 @@ def test_matrices_written_with_few_decimals_are_accepted(tmp_path, rng):
         read_contact_pair(pairs)
 
 
+def test_pair_paths_with_windows_separators_and_bad_path_values(tmp_path, rng):
+    """A Windows tool writes `clouds\\left.ply`: read as the subfolder (fails on the old reader: file not found).
+    A path that is not a string is refused naming the key."""
+    path = write_foreign_pairs_like(tmp_path, rng)
+    (tmp_path / "clouds").mkdir()
+    (tmp_path / "left.ply").rename(tmp_path / "clouds" / "left.ply")
+    payload = json.loads(path.read_text())
+    payload["left"]["points"] = "clouds\\left.ply"
+    path.write_text(json.dumps(payload))
+    assert read_contact_pair(path).left.source == tmp_path / "clouds" / "left.ply"
+    payload["left"]["points"] = None
+    path.write_text(json.dumps(payload))
+    with pytest.raises(InputError, match="pair.json: left.points must be a file path relative to the pair file"):
+        read_contact_pair(path)
+
+
 def write_foreign_pairs_like(folder: Path, rng: np.random.Generator) -> Path:
     """A minimal pair file with two pressed clouds, written by hand."""
     for side in ("left", "right"):
@@ -422,3 +438,46 @@ def test_gelsight_pngs_rgb_rgba_and_16_bit(tmp_path, rng):
     (folder / f"left_{12.62:.6f}.png").write_bytes(grey.read_bytes())
     with pytest.raises(InputError, match="expected an 8-bit colour image"):
         list(read_image_stream(folder, str(folder)).frames([3]))
+
+
+def _foreign_tum(path: Path, stream) -> None:
+    """A TUM file as another tool writes it: a header comment, tab separators, lines in reverse time order."""
+    from yoto.geometry import rotation_to_quaternion_xyzw
+
+    lines = ["# timestamp tx ty tz qx qy qz qw (another tool)"]
+    quaternions = rotation_to_quaternion_xyzw(stream.T_world_frame[:, :3, :3])
+    for t, T, q in zip(stream.timestamps_s, stream.T_world_frame, quaternions):
+        lines.append("\t".join([f"{t:.9f}", *(f"{v:.12f}" for v in T[:3, 3]), *(f"{v:.12f}" for v in -q)]))
+    path.write_text("\n".join([lines[0], *reversed(lines[1:])]) + "\n")
+
+
+def test_track_command_on_streams_and_frames_written_by_another_program(builtin_models, tmp_path, capsys):
+    """`yoto track` on TUM streams (comments, tabs, reverse order, quaternions of the other sign), tactile frames as
+    ASCII double PLY named with nanoseconds, and a hand-written touch file: the same track as from yoto's own files."""
+    pytest.importorskip("open3d")
+    from yoto.simulate.trajectory import TrajectoryConfig, TrajectorySimulator, write_trajectory
+
+    model = builtin_models["fruit"]
+    model_path = model.save(tmp_path / "fruit.npz")
+    config = TrajectoryConfig(motion_s=0.4, settle_s=0.1, hold_s=0.1, tactile_rate_hz=5.0)
+    ours = write_trajectory(TrajectorySimulator(model, config).trajectory(3, 1), model, tmp_path / "ours")
+    theirs = tmp_path / "theirs"
+    touch = _rewrite_pair(ours / "touch.json", theirs, None)
+    payload = json.loads(touch.read_text())
+    payload["timestamp"] = json.loads((ours / "touch.json").read_text())["timestamp"]
+    touch.write_text(json.dumps(payload))
+    for side in ("left", "right"):
+        _foreign_tum(theirs / f"{side}.tum", read_tum(ours / f"{side}.tum"))
+        (theirs / f"{side}_frames").mkdir()
+        for stamp, path in zip(*list_tactile_frames(ours / f"{side}_tactile")):
+            foreign_ply(theirs / f"{side}_frames" / f"{stamp:.9f}.ply", read_ply_points(path)[0], "ascii", "double")
+    tracked = {}
+    for folder, frames in ((ours, "tactile"), (theirs, "frames")):
+        args = ["track", str(folder / "touch.json"), "--left", str(folder / "left.tum"), "--right"]
+        args += [str(folder / "right.tum"), "--model", str(model_path), "--method", "oracle"]
+        args += ["--left-tactile", str(folder / f"left_{frames}"), "--right-tactile", str(folder / f"right_{frames}")]
+        args += ["--out", str(folder / "object.tum")]
+        assert main(args) == 0, capsys.readouterr()
+        tracked[folder.name] = read_tum(folder / "object.tum")
+    np.testing.assert_array_equal(tracked["theirs"].timestamps_s, tracked["ours"].timestamps_s)
+    np.testing.assert_allclose(tracked["theirs"].T_world_frame, tracked["ours"].T_world_frame, atol=1e-8)
