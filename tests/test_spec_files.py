@@ -216,6 +216,18 @@ def test_pair_files_written_by_another_program_give_the_same_poses(builtin_model
         for path, tol in ((same, TOL["pose_exact_m"]), (near, 2e-3)):
             other = json.loads(path.with_suffix(".pose.json").read_text())
             np.testing.assert_allclose(other["T_world_object"], result["T_world_object"], atol=tol)
+    # `yoto localize` on the big-endian double clouds: the same contacts as on ours.
+    located = []
+    for clouds in (
+        [read_contact_pair(p).left.source for p in originals],
+        sorted((tmp_path / "exact").rglob("*left*.ply")),
+    ):
+        out = tmp_path / f"located_{len(located)}.json"
+        assert main(["localize", *map(str, clouds), "--object", str(model_path), "--out", str(out)]) == 0
+        located.append(json.loads(out.read_text()))
+    assert len(located[0]) == len(located[1]) == 3
+    for ours, theirs in zip(*located):
+        np.testing.assert_array_equal(ours["candidates"][0]["p_object"], theirs["candidates"][0]["p_object"])
 
 
 def test_matrices_written_with_few_decimals_are_accepted(tmp_path, rng):

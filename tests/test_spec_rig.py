@@ -279,3 +279,16 @@ def test_motive_exports_in_both_units_with_missing_frames(tmp_path, rng, units, 
     np.testing.assert_allclose(p, T_body[kept, :3, 3] + 0.01, atol=1e-6 if units == "Meters" else 1e-9)
     with pytest.raises(InputError, match=r"take.csv: no rigid body 'GelRight' in the take \(rigid bodies: GelLeft"):
         read_pose_stream(path, "GelRight")
+
+
+def test_rig_inspect_lists_what_another_recorder_wrote(recorded, tmp_path, rng, capsys):
+    from yoto.cli import main
+
+    paths, _ = recorded
+    assert main(["rig", "inspect", str(paths["mcap"])]) == 0
+    out = capsys.readouterr().out
+    assert "/vrpn_client_node/RigLeft/pose" in out and "jpeg compressed" in out and "320x240 bgr8" in out
+    times, T_body = np.arange(5) / 120.0, _poses(rng, 5)
+    take = foreign_motive_csv(tmp_path / "take.csv", times, T_body, np.zeros((5, 3)), "Millimeters", False)
+    assert main(["rig", "inspect", str(take)]) == 0
+    assert "GelLeft" in capsys.readouterr().out
