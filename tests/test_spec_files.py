@@ -493,3 +493,23 @@ def test_track_command_on_streams_and_frames_written_by_another_program(builtin_
         tracked[folder.name] = read_tum(folder / "object.tum")
     np.testing.assert_array_equal(tracked["theirs"].timestamps_s, tracked["ours"].timestamps_s)
     np.testing.assert_allclose(tracked["theirs"].T_world_frame, tracked["ours"].T_world_frame, atol=1e-8)
+
+
+def test_an_object_model_from_a_y_up_off_origin_obj_stays_in_the_file_frame(tmp_path):
+    """The model built from another exporter's OBJ (y-up, 1.3 m from the origin) maps its parent cloud back onto the
+    file's surface: poses come out in the mesh file's frame."""
+    import trimesh
+
+    from yoto.objects.builtin import builtin_mesh
+    from yoto.objects.mesh import load_mesh
+    from yoto.objects.model import ObjectModelConfig, build_object_model
+
+    tool = builtin_mesh("tool")
+    T_file_tool = make_transform(rotation_about_axis(np.array([1.0, 0.0, 0.0]), np.pi / 2), [0.3, 1.2, -0.4])
+    vertices = np.asarray(tool.vertices) @ T_file_tool[:3, :3].T + T_file_tool[:3, 3]
+    _write_obj(tmp_path / "tool.obj", vertices, np.asarray(tool.faces))
+    mesh, _, _ = load_mesh(tmp_path / "tool.obj")
+    model = build_object_model(mesh, "tool_y_up", ObjectModelConfig(num_points=20_000))
+    p_mesh = model.points_object[::10] @ model.T_mesh_object[:3, :3].T + model.T_mesh_object[:3, 3]
+    _, distance, _ = trimesh.proximity.closest_point(trimesh.Trimesh(vertices, tool.faces), p_mesh)
+    assert distance.max() < 5e-4  # the parent cloud's own spread about the facets is ~0.2 mm

@@ -21,7 +21,7 @@ T0 = 1_700_000_000.0
 class ForeignBag:
     """A bag written with rosbags' writers and typestores directly, as a lab's recorder would."""
 
-    def __init__(self, path: Path, kind: str):
+    def __init__(self, path: Path, kind: str, compress: bool = False):
         from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
         self.kind = kind
@@ -33,6 +33,8 @@ class ForeignBag:
                 get_types_from_msg("geometry_msgs/TransformStamped[] transforms\n", "tf2_msgs/msg/TFMessage")
             )
             self.writer = Writer(path)
+            if compress:
+                self.writer.set_compression(Writer.CompressionFormat.BZ2)
         else:
             from rosbags.rosbag2 import StoragePlugin, Writer
 
@@ -207,6 +209,20 @@ def test_bag_images_raw_padded_and_compressed(recorded, kind):
             expected = np.roll(truth["frame"], index, axis=1).astype(int)
             assert np.abs(frame.astype(int) - expected).mean() <= tolerance / 3, topic
             assert np.abs(frame.astype(int) - expected).max() <= max(tolerance * 5, 0), topic
+
+
+@pytest.mark.parametrize("kind", ["ros1", "db3", "mcap"])
+def test_compressed_ros1_chunks_and_ros2_storage_without_metadata(tmp_path, rng, kind):
+    pytest.importorskip("rosbags")
+    path = tmp_path / ("rec.bag" if kind == "ros1" else "rec")
+    bag = ForeignBag(path, kind, compress=True)
+    poses = _poses(rng, 5)
+    for k, T in enumerate(poses):
+        bag.write("/rig/pose", "geometry_msgs/msg/PoseStamped", T0 + 0.01 * k, bag.pose(T0 + 0.01 * k, "world", T))
+    bag.close()
+    if kind != "ros1":
+        (path / "metadata.yaml").unlink()  # the storage file alone, as copied off a robot
+    np.testing.assert_allclose(read_pose_stream(path, "/rig/pose").T_world_body, poses, atol=TOL["float_round_trip"])
 
 
 def test_a_restarted_clock_is_still_refused(tmp_path):
