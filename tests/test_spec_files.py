@@ -322,6 +322,20 @@ def test_tum_files_as_other_tools_write_them(tmp_path, rng):
         read_tum(path)
 
 
+def test_tum_files_with_a_byte_order_mark_and_a_csv_suffix(tmp_path):
+    """Windows tools start text files with a byte-order mark; a TUM file may be named `.csv` (commas between values).
+    Both fail on the old readers (line 1 not numeric; "this is a Motive CSV export")."""
+    from yoto.tracking.streams import read_sensor_stream
+
+    path = tmp_path / "left.csv"
+    path.write_text("# t x y z qx qy qz qw\n1.0,0.1,0,0,0,0,0,1\n2.0,0.2,0,0,0,0,0,1\n", "utf-8-sig")
+    stream = read_sensor_stream(path)
+    np.testing.assert_array_equal(stream.T_world_frame[:, 0, 3], [0.1, 0.2])
+    pair = write_foreign_pairs_like(tmp_path, np.random.default_rng(0))
+    pair.write_text(pair.read_text(), "utf-8-sig")
+    assert read_contact_pair(pair).object_name == "tool"
+
+
 def test_tactile_frame_names_with_nanoseconds_and_integers(tmp_path, rng):
     folder = tmp_path / "left"
     folder.mkdir()

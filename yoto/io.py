@@ -82,7 +82,7 @@ def read_json(path: str | Path) -> Any:
     if not path.is_file():
         raise InputError("file not found", path)
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        return json.loads(path.read_text(encoding="utf-8-sig"))  # -sig: a byte-order mark (Windows tools) is skipped
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(f"not a valid JSON file ({exc})", path) from exc
 

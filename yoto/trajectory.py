@@ -122,7 +122,7 @@ def read_tum(path: str | Path, name: str | None = None) -> PoseStream:
     if not path.is_file():
         raise InputError("trajectory file not found", path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # -sig: a byte-order mark (Windows tools) is skipped
     except UnicodeDecodeError as exc:
         raise InputError(f"not a text file ({exc}); a TUM trajectory is text, '{TUM_COLUMNS}' a line", path) from exc
     rows, lines = [], []
