@@ -48,9 +48,6 @@ RECENT_CLOUDS = 4  # contact_in_sensor keeps its answers for this many clouds
 NO_INDENTATION_M = 5e-5
 NOISE_MARGIN = 5.0
 INDENTATION_POINTS = 20
-# Rotations in pair files may be printed with as few as 3 decimals (off SO(3) by up to ~1.6e-3, ~0.1 deg): such are
-# re-orthonormalised; a matrix further off than this is not a rotation.
-MATRIX_TOLERANCE = 3e-3
 
 
 @dataclass(frozen=True)
@@ -249,7 +246,7 @@ def indentation_m(points_sensor: np.ndarray) -> tuple[float, float]:
 def _read_matrix(record: dict, key: str, what: str, path: Path) -> np.ndarray:
     if key not in record:
         raise InputError(f"missing key '{key}' in {what}", path)
-    return validate_transform(record[key], f"{what}.{key}", path, tol=MATRIX_TOLERANCE)
+    return validate_transform(record[key], f"{what}.{key}", path)
 
 
 def _read_point(record: dict, key: str, what: str, path: Path) -> np.ndarray:
