@@ -225,6 +225,23 @@ def test_compressed_ros1_chunks_and_ros2_storage_without_metadata(tmp_path, rng,
     np.testing.assert_allclose(read_pose_stream(path, "/rig/pose").T_world_body, poses, atol=TOL["float_round_trip"])
 
 
+def test_a_depth_topic_is_not_read_as_gelsight_frames(tmp_path):
+    """A 16-bit greyscale PNG topic (a depth camera) is refused; the old reader clipped it to white frames."""
+    pytest.importorskip("rosbags")
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(np.full((240, 320), 1000, np.uint16)).save(buffer, format="PNG")
+    bag = ForeignBag(tmp_path / "depth.bag", "ros1")
+    message = bag.types["sensor_msgs/msg/CompressedImage"](
+        header=bag.header(T0, "depth"), format="16UC1; png compressed", data=np.frombuffer(buffer.getvalue(), np.uint8)
+    )
+    bag.write("/camera/depth/compressed", "sensor_msgs/msg/CompressedImage", T0, message)
+    bag.close()
+    with pytest.raises(InputError, match=r"depth.bag: topic '/camera/depth/compressed': .* not a colour image"):
+        read_image_stream(tmp_path / "depth.bag", "/camera/depth/compressed")
+
+
 def test_a_restarted_clock_is_still_refused(tmp_path):
     pytest.importorskip("rosbags")
     bag = ForeignBag(tmp_path / "restart.bag", "ros1")

@@ -83,6 +83,12 @@ def decode_image_message(message: Any, msgtype: str, spec: GelSightSpec, where: 
 
         try:
             with Image.open(io.BytesIO(bytes(message.data))) as image:
+                if image.mode not in ("RGB", "RGBA", "P"):  # as load_image: a GelSight frame is colour
+                    raise InputError(
+                        f"{where}: a compressed frame ({message.format}) is not a colour image (Pillow mode "
+                        f"'{image.mode}'): is this the GelSight topic?",
+                        path,
+                    )
                 frame = np.asarray(image.convert("RGB"))
         except (UnidentifiedImageError, OSError) as exc:
             raise InputError(
