@@ -163,14 +163,12 @@ def read_tum(path: str | Path, name: str | None = None) -> PoseStream:
     table, line_numbers = table[order], line_numbers[order]
     repeated = np.flatnonzero(np.diff(table[:, 0]) == 0.0)
     if len(repeated):
-        # q and -q are the same rotation.
-        differing = [
-            i
-            for i in repeated
-            if not np.allclose(table[i, 1:4], table[i + 1, 1:4], atol=1e-9)
-            or not min(np.abs(table[i, 4:] - sign * table[i + 1, 4:]).max() for sign in (1.0, -1.0)) <= 1e-9
-        ]
-        if differing:
+        earlier, later = table[repeated], table[repeated + 1]
+        same_position = np.isclose(earlier[:, 1:4], later[:, 1:4], atol=1e-9).all(axis=1)
+        same_rotation = np.isclose(earlier[:, 4:], later[:, 4:], atol=1e-9).all(axis=1)
+        same_rotation |= np.isclose(earlier[:, 4:], -later[:, 4:], atol=1e-9).all(axis=1)  # q and -q: one rotation
+        differing = repeated[~(same_position & same_rotation)]
+        if len(differing):
             i = differing[0]
             raise InputError(
                 f"lines {line_numbers[i]} and {line_numbers[i + 1]} give different poses at the same time "

@@ -53,7 +53,7 @@ class ImageStream(Stream):
         return next(self.frames([index]))[1]
 
 
-def stamp_order(stamps_s: np.ndarray, source: Path, name: str) -> np.ndarray:
+def stamp_order(stamps_s: np.ndarray) -> np.ndarray:
     """The order that sorts a bag topic's header stamps, when they lag the bag's receive order by at most
     MAX_REORDER_S; else the bag order, which `clean_timeline` then refuses naming the step back."""
     behind = np.maximum.accumulate(stamps_s) - stamps_s if len(stamps_s) else np.zeros(0)
@@ -155,7 +155,7 @@ def bag_image_stream(reader: Any, path: Path, topic: str, spec: GelSightSpec) ->
         log_times.append(log_time)
     if not stamps:
         raise InputError(f"topic '{topic}' holds no frames", path)
-    order = stamp_order(np.asarray(stamps), path, topic)
+    order = stamp_order(np.asarray(stamps))
     times = np.asarray(stamps)[order]
     kept, dropped, rate = clean_timeline(times, np.ones(len(times), bool), path, topic)
     kept = order[kept]  # indices of the messages in bag order, in time order
@@ -237,7 +237,7 @@ class Recording:
                 quaternions.append((orientation.x, orientation.y, orientation.z, orientation.w))
         if not stamps:
             raise InputError(f"topic '{topic}' holds no messages", self.path)
-        order = stamp_order(np.asarray(stamps), self.path, topic)
+        order = stamp_order(np.asarray(stamps))
         return make_pose_stream(
             self.path, topic, np.asarray(stamps)[order], np.asarray(positions)[order], np.asarray(quaternions)[order]
         )
@@ -245,7 +245,7 @@ class Recording:
     def _tf_link_stream(self, link: bags.TfLink, frame: str) -> PoseStream:
         """One TF link's `T_parent_frame` over time, in header-stamp order."""
         name = f"{'/'.join(sorted(link.topics))}:{frame}"
-        order = stamp_order(np.asarray(link.stamps_s), self.path, name)
+        order = stamp_order(np.asarray(link.stamps_s))
         positions, quaternions = np.asarray(link.positions)[order], np.asarray(link.quaternions_xyzw)[order]
         return make_pose_stream(self.path, name, np.asarray(link.stamps_s)[order], positions, quaternions)
 
@@ -280,7 +280,7 @@ class Recording:
                 T_root_child = np.where(matched[:, None, None], T_parent_at, np.eye(4)) @ T_root_child
         positions = np.where(covered[:, None], T_root_child[:, :3, 3], np.nan)  # uncovered: dropouts
         quaternions = rotation_to_quaternion_xyzw(T_root_child[:, :3, :3])
-        name = body.name if len(chain) == 1 else f"{body.name} (TF {' <- '.join(reversed(chain))})"
+        name = body.name if len(chain) == 1 else f"{body.name} (TF {' <- '.join([parent, *reversed(chain)])})"
         return make_pose_stream(self.path, name, stamps, positions, quaternions)
 
     def point(self, selector: str) -> PointStream:
@@ -295,7 +295,7 @@ class Recording:
                 positions.append((message.point.x, message.point.y, message.point.z))
         if not stamps:
             raise InputError(f"topic '{topic}' holds no messages", self.path)
-        order = stamp_order(np.asarray(stamps), self.path, topic)
+        order = stamp_order(np.asarray(stamps))
         return make_point_stream(self.path, topic, np.asarray(stamps)[order], np.asarray(positions)[order])
 
     def images(self, selector: str) -> ImageStream:
