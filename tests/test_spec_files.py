@@ -320,6 +320,10 @@ def test_tum_files_as_other_tools_write_them(tmp_path, rng):
     path.write_text("1 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 2\n")
     with pytest.raises(InputError, match="gt.tum: line 2: quaternion of norm 2"):
         read_tum(path)
+    # Nanoseconds are not seconds: refused naming the line (the old reader took them as the year 5e10).
+    path.write_text("# t x y z qx qy qz qw\n1700000000000000000 0 0 0 0 0 0 1\n")
+    with pytest.raises(InputError, match="gt.tum: line 2: timestamp 1.7e\\+18 s .*nanoseconds"):
+        read_tum(path)
 
 
 def test_tum_files_with_a_byte_order_mark_and_a_csv_suffix(tmp_path):

@@ -21,7 +21,7 @@ from yoto.io import write_text_atomic
 TUM_COLUMNS = "timestamp tx ty tz qx qy qz qw"
 QUATERNION_NORM_TOLERANCE = 0.01  # quaternions further than this from unit norm are refused, not normalised
 LARGEST_PLAUSIBLE_POSITION_M = 50.0  # positions beyond this are most likely millimetres
-LARGEST_PLAUSIBLE_TIMESTAMP_S = 1e11  # frame names beyond this (the year 5138) are not seconds
+LARGEST_PLAUSIBLE_TIMESTAMP_S = 1e11  # timestamps beyond this (the year 5138) are not seconds
 
 
 @dataclass
@@ -157,6 +157,13 @@ def read_tum(path: str | Path, name: str | None = None) -> PoseStream:
     if largest > LARGEST_PLAUSIBLE_POSITION_M:
         raise InputError(
             f"positions reach {largest:.0f}: TUM files are in metres (are these millimetres?)",
+            path,
+        )
+    late = np.flatnonzero(np.abs(table[:, 0]) > LARGEST_PLAUSIBLE_TIMESTAMP_S)
+    if len(late):
+        raise InputError(
+            f"line {line_numbers[late[0]]}: timestamp {table[late[0], 0]:.4g} s is after the year 5000: TUM "
+            "timestamps are seconds (are these nanoseconds or milliseconds since 1970?)",
             path,
         )
     order = np.argsort(table[:, 0], kind="stable")
