@@ -225,6 +225,22 @@ def test_compressed_ros1_chunks_and_ros2_storage_without_metadata(tmp_path, rng,
     np.testing.assert_allclose(read_pose_stream(path, "/rig/pose").T_world_body, poses, atol=TOL["float_round_trip"])
 
 
+def test_gelsight_frames_whose_stamps_lag_the_bag_order_come_with_their_own_stamps(tmp_path, rng):
+    pytest.importorskip("rosbags")
+    bag = ForeignBag(tmp_path / "late.bag", "ros1")
+    stamps = [10.0, 10.1, 10.05, 10.2, 10.15, 10.3]  # receive order; neighbours' header stamps swapped
+    base = _smooth_frame(rng)
+    for k, stamp in enumerate(stamps):
+        frame = base.copy()
+        frame[0, 0, 0] = k  # which message it is
+        bag.write("/gel/image_raw", "sensor_msgs/msg/Image", 20.0 + 0.1 * k, bag.image(stamp, frame, "rgb8", 0))
+    bag.close()
+    stream = read_image_stream(tmp_path / "late.bag", "/gel/image_raw")
+    np.testing.assert_allclose(stream.timestamps_s, sorted(stamps), atol=1e-9)
+    for index, frame in stream.frames(range(6)):
+        assert stamps[frame[0, 0, 0]] == pytest.approx(stream.timestamps_s[index], abs=1e-9)
+
+
 def test_a_depth_topic_is_not_read_as_gelsight_frames(tmp_path):
     """A 16-bit greyscale PNG topic (a depth camera) is refused; the old reader clipped it to white frames."""
     pytest.importorskip("rosbags")
