@@ -241,6 +241,23 @@ def test_gelsight_frames_whose_stamps_lag_the_bag_order_come_with_their_own_stam
         assert stamps[frame[0, 0, 0]] == pytest.approx(stream.timestamps_s[index], abs=1e-9)
 
 
+def test_ros1_tf_of_the_older_tf_package(tmp_path, rng):
+    """ROS1 bags recorded with the `tf` package carry `tf/tfMessage` (the fields of tf2's TFMessage)."""
+    pytest.importorskip("rosbags")
+    from rosbags.typesys import get_types_from_msg
+
+    bag = ForeignBag(tmp_path / "old_tf.bag", "ros1")
+    bag.store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms\n", "tf/msg/tfMessage"))
+    poses = _poses(rng, 6)
+    for k, T in enumerate(poses):
+        stamp = T0 + 0.01 * k
+        message = bag.types["tf/msg/tfMessage"](transforms=bag.tf(stamp, "/world", "/RigLeft", T).transforms)
+        bag.write("/tf", "tf/msg/tfMessage", stamp, message)
+    bag.close()
+    _, T = read_pose_stream(tmp_path / "old_tf.bag", "RigLeft")
+    np.testing.assert_allclose(T, poses, atol=TOL["float_round_trip"])
+
+
 def test_a_depth_topic_is_not_read_as_gelsight_frames(tmp_path):
     """A 16-bit greyscale PNG topic (a depth camera) is refused; the old reader clipped it to white frames."""
     pytest.importorskip("rosbags")
