@@ -233,7 +233,7 @@ def test_pair_files_written_by_another_program_give_the_same_poses(builtin_model
 def test_matrices_written_with_few_decimals_are_accepted(tmp_path, rng):
     """A pose printed with 3 decimals (1 mm, rotation entries to 0.001) is a rotation to ~0.1 deg: read and
     re-orthonormalised. Fails on the old reader (rotations more than 1e-4 off SO(3) refused: every such matrix)."""
-    pairs = write_foreign_pairs_like(tmp_path, rng)
+    pairs = hand_written_pair(tmp_path, rng)
     payload = json.loads(pairs.read_text())
     rotation = rotation_about_axis(np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0), 0.7)
     T = np.round(make_transform(rotation, [0.51234, -0.2, 0.3]), 3)
@@ -252,7 +252,7 @@ def test_matrices_written_with_few_decimals_are_accepted(tmp_path, rng):
 def test_pair_paths_with_windows_separators_and_bad_path_values(tmp_path, rng):
     """A Windows tool writes `clouds\\left.ply`: read as the subfolder (fails on the old reader: file not found).
     A path that is not a string is refused naming the key."""
-    path = write_foreign_pairs_like(tmp_path, rng)
+    path = hand_written_pair(tmp_path, rng)
     (tmp_path / "clouds").mkdir()
     (tmp_path / "left.ply").rename(tmp_path / "clouds" / "left.ply")
     payload = json.loads(path.read_text())
@@ -265,7 +265,7 @@ def test_pair_paths_with_windows_separators_and_bad_path_values(tmp_path, rng):
         read_contact_pair(path)
 
 
-def write_foreign_pairs_like(folder: Path, rng: np.random.Generator) -> Path:
+def hand_written_pair(folder: Path, rng: np.random.Generator) -> Path:
     """A minimal pair file with two pressed clouds, written by hand."""
     for side in ("left", "right"):
         xy = rng.uniform(-0.004, 0.004, size=(400, 2))
@@ -335,7 +335,7 @@ def test_tum_files_with_a_byte_order_mark_and_a_csv_suffix(tmp_path):
     path.write_text("# t x y z qx qy qz qw\n1.0,0.1,0,0,0,0,0,1\n2.0,0.2,0,0,0,0,0,1\n", "utf-8-sig")
     stream = read_sensor_stream(path)
     np.testing.assert_array_equal(stream.T_world_frame[:, 0, 3], [0.1, 0.2])
-    pair = write_foreign_pairs_like(tmp_path, np.random.default_rng(0))
+    pair = hand_written_pair(tmp_path, np.random.default_rng(0))
     pair.write_text(pair.read_text(), "utf-8-sig")
     assert read_contact_pair(pair).object_name == "tool"
 
