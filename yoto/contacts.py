@@ -321,10 +321,12 @@ def _read_side(
     T_world_sensor = _read_matrix(record, "T_world_sensor", side, path)
     image = None
     if "image" in record:
-        optional = {key: path.parent / str(record[key]) for key in ("background", "calibration") if record.get(key)}
-        image = TactileImage(path.parent / str(record["image"]), **optional)
+        optional = {
+            key: _side_file(record, key, side, path) for key in ("background", "calibration") if record.get(key)
+        }
+        image = TactileImage(_side_file(record, "image", side, path), **optional)
     if "points" in record and not (from_images and image is not None):
-        cloud_path = path.parent / str(record["points"])
+        cloud_path = _side_file(record, "points", side, path)
         points, _ = read_ply_points(cloud_path)
         return TactileContact(validate_tactile_points(points, cloud_path), T_world_sensor, cloud_path, image)
     assert image is not None
@@ -339,6 +341,17 @@ def _read_side(
     except NoContactError as exc:
         raise NoContactError(f"{side}: {exc.problem}", exc.path) from exc
     return TactileContact(validate_tactile_points(points, image.image), T_world_sensor, image.image, image)
+
+
+def _side_file(record: dict, key: str, side: str, path: Path) -> Path:
+    """A side's file entry: a path relative to the pair file (or absolute); Windows separators are read as '/'."""
+    value = record[key]
+    if not isinstance(value, str) or not value.strip():
+        raise InputError(f"{side}.{key} must be a file path relative to the pair file, got {value!r}", path)
+    file = path.parent / value
+    if not file.exists() and "\\" in value:
+        file = path.parent / value.replace("\\", "/")
+    return file
 
 
 def write_contact_pair(path: str | Path, pair: ContactPair) -> Path:

@@ -82,7 +82,7 @@ def read_json(path: str | Path) -> Any:
     if not path.is_file():
         raise InputError("file not found", path)
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        return json.loads(path.read_text(encoding="utf-8-sig"))  # -sig: a byte-order mark (Windows tools) is skipped
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(f"not a valid JSON file ({exc})", path) from exc
 
@@ -204,8 +204,10 @@ def write_ply_points(path: str | Path, points: np.ndarray, normals: np.ndarray |
 def read_ply_points(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     """Read the vertices of a PLY file: (N, 3) float64 points and (N, 3) normals or None.
 
-    Supports ascii, binary_little_endian and binary_big_endian files. Elements after the vertex element
-    (faces, say) are ignored. Raises InputError naming the file for anything malformed.
+    Supports ascii, binary_little_endian and binary_big_endian files, any vertex property layout (x, y, z and
+    optionally nx, ny, nz are read, other properties skipped), Windows line ends and blank lines between ascii rows.
+    Elements after the vertex element (faces, say) are ignored, and so are elements before it (a camera) unless a
+    binary file gives them list properties. Raises InputError naming the file for anything malformed.
     """
     path = Path(path)
     if not path.is_file():
@@ -213,11 +215,19 @@ def read_ply_points(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     raw = path.read_bytes()
     if not raw.startswith(b"ply"):
         raise InputError("not a PLY file (it does not start with 'ply')", path)
-    end = raw.find(b"end_header")
-    if end < 0:
+    header_lines, body_start = [], -1
+    start = 0
+    while start < len(raw):
+        stop = raw.find(b"\n", start)
+        stop = len(raw) if stop < 0 else stop
+        line = raw[start:stop].decode("ascii", errors="replace").strip()
+        start = stop + 1
+        if line == "end_header":
+            body_start = min(start, len(raw))
+            break
+        header_lines.append(line)
+    if body_start < 0:
         raise InputError("PLY header has no 'end_header' line", path)
-    body_start = raw.find(b"\n", end) + 1
-    header_lines = raw[:end].decode("ascii", errors="replace").splitlines()
 
     fmt = None
     elements: list[tuple[str, int, list[tuple[str, str]]]] = []
@@ -228,8 +238,10 @@ def read_ply_points(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
         if words[0] == "format" and len(words) >= 2:
             fmt = words[1]
         elif words[0] == "element" and len(words) == 3:
+            if not words[2].isdigit():
+                raise InputError(f"PLY element count '{words[2]}' of element '{words[1]}' is not a number", path)
             elements.append((words[1], int(words[2]), []))
-        elif words[0] == "property" and elements:
+        elif words[0] == "property" and elements and len(words) >= 3:
             if words[1] == "list":
                 elements[-1][2].append((words[-1], "list"))
             elif words[1] in _PLY_TYPES:
@@ -238,9 +250,10 @@ def read_ply_points(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
                 raise InputError(f"unknown PLY property type '{words[1]}'", path)
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise InputError(f"unsupported PLY format '{fmt}'", path)
-    if not elements or elements[0][0] != "vertex":
-        raise InputError("PLY file has no leading 'vertex' element", path)
-    _, count, properties = elements[0]
+    vertex = next((i for i, element in enumerate(elements) if element[0] == "vertex"), None)
+    if vertex is None:
+        raise InputError("PLY file has no 'vertex' element", path)
+    _, count, properties = elements[vertex]
     names = [name for name, _ in properties]
     if any(kind == "list" for _, kind in properties):
         raise InputError("PLY vertex element has list properties, which a point cloud cannot have", path)
@@ -249,8 +262,9 @@ def read_ply_points(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
             raise InputError(f"PLY vertices have no '{axis}' property", path)
 
     if fmt == "ascii":
-        text = raw[body_start:].decode("ascii", errors="replace").split("\n")
-        rows = [row.split() for row in text[:count]]
+        skipped = sum(element[1] for element in elements[:vertex])  # one row a line, whatever its properties
+        text = raw[body_start:].decode("ascii", errors="replace").splitlines()
+        rows = [row.split() for row in text if row.strip()][skipped : skipped + count]
         if len(rows) < count or any(len(row) < len(names) for row in rows):
             raise InputError(f"PLY file is truncated (expected {count} vertex rows)", path)
         try:
@@ -261,10 +275,19 @@ def read_ply_points(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
         column = {name: table[:, i] for i, name in enumerate(names)}
     else:
         order = "<" if fmt == "binary_little_endian" else ">"
+        offset = body_start
+        for name, rows_before, before in elements[:vertex]:
+            if any(kind == "list" for _, kind in before):
+                raise InputError(
+                    f"binary PLY element '{name}' before the vertices has list properties (its size is unknown "
+                    "without reading it); write the vertex element first",
+                    path,
+                )
+            offset += rows_before * np.dtype([(n, order + kind) for n, kind in before]).itemsize
         dtype = np.dtype([(name, order + kind) for name, kind in properties])
-        if len(raw) - body_start < dtype.itemsize * count:
+        if len(raw) - offset < dtype.itemsize * count:
             raise InputError(f"PLY file is truncated (expected {count} vertices)", path)
-        records = np.frombuffer(raw, dtype=dtype, count=count, offset=body_start)
+        records = np.frombuffer(raw, dtype=dtype, count=count, offset=offset)
         column = {name: records[name].astype(np.float64) for name in names}
 
     points = np.stack([column["x"], column["y"], column["z"]], axis=1)

@@ -21,6 +21,7 @@ from yoto.io import write_text_atomic
 TUM_COLUMNS = "timestamp tx ty tz qx qy qz qw"
 QUATERNION_NORM_TOLERANCE = 0.01  # quaternions further than this from unit norm are refused, not normalised
 LARGEST_PLAUSIBLE_POSITION_M = 50.0  # positions beyond this are most likely millimetres
+LARGEST_PLAUSIBLE_TIMESTAMP_S = 1e11  # timestamps beyond this (the year 5138) are not seconds
 
 
 @dataclass
@@ -121,7 +122,7 @@ def read_tum(path: str | Path, name: str | None = None) -> PoseStream:
     if not path.is_file():
         raise InputError("trajectory file not found", path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # -sig: a byte-order mark (Windows tools) is skipped
     except UnicodeDecodeError as exc:
         raise InputError(f"not a text file ({exc}); a TUM trajectory is text, '{TUM_COLUMNS}' a line", path) from exc
     rows, lines = [], []
@@ -158,12 +159,23 @@ def read_tum(path: str | Path, name: str | None = None) -> PoseStream:
             f"positions reach {largest:.0f}: TUM files are in metres (are these millimetres?)",
             path,
         )
+    late = np.flatnonzero(np.abs(table[:, 0]) > LARGEST_PLAUSIBLE_TIMESTAMP_S)
+    if len(late):
+        raise InputError(
+            f"line {line_numbers[late[0]]}: timestamp {table[late[0], 0]:.4g} s is after the year 5000: TUM "
+            "timestamps are seconds (are these nanoseconds or milliseconds since 1970?)",
+            path,
+        )
     order = np.argsort(table[:, 0], kind="stable")
     table, line_numbers = table[order], line_numbers[order]
     repeated = np.flatnonzero(np.diff(table[:, 0]) == 0.0)
     if len(repeated):
-        differing = [i for i in repeated if not np.allclose(table[i, 1:], table[i + 1, 1:], atol=1e-9)]
-        if differing:
+        earlier, later = table[repeated], table[repeated + 1]
+        same_position = np.isclose(earlier[:, 1:4], later[:, 1:4], atol=1e-9).all(axis=1)
+        same_rotation = np.isclose(earlier[:, 4:], later[:, 4:], atol=1e-9).all(axis=1)
+        same_rotation |= np.isclose(earlier[:, 4:], -later[:, 4:], atol=1e-9).all(axis=1)  # q and -q: one rotation
+        differing = repeated[~(same_position & same_rotation)]
+        if len(differing):
             i = differing[0]
             raise InputError(
                 f"lines {line_numbers[i]} and {line_numbers[i + 1]} give different poses at the same time "
@@ -212,6 +224,12 @@ def list_tactile_frames(folder: str | Path) -> tuple[np.ndarray, list[Path]]:
             ) from None
         if not np.isfinite(timestamp):
             raise InputError("the file name is not a finite timestamp", path)
+        if abs(timestamp) > LARGEST_PLAUSIBLE_TIMESTAMP_S:
+            raise InputError(
+                f"the file name reads as {timestamp:.4g} s, after the year 5000: tactile frames are named by their "
+                "time in seconds (are these nanoseconds or milliseconds since 1970?)",
+                path,
+            )
         stamped.append((timestamp, path))
     if not stamped:
         raise InputError("no tactile frames (<timestamp>.ply files) in the folder", folder)

@@ -6,9 +6,10 @@ stamps), `resolve_topic` (a topic named outright, or found from a rigid-body / m
 `BagWriter` (the recording simulator's output; also handy to convert a Motive take to a bag).
 
 Message types understood (SPEC "The real rig"): rigid bodies as `geometry_msgs/PoseStamped` (also
-`TransformStamped`, `PoseWithCovarianceStamped`, `nav_msgs/Odometry`, and TF: `tf2_msgs/TFMessage` by child frame),
-single markers as `geometry_msgs/PointStamped`, GelSight frames as `sensor_msgs/Image` or `CompressedImage`.
-Header stamps are the clock (the bag's receive time only where a header stamp is zero).
+`TransformStamped`, `PoseWithCovarianceStamped`, `nav_msgs/Odometry`, and TF: `tf2_msgs/TFMessage` by child frame,
+composed up to the root of the TF tree), single markers as `geometry_msgs/PointStamped`, GelSight frames as
+`sensor_msgs/Image` or `CompressedImage`. Header stamps are the clock (the bag's receive time only where a header
+stamp is zero); messages are sorted by them where they lag the bag's receive order.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ POSE_TYPES = (
     "nav_msgs/msg/Odometry",
 )
 TF_TYPE = "tf2_msgs/msg/TFMessage"
+TF_TYPES = (TF_TYPE, "tf/msg/tfMessage")  # tf2's, and ROS1's older tf package's (same fields)
 POINT_TYPES = ("geometry_msgs/msg/PointStamped",)
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 TF_MSG_DEFINITION = "geometry_msgs/TransformStamped[] transforms\n"
@@ -176,16 +178,38 @@ def read_messages(reader: Any, topic: str) -> Iterator[tuple[float, int, Any]]:
         yield _stamp_s(message, log_time), log_time, message
 
 
-def tf_children(reader: Any) -> dict[str, str]:
-    """child_frame_id -> TF topic, for every transform on /tf or /tf_static (first message of each child)."""
-    found: dict[str, str] = {}
-    for topic, info in reader.topics.items():
-        if info.msgtype != TF_TYPE:
+@dataclass
+class TfLink:
+    """Every transform a bag's TF topics give for one child frame: `T_parent_child` at each header stamp."""
+
+    parents: set[str]  # parent frame ids seen (one in a valid tree)
+    topics: set[str]  # the TF topics it came on
+    static: bool  # all of it on a static topic (/tf_static): one fixed transform
+    stamps_s: list[float]
+    positions: list[tuple[float, float, float]]
+    quaternions_xyzw: list[tuple[float, float, float, float]]
+
+
+def tf_links(reader: Any) -> dict[str, TfLink]:
+    """child frame -> its TfLink, over every TF topic of the bag (/tf, /tf_static, ...); frame ids without '/'."""
+    links: dict[str, TfLink] = {}
+    for topic, info in sorted(reader.topics.items()):
+        if info.msgtype not in TF_TYPES:
             continue
+        static = "static" in topic
         for _, _, message in read_messages(reader, topic):
             for transform in message.transforms:
-                found.setdefault(str(transform.child_frame_id).strip("/"), topic)
-    return found
+                child = str(transform.child_frame_id).strip("/")
+                link = links.setdefault(child, TfLink(set(), set(), static, [], [], []))
+                link.parents.add(str(transform.header.frame_id).strip("/"))
+                link.topics.add(topic)
+                link.static = link.static and static
+                stamp = transform.header.stamp
+                t, q = transform.transform.translation, transform.transform.rotation
+                link.stamps_s.append(float(stamp.sec) + float(stamp.nanosec) * 1e-9)
+                link.positions.append((t.x, t.y, t.z))
+                link.quaternions_xyzw.append((q.x, q.y, q.z, q.w))
+    return links
 
 
 def pose_fields(message: Any, msgtype: str) -> tuple[Any, Any]:

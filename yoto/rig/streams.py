@@ -24,12 +24,17 @@ from typing import Any
 import numpy as np
 
 from yoto.errors import InputError
+from yoto.geometry import quaternion_xyzw_to_rotation, rotation_to_quaternion_xyzw
 from yoto.rig import bags
 from yoto.rig.motive import MotiveTake, is_motive_csv, read_motive_csv
 from yoto.rig.timeline import PointStream, PoseStream, Stream, clean_timeline, make_point_stream, make_pose_stream
+from yoto.sensor.presses import load_image
 from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
 
 IMAGE_SUFFIXES = (".png",)
+# A bag stores messages in receive order; header stamps may lag that order by network delays up to this. Further
+# back is a broken clock (a restarted recorder), refused by `clean_timeline`.
+MAX_REORDER_S = 1.0
 
 
 @dataclass
@@ -40,12 +45,21 @@ class ImageStream(Stream):
     details: dict[str, Any] = field(default_factory=dict)
 
     def frames(self, indices: np.ndarray | list[int]) -> Iterator[tuple[int, np.ndarray]]:
-        """(index, frame) for the requested indices, in time order."""
+        """(index, frame) for the requested indices (in time order, or a bag's order where its stamps lag it)."""
         assert self.loader is not None
         yield from self.loader(np.unique(np.asarray(indices, dtype=int)))
 
     def frame(self, index: int) -> np.ndarray:
         return next(self.frames([index]))[1]
+
+
+def stamp_order(stamps_s: np.ndarray) -> np.ndarray:
+    """The order that sorts a bag topic's header stamps, when they lag the bag's receive order by at most
+    MAX_REORDER_S; else the bag order, which `clean_timeline` then refuses naming the step back."""
+    behind = np.maximum.accumulate(stamps_s) - stamps_s if len(stamps_s) else np.zeros(0)
+    if len(stamps_s) == 0 or not np.isfinite(stamps_s).all() or behind.max() > MAX_REORDER_S:
+        return np.arange(len(stamps_s))
+    return np.argsort(stamps_s, kind="stable")
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -69,6 +83,12 @@ def decode_image_message(message: Any, msgtype: str, spec: GelSightSpec, where: 
 
         try:
             with Image.open(io.BytesIO(bytes(message.data))) as image:
+                if image.mode not in ("RGB", "RGBA", "P"):  # as load_image: a GelSight frame is colour
+                    raise InputError(
+                        f"{where}: a compressed frame ({message.format}) is not a colour image (Pillow mode "
+                        f"'{image.mode}'): is this the GelSight topic?",
+                        path,
+                    )
                 frame = np.asarray(image.convert("RGB"))
         except (UnidentifiedImageError, OSError) as exc:
             raise InputError(
@@ -96,17 +116,6 @@ def decode_image_message(message: Any, msgtype: str, spec: GelSightSpec, where: 
     return np.ascontiguousarray(frame if encoding == "rgb8" else frame[:, :, ::-1])
 
 
-def read_png(path: Path, spec: GelSightSpec) -> np.ndarray:
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as image:
-            frame = np.asarray(image.convert("RGB"))
-    except (UnidentifiedImageError, OSError) as exc:
-        raise InputError(f"not a readable image ({exc})", path) from exc
-    return check_frame_shape(frame, spec, "GelSight frame", path)
-
-
 def png_timestamp(path: Path) -> float:
     """The timestamp (seconds) in a frame's file name: `1712.345678.png` or `left_1712.345678.png`."""
     stem = path.name[: -len(path.suffix)]
@@ -126,11 +135,11 @@ def image_folder_stream(folder: Path, spec: GelSightSpec = GELSIGHT_MINI, offset
     files, times = [files[i] for i in order], times[order]
     kept, dropped, rate = clean_timeline(times, np.ones(len(times), bool), folder, folder.name)
     files, times = [files[i] for i in kept], times[kept]
-    check_frame_shape(read_png(files[0], spec), spec, "GelSight frame", files[0])
+    load_image(files[0], spec)  # colour, 8 or 16 bits, the sensor's size: checked up front
 
     def load(indices: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
         for i in indices:
-            yield int(i), read_png(files[i], spec)
+            yield int(i), load_image(files[i], spec)
 
     return ImageStream(folder, folder.name, times - offset_s, dropped, rate, load, {"files": files})
 
@@ -146,8 +155,10 @@ def bag_image_stream(reader: Any, path: Path, topic: str, spec: GelSightSpec) ->
         log_times.append(log_time)
     if not stamps:
         raise InputError(f"topic '{topic}' holds no frames", path)
-    times = np.asarray(stamps)
+    order = stamp_order(np.asarray(stamps))
+    times = np.asarray(stamps)[order]
     kept, dropped, rate = clean_timeline(times, np.ones(len(times), bool), path, topic)
+    kept = order[kept]  # indices of the messages in bag order, in time order
     log_ns = np.asarray(log_times, dtype=np.int64)
     kept_log = log_ns[kept]
 
@@ -173,7 +184,7 @@ def bag_image_stream(reader: Any, path: Path, topic: str, spec: GelSightSpec) ->
                     message = bag.deserialize(raw, connection.msgtype)
                     yield wanted[original], decode_image_message(message, connection.msgtype, spec, where, path)
 
-    return ImageStream(path, topic, times[kept], dropped, rate, load, {"msgtype": msgtype})
+    return ImageStream(path, topic, np.asarray(stamps)[kept], dropped, rate, load, {"msgtype": msgtype})
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -212,11 +223,11 @@ class Recording:
             try:
                 topic = bags.resolve_topic(reader, self.path, selector, types, "a rigid body")
             except InputError:
-                children = bags.tf_children(reader)
+                links = bags.tf_links(reader)
                 child = selector.strip("/")
-                if child not in children:
+                if child not in links:
                     raise
-                return self._tf_stream(reader, children[child], child)
+                return self._tf_stream(links, child)
             msgtype = reader.topics[topic].msgtype
             stamps, positions, quaternions = [], [], []
             for stamp, _, message in bags.read_messages(reader, topic):
@@ -226,34 +237,51 @@ class Recording:
                 quaternions.append((orientation.x, orientation.y, orientation.z, orientation.w))
         if not stamps:
             raise InputError(f"topic '{topic}' holds no messages", self.path)
-        return make_pose_stream(self.path, topic, np.asarray(stamps), np.asarray(positions), np.asarray(quaternions))
-
-    def _tf_stream(self, reader: Any, topic: str, child: str) -> PoseStream:
-        stamps, positions, quaternions, parents = [], [], [], set()
-        for _, _, message in bags.read_messages(reader, topic):
-            for transform in message.transforms:
-                if str(transform.child_frame_id).strip("/") != child:
-                    continue
-                stamp = transform.header.stamp
-                stamps.append(float(stamp.sec) + float(stamp.nanosec) * 1e-9)
-                t, q = transform.transform.translation, transform.transform.rotation
-                positions.append((t.x, t.y, t.z))
-                quaternions.append((q.x, q.y, q.z, q.w))
-                parents.add(str(transform.header.frame_id))
-        if len(parents) > 1:
-            raise InputError(
-                f"TF frame '{child}' on {topic} has several parents ({', '.join(sorted(parents))}); YOTO reads a "
-                "rigid body's TF only as a child of the mocap world frame",
-                self.path,
-            )
-        order = np.argsort(stamps, kind="stable")
+        order = stamp_order(np.asarray(stamps))
         return make_pose_stream(
-            self.path,
-            f"{topic}:{child}",
-            np.asarray(stamps)[order],
-            np.asarray(positions)[order],
-            np.asarray(quaternions)[order],
+            self.path, topic, np.asarray(stamps)[order], np.asarray(positions)[order], np.asarray(quaternions)[order]
         )
+
+    def _tf_link_stream(self, link: bags.TfLink, frame: str) -> PoseStream:
+        """One TF link's `T_parent_frame` over time, in header-stamp order."""
+        name = f"{'/'.join(sorted(link.topics))}:{frame}"
+        order = stamp_order(np.asarray(link.stamps_s))
+        positions, quaternions = np.asarray(link.positions)[order], np.asarray(link.quaternions_xyzw)[order]
+        return make_pose_stream(self.path, name, np.asarray(link.stamps_s)[order], positions, quaternions)
+
+    def _tf_stream(self, links: dict[str, bags.TfLink], child: str) -> PoseStream:
+        """A TF child frame's pose in the root of its TF tree (the mocap world): its transforms composed with its
+        ancestors', each taken at the child's stamps (a static one as it is; a moving one interpolated)."""
+        body = self._tf_link_stream(links[child], child)
+        stamps, T_root_child = body.timestamps_s, body.T_world_body
+        covered = np.ones(len(stamps), bool)
+        chain = [child]
+        while True:
+            parents = links[chain[-1]].parents
+            if len(parents) > 1:
+                raise InputError(
+                    f"TF frame '{chain[-1]}' has several parents ({', '.join(sorted(parents))}): not a tree", self.path
+                )
+            parent = next(iter(parents))
+            if parent in chain:
+                raise InputError(f"the TF frames {' -> '.join([*chain, parent])} form a loop", self.path)
+            if parent not in links:
+                break  # the root: the mocap world frame
+            chain.append(parent)
+            link = links[parent]
+            if link.static:
+                T_parent = np.eye(4)
+                T_parent[:3, :3] = quaternion_xyzw_to_rotation(np.asarray(link.quaternions_xyzw[-1]))
+                T_parent[:3, 3] = link.positions[-1]
+                T_root_child = T_parent @ T_root_child
+            else:
+                T_parent_at, matched = self._tf_link_stream(link, parent).at(stamps)
+                covered &= matched
+                T_root_child = np.where(matched[:, None, None], T_parent_at, np.eye(4)) @ T_root_child
+        positions = np.where(covered[:, None], T_root_child[:, :3, 3], np.nan)  # uncovered: dropouts
+        quaternions = rotation_to_quaternion_xyzw(T_root_child[:, :3, :3])
+        name = body.name if len(chain) == 1 else f"{body.name} (TF {' <- '.join([parent, *reversed(chain)])})"
+        return make_pose_stream(self.path, name, stamps, positions, quaternions)
 
     def point(self, selector: str) -> PointStream:
         """A single marker's position stream (PointStamped topic or name; a Motive marker name)."""
@@ -267,7 +295,8 @@ class Recording:
                 positions.append((message.point.x, message.point.y, message.point.z))
         if not stamps:
             raise InputError(f"topic '{topic}' holds no messages", self.path)
-        return make_point_stream(self.path, topic, np.asarray(stamps), np.asarray(positions))
+        order = stamp_order(np.asarray(stamps))
+        return make_point_stream(self.path, topic, np.asarray(stamps)[order], np.asarray(positions)[order])
 
     def images(self, selector: str) -> ImageStream:
         """GelSight frames: an image topic of a bag, or a folder of time-stamped PNGs beside a Motive take."""

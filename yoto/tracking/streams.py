@@ -18,6 +18,7 @@ import numpy as np
 
 from yoto.errors import InputError
 from yoto.io import read_ply_points
+from yoto.rig.motive import is_motive_csv
 from yoto.rig.streams import read_image_stream, read_pose_stream
 from yoto.trajectory import PoseStream, list_tactile_frames, read_tum
 
@@ -27,8 +28,11 @@ MOTIVE_SUFFIXES = (".csv",)
 
 
 def is_recording(path: Path) -> bool:
-    """A ROS bag (file or ROS2 folder) or a Motive CSV export, as opposed to a TUM file or a frame folder."""
-    if path.suffix.lower() in BAG_SUFFIXES + MOTIVE_SUFFIXES:
+    """A ROS bag (file or ROS2 folder) or a Motive CSV export, as opposed to a TUM file (whatever its suffix, `.csv`
+    included) or a frame folder."""
+    if path.suffix.lower() in MOTIVE_SUFFIXES:
+        return is_motive_csv(path)
+    if path.suffix.lower() in BAG_SUFFIXES:
         return True
     return path.is_dir() and (
         (path / "metadata.yaml").is_file() or any(p.suffix in (".db3", ".mcap") for p in path.iterdir())
