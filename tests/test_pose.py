@@ -38,7 +38,7 @@ def foreign_tactile_cloud(
 
 
 def write_foreign_pairs(model, folder, rng, count):
-    surface = model.mesh_object.sample(400_000)
+    surface = model.mesh_object.sample(400_000, seed=rng)
     T_mesh_object = model.T_mesh_object
     written = []
     while len(written) < count:

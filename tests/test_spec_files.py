@@ -20,7 +20,13 @@ from test_pose import write_foreign_pairs
 from yoto.cli import main
 from yoto.contacts import read_contact_pair
 from yoto.errors import InputError
-from yoto.geometry import make_transform, quaternion_xyzw_to_rotation, random_rotations, rotation_about_axis
+from yoto.geometry import (
+    make_transform,
+    quaternion_xyzw_to_rotation,
+    random_rotations,
+    rotation_about_axis,
+    rotation_angle_rad,
+)
 from yoto.io import read_ply_points
 from yoto.tracking.streams import read_tactile_folder
 from yoto.trajectory import list_tactile_frames, read_tum
@@ -213,9 +219,14 @@ def test_pair_files_written_by_another_program_give_the_same_poses(builtin_model
         np.testing.assert_array_equal(foreign.right.points_sensor, pair.right.points_sensor)
         assert foreign.extra == {"format_note": "written by another tool"}
         result = json.loads(original.with_suffix(".pose.json").read_text())
-        for path, tol in ((same, TOL["pose_exact_m"]), (near, 2e-3)):
-            other = json.loads(path.with_suffix(".pose.json").read_text())
-            np.testing.assert_allclose(other["T_world_object"], result["T_world_object"], atol=tol)
+        exact_pose = json.loads(same.with_suffix(".pose.json").read_text())["T_world_object"]
+        np.testing.assert_allclose(exact_pose, result["T_world_object"], atol=TOL["pose_exact_m"])
+        # Sensor poses rounded to 4 decimals (5e-5 per entry) may move the solve along a weakly held direction by a
+        # fraction of a degree, never more.
+        near_pose = np.asarray(json.loads(near.with_suffix(".pose.json").read_text())["T_world_object"])
+        expected = np.asarray(result["T_world_object"])
+        assert np.degrees(rotation_angle_rad(near_pose[:3, :3], expected[:3, :3])) < 0.5
+        assert np.linalg.norm(near_pose[:3, 3] - expected[:3, 3]) < 2e-4
     # `yoto localize` on the big-endian double clouds: the same contacts as on ours.
     located = []
     for clouds in (
