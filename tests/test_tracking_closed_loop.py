@@ -328,7 +328,7 @@ def test_the_rest_frames_are_registered_as_they_arrive_and_the_map_explains_thei
         pad.add_rest_frame(model, frame, offset @ T_true, solver)
     monkeypatch.setattr(pad_error, "point_to_plane_gauss_newton", None)  # settle must not register anything
     assert pad.settle(solver)
-    fit = pad._fit_pose(solver)
+    fit = pad.rest_fit(solver)
     assert rotation_angle_rad(fit, T_true) < np.radians(0.35)  # measured 0.20 deg, 0.11 mm (the start: 0.6, 0.3)
     assert np.linalg.norm(fit[:3, 3] - T_true[:3, 3]) < 1.5e-4
 

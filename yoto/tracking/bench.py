@@ -279,7 +279,13 @@ def build_report(records: dict[str, dict[str, list[dict[str, Any]]]], config: Tr
                 "speed": {
                     "latency_median_ms": _stats([t["closed_loop_speed"]["latency_median_ms"] for t in trials]),
                     "latency_p90_ms": _stats([t["closed_loop_speed"]["latency_p90_ms"] for t in trials]),
-                    "latency_max_ms": _stats([t["closed_loop_speed"].get("latency_max_ms", np.nan) for t in trials]),
+                    "latency_max_ms": _stats(
+                        [
+                            t["closed_loop_speed"]["latency_max_ms"]
+                            for t in trials
+                            if "latency_max_ms" in t["closed_loop_speed"]
+                        ]
+                    ),
                     "instants_per_s": _stats([t["closed_loop_speed"]["instants_per_s"] for t in trials]),
                     "frames_per_s": _stats([t["closed_loop_speed"]["frames_per_s"] for t in trials]),
                     "frames_used": sum(t["closed_loop_speed"]["frames_used"] for t in trials),

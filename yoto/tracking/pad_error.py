@@ -5,8 +5,9 @@ A GelSight reconstruction's smooth depth errors (calibration, lighting, integrat
 where they are on the image while the object slides over it. A frame registered on the object is off by them, and
 that offset changes as the contact slides (docs/tracking.md, "Why the closed loop still drifts"). While the object
 rests after the touch, every frame sees the same patch of the object at the same place on the pad. Those frames,
-this sensor's alone, are registered on the model from the pose the tracker holds; the depth difference left
-between them and the model's surface, cell by cell over the pad (sensor x, y), is the pad's error there. Frames
+this sensor's alone, are registered on the model from the pose the tracker holds, one by one as they arrive (a
+live loop cannot stop for all of them when the motion starts); the depth difference left between them and the
+model's surface, cell by cell over the pad (sensor x, y), is the pad's error there. Frames
 taken later have it subtracted, cell by cell, before the closed loop registers them; beyond the cells the rest saw
 it is continued from them for about a millimetre and faded out.
 
@@ -106,7 +107,7 @@ class PadError:
         c = self.config
         if self.T_reference is None:
             self.T_reference = np.asarray(T_object_sensor, dtype=np.float64)
-        start = self._fit_pose(solver)
+        start = self.rest_fit(solver)
         points_start = transform_points(start, points_sensor)
         fit = point_to_plane_gauss_newton(model, points_start, np.eye(4)[None], solver)[0] @ start
         points_object = transform_points(fit, points_sensor)
@@ -131,7 +132,7 @@ class PadError:
         prior = np.diag([solver.prior_rotation_rad**-2] * 3 + [solver.prior_translation_m**-2] * 3)
         return np.linalg.solve(prior + self.fit_information, self.fit_evidence)
 
-    def _fit_pose(self, solver: GaussNewtonConfig) -> np.ndarray:
+    def rest_fit(self, solver: GaussNewtonConfig) -> np.ndarray:
         """The rest frames' combined fit so far, T_object_sensor."""
         assert self.T_reference is not None
         return pose_from_twist(self._fit_twist(solver)) @ self.T_reference
