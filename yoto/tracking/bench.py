@@ -132,8 +132,10 @@ def registration_at_truth(
             resting = [f for f in trajectory.tactile[side] if f.timestamp_s < motion[0] and len(f.points_sensor)]
             if resting:
                 pads[side] = PadError(config.pad_error)
-                pads[side].rest_samples = [contact_samples(f.points_sensor, config) for f in resting]
-                pads[side].settle(model, resting[-1].T_object_sensor_true, pad_rest_solver(config))
+                for f in resting:
+                    samples = contact_samples(f.points_sensor, config)
+                    pads[side].add_rest_frame(model, samples, f.T_object_sensor_true, pad_rest_solver(config))
+                pads[side].settle(pad_rest_solver(config))
     instants = [
         frames
         for _, frames in group_frames(tactile, trajectory.touch_time_s, config.sync_tolerance_s)
@@ -277,6 +279,13 @@ def build_report(records: dict[str, dict[str, list[dict[str, Any]]]], config: Tr
                 "speed": {
                     "latency_median_ms": _stats([t["closed_loop_speed"]["latency_median_ms"] for t in trials]),
                     "latency_p90_ms": _stats([t["closed_loop_speed"]["latency_p90_ms"] for t in trials]),
+                    "latency_max_ms": _stats(
+                        [
+                            t["closed_loop_speed"]["latency_max_ms"]
+                            for t in trials
+                            if "latency_max_ms" in t["closed_loop_speed"]
+                        ]
+                    ),
                     "instants_per_s": _stats([t["closed_loop_speed"]["instants_per_s"] for t in trials]),
                     "frames_per_s": _stats([t["closed_loop_speed"]["frames_per_s"] for t in trials]),
                     "frames_used": sum(t["closed_loop_speed"]["frames_used"] for t in trials),
@@ -462,13 +471,15 @@ def format_markdown(report: dict[str, Any]) -> str:
         lines.append("")
     lines += ["## Closed loop speed (one instant: a frame of each sensor, registered together)", ""]
     lines += [
-        "| object | ms per instant, median (90th percentile) | instants per s | tactile frames per s | frames used |",
-        "|---|---|---|---|---|",
+        "| object | ms per instant, median (90th percentile) | slowest instant, ms | instants per s "
+        "| tactile frames per s | frames used |",
+        "|---|---|---|---|---|---|",
     ]
     for name in names:
         speed = results[name][main]["speed"]
         lines.append(
             f"| {name} | {speed['latency_median_ms']['mean']:.1f} ({speed['latency_p90_ms']['mean']:.1f}) | "
+            f"{speed.get('latency_max_ms', {}).get('max', float('nan')):.1f} | "
             f"{speed['instants_per_s']['mean']:.0f} | {speed['frames_per_s']['mean']:.0f} | "
             f"{speed['frames_used']} / {speed['frames']} |"
         )

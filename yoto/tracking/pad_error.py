@@ -5,8 +5,9 @@ A GelSight reconstruction's smooth depth errors (calibration, lighting, integrat
 where they are on the image while the object slides over it. A frame registered on the object is off by them, and
 that offset changes as the contact slides (docs/tracking.md, "Why the closed loop still drifts"). While the object
 rests after the touch, every frame sees the same patch of the object at the same place on the pad. Those frames,
-this sensor's alone, are registered on the model from the pose the tracker holds; the depth difference left
-between them and the model's surface, cell by cell over the pad (sensor x, y), is the pad's error there. Frames
+this sensor's alone, are registered on the model from the pose the tracker holds, one by one as they arrive (a
+live loop cannot stop for all of them when the motion starts); the depth difference left between them and the
+model's surface, cell by cell over the pad (sensor x, y), is the pad's error there. Frames
 taken later have it subtracted, cell by cell, before the closed loop registers them; beyond the cells the rest saw
 it is continued from them for about a millimetre and faded out.
 
@@ -27,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from yoto.geometry import transform_points
+from yoto.geometry import invert_transform, pose_from_twist, transform_points, twist_of_pose
 from yoto.objects.model import ObjectModel
 from yoto.registration import GaussNewtonConfig, plane_distances, point_to_plane_gauss_newton
 
@@ -60,10 +61,15 @@ class PadError:
     def __init__(self, config: PadErrorConfig):
         self.config = config
         self.cells = int(np.ceil(2 * config.extent_m / config.cell_m))
-        self.sums = np.zeros(self.cells * self.cells)
-        self.counts = np.zeros(self.cells * self.cells, dtype=np.int64)
-        self.rest_samples: list[np.ndarray] = []  # the frames at rest (sensor frame), until the map is set
-        self.error_m = np.zeros(self.cells * self.cells)  # the error removed in each cell (0: unknown, far away)
+        size = self.cells * self.cells
+        self.counts = np.zeros(size, dtype=np.int64)
+        self.residual_sums = np.zeros(size)  # each rest point's depth residual, taken back to the reference pose
+        self.residual_slopes = np.zeros((size, 6))  # how those residuals change with the fit's twist
+        self.rest_frames = 0
+        self.T_reference: np.ndarray | None = None  # T_object_sensor of the first rest frame: the fit's origin
+        self.fit_information = np.zeros((6, 6))  # the rest frames' Gauss-Newton information about the fit ...
+        self.fit_evidence = np.zeros(6)  # ... and the information-weighted twists each frame fitted
+        self.error_m = np.zeros(size)  # the error removed in each cell (0: unknown, far away)
 
     def _cell_index(self, points_sensor: np.ndarray) -> np.ndarray:
         """Flat cell index of each point, -1 off the map."""
@@ -79,42 +85,65 @@ class PadError:
         corrected[:, 2] -= np.where(index >= 0, self.error_m[np.maximum(index, 0)], 0.0)
         return corrected
 
-    def _set_error(self) -> None:
-        """The error per cell: the mean residual where known; beyond, continued from the known cells nearby
-        (normalized Gaussian smoothing) and faded out where they are far."""
+    def _continued(self, known: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """Per cell: `values` where known; beyond, continued from the known cells nearby (normalized Gaussian
+        smoothing) and faded out where they are far: no step in the corrected surface where the known cells end."""
         c = self.config
-        known = self.counts >= c.min_cell_samples
-        mean = np.where(known, self.sums / np.maximum(self.counts, 1), 0.0)
         shape = (self.cells, self.cells)
         sigma = c.continuation_m / c.cell_m
         weight = ndimage.gaussian_filter(known.astype(np.float64).reshape(shape), sigma, mode="constant").ravel()
-        spread = ndimage.gaussian_filter(mean.reshape(shape), sigma, mode="constant").ravel()
+        spread = ndimage.gaussian_filter(np.where(known, values, 0.0).reshape(shape), sigma, mode="constant").ravel()
         faded = spread / np.maximum(weight, 1e-12) * np.minimum(weight / CONTINUATION_FADE, 1.0)
-        self.error_m = np.where(known, mean, np.where(weight > 1e-6, faded, 0.0))
+        return np.where(known, values, np.where(weight > 1e-6, faded, 0.0))
 
-    def settle(self, model: ObjectModel, T_object_sensor: np.ndarray, solver: GaussNewtonConfig) -> bool:
-        """Set the map from the frames at rest, the sensor at `T_object_sensor` on the object (the pose the tracker
-        holds): register them on the model (this contact alone), and keep the depth residuals left as the pad's
-        error. Returns whether a map was set (enough frames at rest)."""
-        rest, self.rest_samples = self.rest_samples, []
-        if len(rest) < self.config.min_rest_frames:
-            return False
-        stacked = np.vstack(rest)
-        fix = point_to_plane_gauss_newton(model, transform_points(T_object_sensor, stacked), np.eye(4)[None], solver)
-        self._add(model, stacked, fix[0] @ T_object_sensor)
-        self._set_error()
-        return True
-
-    def _add(self, model: ObjectModel, points_sensor: np.ndarray, T_object_sensor: np.ndarray) -> None:
-        """Add each point's depth residual against the model's surface to its cell."""
+    def add_rest_frame(
+        self, model: ObjectModel, points_sensor: np.ndarray, T_object_sensor: np.ndarray, solver: GaussNewtonConfig
+    ) -> None:
+        """Register one frame taken at rest on the model (this contact alone, from the fit of the frames so far)
+        and add its depth residuals to the cells: the rest's registration is spread over the rest frames as they
+        arrive, so the first frame in motion waits for nothing (`settle` only combines). The frames' fits are
+        combined in information form about the first frame's pose; each residual keeps its slope with respect to
+        that fit, so the map is read at the combined fit in the end (first order)."""
         c = self.config
-        distance, matched, _, normals = plane_distances(
-            model, transform_points(T_object_sensor, points_sensor), 2 * c.max_residual_m
-        )
-        facing = normals @ T_object_sensor[:3, 2]
+        if self.T_reference is None:
+            self.T_reference = np.asarray(T_object_sensor, dtype=np.float64)
+        start = self.rest_fit(solver)
+        points_start = transform_points(start, points_sensor)
+        fit = point_to_plane_gauss_newton(model, points_start, np.eye(4)[None], solver)[0] @ start
+        points_object = transform_points(fit, points_sensor)
+        distance, matched, _, normals = plane_distances(model, points_object, solver.max_distance_m)
+        jacobian = np.concatenate([np.cross(points_object, normals), normals], axis=1)
+        twist = twist_of_pose(fit @ invert_transform(self.T_reference))
+        information = jacobian[matched].T @ jacobian[matched] / solver.surface_noise_m**2
+        self.fit_information += information
+        self.fit_evidence += information @ twist
+        self.rest_frames += 1
+        facing = normals @ fit[:3, 2]
         use = matched & (np.abs(facing) >= c.min_facing)
-        residual = np.where(use, distance / np.where(use, facing, 1.0), 0.0)
+        safe = np.where(use, facing, 1.0)
+        residual, slope = distance / safe, jacobian / safe[:, None]
         index = self._cell_index(points_sensor)
         use &= (index >= 0) & (np.abs(residual) <= c.max_residual_m)
-        np.add.at(self.sums, index[use], residual[use])
         np.add.at(self.counts, index[use], 1)
+        np.add.at(self.residual_sums, index[use], residual[use] - slope[use] @ twist)
+        np.add.at(self.residual_slopes, index[use], slope[use])
+
+    def _fit_twist(self, solver: GaussNewtonConfig) -> np.ndarray:
+        prior = np.diag([solver.prior_rotation_rad**-2] * 3 + [solver.prior_translation_m**-2] * 3)
+        return np.linalg.solve(prior + self.fit_information, self.fit_evidence)
+
+    def rest_fit(self, solver: GaussNewtonConfig) -> np.ndarray:
+        """The rest frames' combined fit so far, T_object_sensor."""
+        assert self.T_reference is not None
+        return pose_from_twist(self._fit_twist(solver)) @ self.T_reference
+
+    def settle(self, solver: GaussNewtonConfig) -> bool:
+        """Set the map from the rest frames added: each cell's mean residual at the combined fit, continued beyond.
+        Returns whether a map was set (enough frames at rest)."""
+        if self.rest_frames < self.config.min_rest_frames:
+            return False
+        twist = self._fit_twist(solver)
+        known = self.counts >= self.config.min_cell_samples
+        mean = (self.residual_sums + self.residual_slopes @ twist) / np.maximum(self.counts, 1)
+        self.error_m = self._continued(known, mean)
+        return True

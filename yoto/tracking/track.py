@@ -230,6 +230,7 @@ class TrackResult:
             "unusable": reasons,
             "latency_median_ms": median,
             "latency_p90_ms": float(np.percentile(latency, 90)),
+            "latency_max_ms": float(latency.max()),
             "instants_per_s": 1000.0 / median if median > 0 else float("inf"),
             "frames_per_s": 1000.0 * frames / max(float(latency.sum()), 1e-9),
         }
@@ -376,6 +377,7 @@ class _Corrector:
         config: TrackConfig,
     ):
         self.model, self.streams, self.jitter, self.config = model, streams, jitter, config
+        _ = model.kdtree  # built now, before the first frame, so that no live frame waits for it
         c = config.correction
         self.grasps = dict(touch.T_sensor_object)
         self.touch_grasp = touch.T_sensor_object["left"]
@@ -481,8 +483,8 @@ class _Corrector:
         self._predict(sensors, instant_s)
         if self.pads and not self.moving and self._left_rest(sensors):
             self.moving = True
-            for side, resting in self.pads.items():
-                resting.settle(self.model, invert_transform(self.grasps[side]), self.rest_solver)
+            for resting in self.pads.values():
+                resting.settle(self.rest_solver)
         predicted = fuse_object_poses(sensors, self.grasps)[0]
         points_predicted: dict[str, np.ndarray] = {}
         pose_noise: dict[str, np.ndarray] = {}
@@ -493,9 +495,9 @@ class _Corrector:
             T_predicted_sensor = invert_transform(predicted[row]) @ sensors.T_world_sensor[side][row]
             sampled = contact_samples(points, c)
             pad = self.pads.get(side)
-            if pad is not None:  # at rest: its frames teach the pad's error; once moving: it is removed
+            if pad is not None:  # at rest: its frames teach the pad's error, one by one; once moving: it is removed
                 if not self.moving:
-                    pad.rest_samples.append(sampled)
+                    pad.add_rest_frame(self.model, sampled, T_predicted_sensor, self.rest_solver)
                 sampled = pad.correct(sampled)
             points_predicted[side] = transform_points(T_predicted_sensor, sampled)
             pose_noise[side] = self._pose_noise(side, T_predicted_sensor)
