@@ -41,7 +41,6 @@ from yoto.sensor.models import (
     monomial_exponents,
     monomials,
     normalised_xy,
-    position_polynomial,
     solve_ridge,
 )
 from yoto.sensor.presses import (
@@ -285,6 +284,7 @@ def round_trip_gain(
     spec = calibration.spec
     shape = (spec.height_px, spec.width_px)
     x, y = normalised_xy(*shape)
+    exponents = monomial_exponents(2, calibration.image_model.config.position_degree)
     presses = []
     for i, change in changes.items():
         cx, cy, a = circles[i]
@@ -298,22 +298,21 @@ def round_trip_gain(
         real = gx[inside] * along[:, 0] + gy[inside] * along[:, 1]
         height = press_height_map(cx, cy, a, ball_radius_px * spec.pixel_size_m, spec)
         near = r < fraction * a + RENDER_MARGIN_PX
-        presses.append((inside, along, real, height, near, np.stack([x[inside], y[inside]], 1)))
-    degree = calibration.image_model.config.position_degree
-    gain = np.zeros(len(monomial_exponents(2, degree)))
+        presses.append((inside, along, real, height, near, monomials(np.stack([x[inside], y[inside]], 1), exponents)))
+    gain = np.zeros(len(exponents))
     gain[0] = 1.0
     ratios: list[float] = []
     for iteration in range(iterations + 1):
         gained = replace(calibration, image_model=replace(calibration.image_model, gain=gain))
         design, target, ratio = [], [], []
-        for inside, along, real, height, near, xy in presses:
+        for inside, along, real, height, near, basis in presses:
             image = render_image(height, gained, region=near)
             rendered = model_colour_change(image, gained.background_i16, gained.smooth)
             gx, gy = calibration.gradient_model.predict(rendered)
             read = gx[inside] * along[:, 0] + gy[inside] * along[:, 1]
             ratio.append(float(np.median(read / real)))
-            design.append(read[:, None] * monomials(xy, monomial_exponents(2, degree)))
-            target.append(real * position_polynomial(xy, gain))
+            design.append(read[:, None] * basis)
+            target.append(real * (basis @ gain))
         ratios.append(float(np.median(ratio)))
         if iteration < iterations:
             gain = np.linalg.lstsq(np.vstack(design), np.concatenate(target), rcond=None)[0]
