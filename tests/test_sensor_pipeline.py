@@ -266,6 +266,17 @@ def test_render_gain_makes_rendered_presses_read_like_the_real_ones(synthetic):
     assert np.all(ratios[:, 0] < 0.85) and np.all(np.abs(ratios[:, 1] - 1.0) < 0.03)
 
 
+def test_render_region_draws_only_there_and_exactly_inside(synthetic):
+    calibration = synthetic["calibration"]
+    cx, cy, a = 150.0, 110.0, 25.0
+    height = press_height_map(cx, cy, a, BALL_RADIUS_M)
+    r = np.hypot(*np.meshgrid(np.arange(SPEC.width_px) - cx, np.arange(SPEC.height_px) - cy))
+    full, part = render_image(height, calibration), render_image(height, calibration, region=r < a + 12)
+    np.testing.assert_array_equal(part[r < a], full[r < a])  # the blur (2 px) reaches 8 px: the rest is exact
+    np.testing.assert_array_equal(part[r > a + 24], calibration.background[r > a + 24])
+    assert np.abs(full[r > a + 24].astype(int) - calibration.background[r > a + 24]).max() > 0
+
+
 def test_calibration_files_without_a_render_gain_load_as_before(synthetic, tmp_path):
     calibration = synthetic["calibration"]
     assert calibration.image_model.gain is not None
