@@ -193,7 +193,10 @@ def load_calibration(path: str | Path, spec: GelSightSpec | None = None) -> Sens
         gradient_model = load_gradient_model(
             arrays, "gradient_", gradient_config, (file_spec.height_px, file_spec.width_px)
         )
-        image_model = ImageModel(arrays["image_coefficients"], float(model["image_max_gradient"]), image_config)
+        image_gain = arrays["image_gain"] if "image_gain" in arrays else None  # files before the round-trip gain
+        image_model = ImageModel(
+            arrays["image_coefficients"], float(model["image_max_gradient"]), image_config, image_gain
+        )
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(
             f"sensor calibration file is incomplete or damaged ({type(exc).__name__}: {exc})", path

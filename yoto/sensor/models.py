@@ -358,6 +358,9 @@ class ImageModel:
     coefficients: np.ndarray  # (num_features, 3) float64
     max_gradient: float  # gradients are clamped to this magnitude (the largest seen in calibration)
     config: ImageModelConfig
+    gain: np.ndarray | None = None  # (M,) polynomial in the normalised pixel position (constant first) scaling the
+    # colour change so that the gradient model reads rendered ball presses as it reads the real ones
+    # (`ball_calibration.round_trip_gain`); None: 1 (files written before it)
 
     def predict(self, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
         """(rows, cols, 3) float32 colour change of (rows, cols) gradient maps (exactly zero where the gel is flat,
@@ -368,8 +371,12 @@ class ImageModel:
         scale = np.minimum(1.0, self.max_gradient / np.maximum(magnitude[sloped], 1e-12))
         g = np.stack([gx[sloped] * scale, gy[sloped] * scale], 1)
         x, y = normalised_xy(rows, cols)
+        xy = np.stack([x[sloped], y[sloped]], 1)
         change = np.zeros((rows, cols, 3), dtype=np.float32)
-        change[sloped] = self._evaluate(g, np.stack([x[sloped], y[sloped]], 1))
+        values = self._evaluate(g, xy)
+        if self.gain is not None:
+            values *= position_polynomial(xy, self.gain)[:, None]
+        change[sloped] = values
         return change
 
     def _evaluate(self, gradients: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -388,7 +395,19 @@ class ImageModel:
         return out
 
     def arrays(self, prefix: str) -> dict[str, np.ndarray]:
-        return {f"{prefix}coefficients": self.coefficients}
+        gain = {} if self.gain is None else {f"{prefix}gain": self.gain}
+        return {f"{prefix}coefficients": self.coefficients, **gain}
+
+
+def position_polynomial(xy: np.ndarray, coefficients: np.ndarray) -> np.ndarray:
+    """(N,) values at normalised positions (N, 2) of the full polynomial in x, y whose (M,) coefficients are given
+    constant first, in `monomial_exponents` order (M = 1, 3, 6, 10, 15 for degree 0-4)."""
+    degree = 0
+    while (degree + 1) * (degree + 2) // 2 < len(coefficients):
+        degree += 1
+    if (degree + 1) * (degree + 2) // 2 != len(coefficients):
+        raise ValueError(f"{len(coefficients)} coefficients are no full polynomial in two variables")
+    return monomials(xy, monomial_exponents(2, degree)) @ coefficients
 
 
 def fit_image_model(

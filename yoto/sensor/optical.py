@@ -36,6 +36,7 @@ def render_image(
     rng: np.random.Generator | None = None,
     *,
     blur_px: float | None = None,
+    region: np.ndarray | None = None,
 ) -> np.ndarray:
     """Render the (rows, cols, 3) uint8 RGB image the sensor would show for a gel height map.
 
@@ -43,6 +44,8 @@ def render_image(
         columns as in `GelSightSpec.height_map_to_points`.
     rng: draw per-pixel Gaussian sensor noise of the calibration's measured level; None renders noise-free.
     blur_px: Gaussian blur of the colour change (pixels); None uses the calibration's measured value.
+    region: (rows, cols) bool: draw the colour change only there (flat gel elsewhere), which is faster where
+        only part of a frame is needed (a press's contact, `ball_calibration.round_trip_gain`).
     """
     spec = calibration.spec
     height_map_m = np.asarray(height_map_m)
@@ -59,6 +62,8 @@ def render_image(
             "must be metres, <= 0 where the gel is pressed (did you pass millimetres?)"
         )
     gx, gy = height_gradients(height_map_m, spec.pixel_size_m)
+    if region is not None:
+        gx, gy = np.where(region, gx, 0.0), np.where(region, gy, 0.0)
     change = calibration.image_model.predict(gx, gy)
     sigma = calibration.render_blur_px if blur_px is None else blur_px
     if sigma > 0:
