@@ -83,7 +83,7 @@ def test_se3_exp_log_round_trip_and_group_law(rng):
     assert np.allclose(se3_exp(0.3 * xi) @ se3_exp(0.5 * xi), se3_exp(0.8 * xi), atol=TOL["float_round_trip"])
 
 
-@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-5, 0.0099, 0.0101, 0.5, np.pi - 1e-3])
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 2e-6, 1e-5, 0.0099, 0.0101, 0.5, np.pi - 1e-3])
 def test_se3_exp_is_the_matrix_exponential_and_log_inverts_it(rng, angle):
     """exp and log are written out in closed form (per element, with series where a difference cancels): each
     must agree with the 4 x 4 matrix exponential of the twist, on both sides of every switch."""
