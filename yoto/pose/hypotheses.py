@@ -93,17 +93,14 @@ def group_hypotheses(refined: Refined, symmetry: Symmetry, config: HypothesisCon
     order = np.argsort(-score, kind="stable")
     poses = refined.T_world_object
     position = poses[:, :3, 3]
-    near = np.empty((len(order), len(order)), dtype=bool)  # pairs close enough in translation, a block at a time
-    for first in range(0, len(order), 256):
-        offsets = position[first : first + 256, None] - position[None]
-        near[first : first + 256] = np.linalg.norm(offsets, axis=2) <= config.distinct_translation_m
     unassigned = np.ones(len(order), dtype=bool)
     members, support = [], []
     for k in order:
         if not unassigned[k]:
             continue
         # The rotation (the costly part, modulo symmetry) only of the unassigned poses close enough in translation.
-        close = np.flatnonzero(unassigned & near[k])
+        close = np.flatnonzero(unassigned)
+        close = close[np.linalg.norm(position[close] - position[k], axis=1) <= config.distinct_translation_m]
         if len(close) > 1:
             rotation = symmetry.rotation_errors_rad(poses[close], np.broadcast_to(poses[k], (len(close), 4, 4)))
             close = close[rotation <= config.distinct_rotation_rad]
