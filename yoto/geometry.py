@@ -65,27 +65,31 @@ def skew(vectors: np.ndarray) -> np.ndarray:
 
 
 def so3_exp(rotation_vectors: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) (axis times angle in radians; Rodrigues).
-
-    Written out per element, (1 - cos(angle)) a a^T + cos(angle) I + sin(angle) [a]_x for the unit axis a: no
-    stacked 3 x 3 product (the refinement builds thousands of small rotations per pose)."""
+    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) (axis times angle in radians; Rodrigues)."""
     omega = np.asarray(rotation_vectors, dtype=np.float64)
+    out = np.empty(omega.shape[:-1] + (3, 3))
+    _rodrigues_into(omega, out)
+    return out
+
+
+def _rodrigues_into(omega: np.ndarray, out: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Write exp(omega) (..., 3, 3) into `out` (a view may be strided), per element: (1 - cos(angle)) a a^T +
+    cos(angle) I + sin(angle) [a]_x for the unit axis a, no stacked 3 x 3 product (the refinement builds thousands
+    of small rotations per pose). Returns the angles, their cosines and sines (...,) for `se3_exp` to reuse."""
     angle = np.linalg.norm(omega, axis=-1)
     axis = omega / np.maximum(angle, 1e-300)[..., None]
-    cos_angle = np.cos(angle)
-    sin_axis = np.sin(angle)[..., None] * axis
-    out = ((1.0 - cos_angle)[..., None] * axis)[..., :, None] * axis[..., None, :]
-    flat = out.reshape(out.shape[:-2] + (9,))  # a view of `out` (row-major entries)
-    flat[..., 0] += cos_angle
-    flat[..., 4] += cos_angle
-    flat[..., 8] += cos_angle
-    flat[..., 7] += sin_axis[..., 0]
-    flat[..., 5] -= sin_axis[..., 0]
-    flat[..., 2] += sin_axis[..., 1]
-    flat[..., 6] -= sin_axis[..., 1]
-    flat[..., 3] += sin_axis[..., 2]
-    flat[..., 1] -= sin_axis[..., 2]
-    return out
+    cos_angle, sin_angle = np.cos(angle), np.sin(angle)
+    sin_axis = sin_angle[..., None] * axis
+    np.multiply(((1.0 - cos_angle)[..., None] * axis)[..., :, None], axis[..., None, :], out=out)
+    for i in range(3):
+        out[..., i, i] += cos_angle
+    out[..., 2, 1] += sin_axis[..., 0]
+    out[..., 1, 2] -= sin_axis[..., 0]
+    out[..., 0, 2] += sin_axis[..., 1]
+    out[..., 2, 0] -= sin_axis[..., 1]
+    out[..., 1, 0] += sin_axis[..., 2]
+    out[..., 0, 1] -= sin_axis[..., 2]
+    return angle, cos_angle, sin_angle
 
 
 def so3_log(rotations: np.ndarray) -> np.ndarray:
@@ -114,19 +118,6 @@ def so3_log(rotations: np.ndarray) -> np.ndarray:
     return out
 
 
-def _left_jacobian_factors(omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(a, b) (...,) of V(omega) = I + a [omega]_x + b [omega]_x^2, SE(3)'s exponential's t = V(omega) @ rho: a = (1
-    - cos(angle)) / angle^2 and b = (angle - sin(angle)) / angle^3, by their series below 0.01 rad (where the
-    differences cancel)."""
-    angle = np.linalg.norm(omega, axis=-1)
-    small = angle < 1e-2
-    safe = np.where(small, 1.0, angle)
-    square = angle**2
-    a = np.where(small, 0.5 - square / 24.0 + square**2 / 720.0, (1.0 - np.cos(safe)) / safe**2)
-    b = np.where(small, 1.0 / 6.0 - square / 120.0 + square**2 / 5040.0, (safe - np.sin(safe)) / safe**3)
-    return a, b
-
-
 def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """u x v over the last axis, (..., 3) (np.cross is slow on many short vectors)."""
     ux, uy, uz = u[..., 0], u[..., 1], u[..., 2]
@@ -139,8 +130,14 @@ def se3_exp(twists: np.ndarray) -> np.ndarray:
     xi = np.asarray(twists, dtype=np.float64)
     omega, rho = xi[..., :3], xi[..., 3:]
     out = np.zeros(xi.shape[:-1] + (4, 4))
-    out[..., :3, :3] = so3_exp(omega)
-    a, b = _left_jacobian_factors(omega)
+    angle, cos_angle, sin_angle = _rodrigues_into(omega, out[..., :3, :3])
+    # t = V(omega) rho, V = I + a [omega]_x + b [omega]_x^2: a = (1 - cos(angle)) / angle^2 and b = (angle -
+    # sin(angle)) / angle^3, by their series below 0.01 rad (where the differences cancel)
+    small = angle < 1e-2
+    safe = np.where(small, 1.0, angle)
+    square = angle**2
+    a = np.where(small, 0.5 - square / 24.0 + square**2 / 720.0, (1.0 - cos_angle) / safe**2)
+    b = np.where(small, 1.0 / 6.0 - square / 120.0 + square**2 / 5040.0, (safe - sin_angle) / safe**3)
     omega_rho = _cross(omega, rho)
     out[..., :3, 3] = rho + a[..., None] * omega_rho + b[..., None] * _cross(omega, omega_rho)
     out[..., 3, 3] = 1.0
