@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from conftest import TOL
 
 from yoto.geometry import (
     invert_transform,
@@ -100,3 +101,21 @@ def test_neighbours_are_refined_only_when_the_first_hypothesis_is_not_decisive(b
     assert np.array_equal(forced, undecided)
     # The true pose was a seed: its refinement stayed there.
     assert np.linalg.norm(decisive[:, :3, 3] - T_world_object[:3, 3], axis=1).min() < 5e-4
+
+
+def test_field_reads_the_box_inside_and_the_band_outside_its_grid(box, rng):
+    """On the box's faces, away from its edges, the field is the signed distance to the nearest face with that
+    face's normal; points beyond the grid on any side (negative indices included) read +band with a zero normal
+    (the reads there are clipped into the grid, then masked)."""
+    field = surface_field(box)
+    half = np.array([0.06, 0.04, 0.025])
+    T_object_mesh = box.T_object_mesh
+    depth = rng.uniform(-0.002, 0.002, size=50)
+    p_mesh = np.column_stack([rng.uniform(-0.03, 0.03, 50), rng.uniform(-0.02, 0.02, 50), half[2] + depth])
+    distance, normal = field.distance(transform_points(T_object_mesh, p_mesh))
+    assert np.abs(distance - depth).max() < TOL["float32"]
+    assert np.abs(normal - T_object_mesh[:3, 2]).max() < 10 * TOL["float32_unit"]  # differences of float32 values
+    outside = field.origin + np.array([[-1.0, 0.0, 0.0], [0.0, -0.5, 0.0], [0.0, 0.0, 2.0], [5.0, 5.0, -5.0]])
+    far, far_normal = field.distance(np.vstack([outside, transform_points(T_object_mesh, p_mesh[:2])]))
+    assert np.array_equal(far[:4], np.full(4, field.band_m)) and not far_normal[:4].any()
+    assert np.abs(far[4:] - depth[:2]).max() < TOL["float32"]

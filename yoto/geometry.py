@@ -67,10 +67,29 @@ def skew(vectors: np.ndarray) -> np.ndarray:
 def so3_exp(rotation_vectors: np.ndarray) -> np.ndarray:
     """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) (axis times angle in radians; Rodrigues)."""
     omega = np.asarray(rotation_vectors, dtype=np.float64)
+    out = np.empty(omega.shape[:-1] + (3, 3))
+    _rodrigues_into(omega, out)
+    return out
+
+
+def _rodrigues_into(omega: np.ndarray, out: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Write exp(omega) (..., 3, 3) into `out` (a view may be strided), per element: (1 - cos(angle)) a a^T +
+    cos(angle) I + sin(angle) [a]_x for the unit axis a, no stacked 3 x 3 product (the refinement builds thousands
+    of small rotations per pose). Returns the angles, their cosines and sines (...,) for `se3_exp` to reuse."""
     angle = np.linalg.norm(omega, axis=-1)
-    k = skew(omega / np.maximum(angle, 1e-300)[..., None])
-    s, c = np.sin(angle)[..., None, None], np.cos(angle)[..., None, None]
-    return np.eye(3) + s * k + (1.0 - c) * (k @ k)
+    axis = omega / np.maximum(angle, 1e-300)[..., None]
+    cos_angle, sin_angle = np.cos(angle), np.sin(angle)
+    sin_axis = sin_angle[..., None] * axis
+    np.multiply(((1.0 - cos_angle)[..., None] * axis)[..., :, None], axis[..., None, :], out=out)
+    for i in range(3):
+        out[..., i, i] += cos_angle
+    out[..., 2, 1] += sin_axis[..., 0]
+    out[..., 1, 2] -= sin_axis[..., 0]
+    out[..., 0, 2] += sin_axis[..., 1]
+    out[..., 2, 0] -= sin_axis[..., 1]
+    out[..., 1, 0] += sin_axis[..., 2]
+    out[..., 0, 1] -= sin_axis[..., 2]
+    return angle, cos_angle, sin_angle
 
 
 def so3_log(rotations: np.ndarray) -> np.ndarray:
@@ -99,32 +118,49 @@ def so3_log(rotations: np.ndarray) -> np.ndarray:
     return out
 
 
-def _so3_left_jacobian(omega: np.ndarray) -> np.ndarray:
-    """V(omega) of SE(3)'s exponential: t = V(omega) @ rho, (..., 3) -> (..., 3, 3)."""
-    angle = np.linalg.norm(omega, axis=-1)[..., None, None]
-    k = skew(omega)
-    small = angle < 1e-6
-    safe = np.where(small, 1.0, angle)
-    a = np.where(small, 0.5 - angle**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
-    b = np.where(small, 1.0 / 6.0 - angle**2 / 120.0, (safe - np.sin(safe)) / safe**3)
-    return np.eye(3) + a * k + b * (k @ k)
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """u x v over the last axis, (..., 3) (np.cross is slow on many short vectors)."""
+    ux, uy, uz = u[..., 0], u[..., 1], u[..., 2]
+    vx, vy, vz = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack([uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx], axis=-1)
 
 
 def se3_exp(twists: np.ndarray) -> np.ndarray:
     """Poses (..., 4, 4) of twists (..., 6) = (rotation vector omega, rho): the group exponential of SE(3)."""
     xi = np.asarray(twists, dtype=np.float64)
+    omega, rho = xi[..., :3], xi[..., 3:]
     out = np.zeros(xi.shape[:-1] + (4, 4))
-    out[..., :3, :3] = so3_exp(xi[..., :3])
-    out[..., :3, 3] = np.einsum("...ij,...j->...i", _so3_left_jacobian(xi[..., :3]), xi[..., 3:])
+    angle, cos_angle, sin_angle = _rodrigues_into(omega, out[..., :3, :3])
+    # t = V(omega) rho, V = I + a [omega]_x + b [omega]_x^2: a = (1 - cos(angle)) / angle^2 and b = (angle -
+    # sin(angle)) / angle^3, by their series below 0.01 rad (where the differences cancel)
+    small = angle < 1e-2
+    safe = np.where(small, 1.0, angle)
+    square = angle**2
+    a = np.where(small, 0.5 - square / 24.0 + square**2 / 720.0, (1.0 - cos_angle) / safe**2)
+    b = np.where(small, 1.0 / 6.0 - square / 120.0 + square**2 / 5040.0, (safe - sin_angle) / safe**3)
+    omega_rho = _cross(omega, rho)
+    out[..., :3, 3] = rho + a[..., None] * omega_rho + b[..., None] * _cross(omega, omega_rho)
     out[..., 3, 3] = 1.0
     return out
 
 
 def se3_log(transforms: np.ndarray) -> np.ndarray:
-    """Twists (..., 6) = (omega, rho) of poses (..., 4, 4); the inverse of `se3_exp`."""
+    """Twists (..., 6) = (omega, rho) of poses (..., 4, 4); the inverse of `se3_exp`.
+
+    rho = V(omega)^-1 t in closed form: V^-1 = I - [omega]_x / 2 + c [omega]_x^2 with c = (1 - (angle / 2)
+    cot(angle / 2)) / angle^2, whose series 1/12 + angle^2 / 720 + angle^4 / 30240 is used below 0.01 rad (where
+    the difference cancels)."""
     t = np.asarray(transforms, dtype=np.float64)
     omega = so3_log(t[..., :3, :3])
-    rho = np.linalg.solve(_so3_left_jacobian(omega), t[..., :3, 3][..., None])[..., 0]
+    translation = t[..., :3, 3]
+    angle = np.linalg.norm(omega, axis=-1)
+    small = angle < 1e-2
+    half = np.where(small, 1.0, angle / 2.0)
+    square = angle**2
+    series = 1.0 / 12.0 + square / 720.0 + square**2 / 30240.0
+    c = np.where(small, series, (1.0 - half / np.tan(half)) / (4.0 * half**2))
+    omega_t = _cross(omega, translation)
+    rho = translation - 0.5 * omega_t + c[..., None] * _cross(omega, omega_t)
     return np.concatenate([omega, rho], axis=-1)
 
 

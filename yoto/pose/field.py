@@ -57,15 +57,19 @@ class SurfaceField:
         (grid units: a position error of 1e-5 cells, far below the field's own error), the results are float64.
         """
         shape = points_object.shape[:-1]
+        points = np.asarray(points_object, dtype=np.float64).reshape(-1, 3)
         # (3, N) and (8, N) layouts: every row below is a contiguous run of N numbers.
-        grid = ((np.asarray(points_object).reshape(-1, 3) - self.origin) * (1.0 / self.cell_m)).T.astype(np.float32)
+        grid = np.empty((3, len(points)), dtype=np.float32)
+        for axis in range(3):  # each coordinate straight into its float32 row (no (N, 3) temporaries)
+            np.multiply(points[:, axis] - self.origin[axis], 1.0 / self.cell_m, out=grid[axis], casting="unsafe")
         base = np.floor(grid)
         fx, fy, fz = grid - base
         i, j, k = base.astype(np.int64)
         inside = (i.view(np.uint64) <= self._last_cell[0]) & (j.view(np.uint64) <= self._last_cell[1])
         inside &= k.view(np.uint64) <= self._last_cell[2]  # a negative index wraps to a huge unsigned one
-        flat = (i * self._strides[0] + j * self._strides[1] + k) * inside
-        c = self._flat[self._corners[:, None] + flat]  # (8, N)
+        flat = i * self._strides[0] + j * self._strides[1] + k
+        # (8, N); "clip" keeps the reads of points outside the grid in bounds (their values are masked below)
+        c = np.take(self._flat, self._corners[:, None] + flat, mode="clip")
         # Interpolate along z (corner index = 4 dx + 2 dy + dz), then y, then x.
         step_z = c[1::2] - c[0::2]  # (4, N): the cell's four z-edges, (dx, dy) = 00, 01, 10, 11
         along_z = c[0::2] + fz * step_z
