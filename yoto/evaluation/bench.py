@@ -453,7 +453,8 @@ def build_report(results: dict[str, dict[str, MethodResult]], rows: list[Row]) -
             "mssd_mm": summarize(gather("mssd_mm")),
             "right": float(right.mean()) if len(right) else float("nan"),
             "truth_in_hypotheses": float(np.mean(gather("truth_in_hypotheses"))) if len(right) else float("nan"),
-            "truth_missed": len(gather("missed_truth_better")),
+            "truth_missed": int(np.sum(~np.asarray(gather("truth_in_hypotheses"), dtype=bool))),
+            "truth_missed_diagnosed": len(gather("missed_truth_better")),  # fewer: results cached by an older YOTO
             "truth_missed_not_reached": int(np.sum(gather("missed_truth_better"))),
             "ambiguous": float(ambiguous.mean()) if len(right) else float("nan"),
             "hypotheses_median": float(np.median(gather("hypotheses"))) if len(right) else float("nan"),
@@ -603,13 +604,14 @@ def format_markdown(report: dict[str, Any]) -> str:
         "",
         "Truth not among the hypotheses, why: the true pose, refined as a hypothesis would be, explains the contacts "
         "better than the first hypothesis (the verification never reached it) / worse (the score prefers a wrong "
-        "pose: model and contacts disagree there).",
+        "pose: model and contacts disagree there); unknown: results cached by an older YOTO (rerun with --overwrite).",
         "",
     ]
 
     def why(s: dict[str, Any]) -> str:
-        better = s["truth_missed_not_reached"]
-        return f"{s['truth_missed']} ({better} / {s['truth_missed'] - better})"
+        better, diagnosed = s["truth_missed_not_reached"], s["truth_missed_diagnosed"]
+        unknown = s["truth_missed"] - diagnosed
+        return f"{s['truth_missed']} ({better} / {diagnosed - better}" + (f" / {unknown} unknown)" if unknown else ")")
 
     for label in full_labels:
         per_object = [
