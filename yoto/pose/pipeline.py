@@ -461,8 +461,9 @@ def refined_log_likelihood(
     the score ranks below a wrong pose (it explains them worse: the model and the contacts disagree there)."""
     field = surface_field(model, config.field_config)
     contacts = _pair_clouds(pair, model, config)
-    refined = refine_hypotheses(field, contacts, T_world_object[None], config.calibration, config.refine_config)
-    refined = refine_hypotheses(field, contacts, refined.T_world_object, config.calibration, config.refine_config)
+    with one_blas_thread():  # as the pose stage refines (sums in one order)
+        refined = refine_hypotheses(field, contacts, T_world_object[None], config.calibration, config.refine_config)
+        refined = refine_hypotheses(field, contacts, refined.T_world_object, config.calibration, config.refine_config)
     return float(log_likelihoods(refined, config.hypotheses)[0])
 
 
