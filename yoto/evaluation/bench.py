@@ -6,6 +6,8 @@ error, pose error (modulo the object's symmetries; ADD-S and BOP's MSSD beside i
 process on the same contacts, and what a robot needs to trust a pose:
 - the share of right poses (within 5 mm and 5 deg), of pairs whose truth is among the hypotheses, of ambiguous
   pairs, and of right poses after the suggested re-touch (simulated: one sensor moves there, the other stays);
+- why a truth is not among the hypotheses: the true pose, refined, explains the contacts better than the first
+  hypothesis (the verification never reached it) or worse (the score prefers a wrong pose);
 - the calibration of `confidence`: a reliability diagram, the expected calibration error, and the share of pairs
   reported confident at the threshold where 99% of confident poses are right.
 Results are cached per (object, method) so an interrupted run resumes; the report is written as Markdown for
