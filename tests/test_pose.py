@@ -211,3 +211,26 @@ def test_refinement_does_not_slide_on_a_sphere(rng):
     assert np.linalg.norm(T_refined[:3, 3] - T_true[:3, 3]) < 0.2e-3  # the centre is pinned down
     # The free rotation is left alone (up to what the icosphere's facets pin down).
     assert abs(np.degrees(rotation_angle_rad(T_refined, T_start))) < 1.5
+
+
+def test_refined_log_likelihood_tells_the_truth_from_a_wrong_pose(builtin_models, tmp_path, rng):
+    """The benchmark's diagnosis of a missing truth: the true pose, refined from there, explains the contacts as
+    well as the pose stage's right answer does (so a truth it scores better was never reached), and a pose 0.3 m
+    away, where no cloud reaches the surface, explains them far worse."""
+    from yoto.localize import OracleLocalizer
+    from yoto.pose.pipeline import refined_log_likelihood
+
+    model = builtin_models["figurine"]
+    truth, away, found = [], [], []
+    for path in write_foreign_pairs(model, tmp_path, rng, 3):
+        pair = read_contact_pair(path)
+        _miscalibrated(pair, rng)
+        T_true = pair.T_world_mesh_true @ model.T_mesh_object
+        truth.append(refined_log_likelihood(pair, model, T_true))
+        away.append(refined_log_likelihood(pair, model, T_true @ make_transform(np.eye(3), [0.3, 0.0, 0.0])))
+        estimate = estimate_pose(pair, model, OracleLocalizer(), PoseConfig(suggest_next_touch=False))
+        if pose_errors(estimate.T_world_mesh, pair.T_world_mesh_true, model)["translation_mm"] < 2.0:
+            found.append(truth[-1] - float(estimate.hypotheses.log_likelihood[0]))
+    assert found  # the oracle's pose is right on at least one of them
+    assert np.all(np.abs(found) < 5.0)  # refining from the truth lands where the pose stage did
+    assert np.all(np.array(away) < np.array(truth) - 100.0)

@@ -6,6 +6,8 @@ error, pose error (modulo the object's symmetries; ADD-S and BOP's MSSD beside i
 process on the same contacts, and what a robot needs to trust a pose:
 - the share of right poses (within 5 mm and 5 deg), of pairs whose truth is among the hypotheses, of ambiguous
   pairs, and of right poses after the suggested re-touch (simulated: one sensor moves there, the other stays);
+- why a truth is not among the hypotheses: the true pose, refined, explains the contacts better than the first
+  hypothesis (the verification never reached it) or worse (the score prefers a wrong pose);
 - the calibration of `confidence`: a reliability diagram, the expected calibration error, and the share of pairs
   reported confident at the threshold where 99% of confident poses are right.
 Results are cached per (object, method) so an interrupted run resumes; the report is written as Markdown for
@@ -35,7 +37,14 @@ from yoto.objects.build import build_object, load_object_model
 from yoto.objects.mesh import MESH_SUFFIXES
 from yoto.objects.model import ObjectModel, build_object_model
 from yoto.pose.hypotheses import pose_distances
-from yoto.pose.pipeline import PAPER, PoseConfig, fuse_next_touch, localize_contacts, pose_from_candidates
+from yoto.pose.pipeline import (
+    PAPER,
+    PoseConfig,
+    fuse_next_touch,
+    localize_contacts,
+    pose_from_candidates,
+    refined_log_likelihood,
+)
 from yoto.pose.refine import CalibrationPrior
 from yoto.provenance import run_info
 from yoto.workspace import object_model_path
@@ -102,6 +111,8 @@ class MethodResult:
     ambiguous: list[bool] = field(default_factory=list)
     hypotheses: list[int] = field(default_factory=list)  # reported hypotheses per pair
     truth_in_hypotheses: list[bool] = field(default_factory=list)  # a hypothesis within 5 mm and 5 deg
+    missed_truth_better: list[bool] = field(default_factory=list)  # per pair whose truth is not among them: the
+    # truth, refined, explains the contacts better than the first hypothesis (the verification never reached it)
     retouch: list[str] = field(default_factory=list)  # "-" (not ambiguous / no suggestion), "ok", or the rejection
     right_after_retouch: list[bool] = field(default_factory=list)  # the pose right after the re-touch (or without)
     right_after_two: list[bool] = field(default_factory=list)  # ... after a second re-touch where still ambiguous
@@ -204,6 +215,10 @@ def evaluate_method(
             result.truth_in_hypotheses.append(
                 bool(np.any((translation < RIGHT_MM / 1000.0) & (rotation < np.radians(RIGHT_DEG))))
             )
+            if pose_config.verify and not result.truth_in_hypotheses[-1]:
+                T_true_localize = pair.T_world_mesh_true @ localize_model.T_mesh_object
+                truth = refined_log_likelihood(pair, localize_model, T_true_localize, pose_config)
+                result.missed_truth_better.append(truth > float(estimate.hypotheses.log_likelihood[0]))
             status, after = "-", [right, right]
             if estimate.next_touch is not None and simulator is not None:
                 status, after = _retouch(simulator, simulated, estimate, localize_model, model, pose_config, localizer)
@@ -440,6 +455,9 @@ def build_report(results: dict[str, dict[str, MethodResult]], rows: list[Row]) -
             "mssd_mm": summarize(gather("mssd_mm")),
             "right": float(right.mean()) if len(right) else float("nan"),
             "truth_in_hypotheses": float(np.mean(gather("truth_in_hypotheses"))) if len(right) else float("nan"),
+            "truth_missed": int(np.sum(~np.asarray(gather("truth_in_hypotheses"), dtype=bool))),
+            "truth_missed_diagnosed": len(gather("missed_truth_better")),  # fewer: results cached by an older YOTO
+            "truth_missed_not_reached": int(np.sum(gather("missed_truth_better"))),
             "ambiguous": float(ambiguous.mean()) if len(right) else float("nan"),
             "hypotheses_median": float(np.median(gather("hypotheses"))) if len(right) else float("nan"),
             "retouched": float(np.mean([r == "ok" for r in retouch])) if retouch else 0.0,
@@ -584,6 +602,26 @@ def format_markdown(report: dict[str, Any]) -> str:
         )
 
     lines += table(full_labels, trust)
+    lines += [
+        "",
+        "Truth not among the hypotheses, why: the true pose, refined as a hypothesis would be, explains the contacts "
+        "better than the first hypothesis (the verification never reached it) / worse (the score prefers a wrong "
+        "pose: model and contacts disagree there); unknown: results cached by an older YOTO (rerun with --overwrite).",
+        "",
+    ]
+
+    def why(s: dict[str, Any]) -> str:
+        better, diagnosed = s["truth_missed_not_reached"], s["truth_missed_diagnosed"]
+        unknown = s["truth_missed"] - diagnosed
+        return f"{s['truth_missed']} ({better} / {diagnosed - better}" + (f" / {unknown} unknown)" if unknown else ")")
+
+    for label in full_labels:
+        per_object = [
+            f"{name} {why(by_label[label])}"
+            for name, by_label in report["objects"].items()
+            if label in by_label and by_label[label].get("truth_missed")
+        ]
+        lines.append(f"- {label}: {why(report['all'][label])} pairs (better / worse); " + ", ".join(per_object))
     lines += ["", "## Confidence calibration (all objects)", ""]
     lines += ["| Method | ECE | threshold for 99% right | confident at it | its precision | re-touched (failed) |"]
     lines += ["|---|---:|---:|---:|---:|---:|"]

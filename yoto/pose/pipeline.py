@@ -398,16 +398,7 @@ def _pose_from_candidates(
     if not config.verify:
         return _closed_form_estimate(pair, model, candidates, world, config, method, tick)
     field = surface_field(model, config.field_config)
-    contacts = [
-        contact_points(
-            pair.contact(side).points_sensor,
-            pair.contact(side).T_world_sensor,
-            s,
-            model.point_spacing_m,
-            config.refine_config,
-        )
-        for s, side in enumerate(SIDES)
-    ]
+    contacts = _pair_clouds(pair, model, config)
     shapes = _contact_shapes(pair, world, config)
     searched = config.search == "always"
     refined = None
@@ -445,6 +436,35 @@ def _pose_from_candidates(
         estimate.next_touch = suggest_next_touch(model, estimate.hypotheses, pair, config.next_touch)
         estimate.latency_ms["next_touch"] = 1000.0 * (time.perf_counter() - tock)
     return estimate
+
+
+def _pair_clouds(pair: ContactPair, model: ObjectModel, config: PoseConfig) -> list[ContactPoints]:
+    """The two tactile clouds as the refinement reads them."""
+    return [
+        contact_points(
+            pair.contact(side).points_sensor,
+            pair.contact(side).T_world_sensor,
+            s,
+            model.point_spacing_m,
+            config.refine_config,
+        )
+        for s, side in enumerate(SIDES)
+    ]
+
+
+def refined_log_likelihood(
+    pair: ContactPair, model: ObjectModel, T_world_object: np.ndarray, config: PoseConfig = PoseConfig()
+) -> float:
+    """How well a given pose explains the pair once refined from there (twice, as the family step refines; the
+    hypotheses' log-likelihood, `hypotheses.log_likelihoods`). For diagnosis: the true pose's against the first
+    hypothesis's tells a truth the verification never reached (the truth explains the contacts better) from one
+    the score ranks below a wrong pose (it explains them worse: the model and the contacts disagree there)."""
+    field = surface_field(model, config.field_config)
+    contacts = _pair_clouds(pair, model, config)
+    with one_blas_thread():  # as the pose stage refines (sums in one order)
+        refined = refine_hypotheses(field, contacts, T_world_object[None], config.calibration, config.refine_config)
+        refined = refine_hypotheses(field, contacts, refined.T_world_object, config.calibration, config.refine_config)
+    return float(log_likelihoods(refined, config.hypotheses)[0])
 
 
 def _estimate(
