@@ -56,9 +56,10 @@ class MatchConfig:
     icp_points: int = 60  # tactile points used by the per-candidate ICP
     icp: GaussNewtonConfig = replace(CANDIDATE_REFINEMENT, iterations=3)  # the per-candidate point-to-plane ICP, on
     # few points and few iterations (the best are polished below), its start as a weak prior
+    icp_keep: int = 10  # after its first iteration the ICP goes on with this many candidates, those then fitting best
     polish_candidates: int = 3  # the best distinct candidates after ICP are refined again ...
     polish_points: int = 300  # ... on this many tactile points ...
-    polish_iterations: int = 4  # ... for this many more iterations
+    polish_iterations: int = 2  # ... for this many more iterations (4 moved the top candidate no closer to the truth)
     residual_tau_m: float = 0.0005  # truncation of the ranking residual
     belief: BeliefConfig = BeliefConfig()  # distinct candidates and their beliefs from the ranking residuals
     normal_neighbours: int = 20  # k of the aggregated model normal reported with a candidate
