@@ -67,5 +67,5 @@ class MatchConfig:
     refine: bool = True  # refine the candidates by ICP (False: matched-filter poses only)
 
     def __post_init__(self):
-        if self.rolls < 1 or self.coarse_rolls < 1 or self.refine_candidates < 1:
-            raise InputError("rolls, coarse_rolls and refine_candidates must be at least 1")
+        if self.rolls < 1 or self.coarse_rolls < 1 or self.refine_candidates < 1 or self.icp_keep < 1:
+            raise InputError("rolls, coarse_rolls, refine_candidates and icp_keep must be at least 1")
