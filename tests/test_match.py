@@ -345,3 +345,26 @@ def test_the_helper_keeps_the_models_the_caller_records_and_raises_what_it_raise
     # first in, first out: fruit; fruit, tool; (fruit held); tool, figurine; figurine, fruit; fruit, tool
     assert [row.index(True) for row in held] == [0, 1, 0, 1, 1, 1]
     assert [len(row) for row in held] == [1, 2, 2, 2, 2, 2]
+
+
+def test_the_candidate_icp_goes_on_with_the_starts_that_fit_best(fruit_contacts):
+    """`keep_best`: after one iteration only the best-fitting starts iterate further (each exactly as it would
+    have alone); the others keep their one-step pose. Near starts fit better than far ones on the bumpy fruit."""
+    from dataclasses import replace
+
+    from yoto.geometry import make_transform
+    from yoto.registration import point_to_plane_gauss_newton
+
+    model, contacts = fruit_contacts
+    points_sensor, _, T_object_sensor_true = contacts[0]
+    samples = points_sensor[:: max(1, len(points_sensor) // 200)]
+    shifts_m = [2e-4, 5e-3, 4e-4, 6e-3, 6e-4, 4e-3]  # along the sensor's x: near, far, near, ...
+    starts = np.stack([T_object_sensor_true @ make_transform(np.eye(3), [s, 0.0, 0.0]) for s in shifts_m])
+    config = MatchConfig().icp
+    full = point_to_plane_gauss_newton(model, samples, starts, config)
+    one_step = point_to_plane_gauss_newton(model, samples, starts, replace(config, iterations=1))
+    pruned = point_to_plane_gauss_newton(model, samples, starts, config, keep_best=3)
+    near, far = [0, 2, 4], [1, 3, 5]
+    assert np.abs(full[far] - one_step[far]).max() > 1e-5  # the later iterations move the far starts
+    assert np.abs(pruned[near] - full[near]).max() < TOL["float"]
+    assert np.abs(pruned[far] - one_step[far]).max() < TOL["float"]

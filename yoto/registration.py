@@ -155,6 +155,7 @@ def point_to_plane_gauss_newton(
     config: GaussNewtonConfig,
     pivot_source: np.ndarray | None = None,
     facing_source: np.ndarray | None = None,
+    keep_best: int | None = None,
 ) -> np.ndarray:
     """(K, 4, 4) poses that bring the (M, 3) source points onto the surface, from K starting poses at once.
 
@@ -168,7 +169,9 @@ def point_to_plane_gauss_newton(
     the rotation and on the pivot's displacement since the start. `facing_source` (3,): the points' expected
     outward normal in the source frame; correspondences whose surface normal disagrees are dropped. The first
     `translation_only_iterations` move translation only: while a translation error dominates the residuals,
-    noise in the normals would otherwise leak it into rotations the surface cannot observe.
+    noise in the normals would otherwise leak it into rotations the surface cannot observe. `keep_best`: after
+    the first iteration only this many poses, those whose points then lie best on the surface (truncated at
+    `max_distance_m`), iterate further; the others keep their one-step pose (None: all iterate).
     """
     poses = np.array(T_surface_source, dtype=np.float64).reshape(-1, 4, 4)
     start = poses.copy()
@@ -187,6 +190,11 @@ def point_to_plane_gauss_newton(
         p = transform_batch(poses[active], source)
         facing = None if facing_source is None else (rotation @ facing_source)[:, None, :]
         r, use, _, n = plane_distances(surface, p, config.max_distance_m, facing)
+        if iteration == 1 and keep_best is not None and count > keep_best:
+            truncated = np.where(use, np.minimum(np.abs(r), config.max_distance_m), config.max_distance_m)
+            best = np.sort(np.argsort(np.mean(truncated * truncated, axis=1), kind="stable")[:keep_best])
+            active, count, rotation, translation = active[best], len(best), rotation[best], translation[best]
+            p, r, use, n = p[best], r[best], use[best], n[best]
         anchor_now = np.einsum("kij,kj->ki", rotation, anchor_source[active]) + translation
         centres = np.zeros((count, 3)) if pivot_source is None else anchor_now
         magnitude = np.abs(r)

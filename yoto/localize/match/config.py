@@ -56,9 +56,11 @@ class MatchConfig:
     icp_points: int = 60  # tactile points used by the per-candidate ICP
     icp: GaussNewtonConfig = replace(CANDIDATE_REFINEMENT, iterations=3)  # the per-candidate point-to-plane ICP, on
     # few points and few iterations (the best are polished below), its start as a weak prior
+    icp_keep: int | None = None  # after its first iteration the ICP goes on with only this many candidates, those then
+    # fitting best (None: all; 10 saves ~1.5 ms per contact but cost confidence, docs/localization.md)
     polish_candidates: int = 3  # the best distinct candidates after ICP are refined again ...
     polish_points: int = 300  # ... on this many tactile points ...
-    polish_iterations: int = 4  # ... for this many more iterations
+    polish_iterations: int = 4  # ... for this many more iterations (2: faster, see icp_keep)
     residual_tau_m: float = 0.0005  # truncation of the ranking residual
     belief: BeliefConfig = BeliefConfig()  # distinct candidates and their beliefs from the ranking residuals
     normal_neighbours: int = 20  # k of the aggregated model normal reported with a candidate
@@ -66,5 +68,10 @@ class MatchConfig:
     refine: bool = True  # refine the candidates by ICP (False: matched-filter poses only)
 
     def __post_init__(self):
-        if self.rolls < 1 or self.coarse_rolls < 1 or self.refine_candidates < 1:
-            raise InputError("rolls, coarse_rolls and refine_candidates must be at least 1")
+        if (
+            self.rolls < 1
+            or self.coarse_rolls < 1
+            or self.refine_candidates < 1
+            or (self.icp_keep is not None and self.icp_keep < 1)
+        ):
+            raise InputError("rolls, coarse_rolls, refine_candidates and icp_keep must be at least 1")

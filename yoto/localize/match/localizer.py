@@ -165,7 +165,13 @@ class MatchLocalizer:
         poses = found.poses
         if config.refine:
             poses = point_to_plane_gauss_newton(
-                model, samples, poses, config.icp, pivot_source=image.centre_sensor, facing_source=image.normal_sensor
+                model,
+                samples,
+                poses,
+                config.icp,
+                pivot_source=image.centre_sensor,
+                facing_source=image.normal_sensor,
+                keep_best=config.icp_keep,
             )
         residual, violation = self._fit(model, image, samples, poses)
         ranking = self._rank(model, image, poses, residual, violation)
