@@ -118,11 +118,18 @@ def so3_log(rotations: np.ndarray) -> np.ndarray:
     return out
 
 
-def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """u x v over the last axis, (..., 3) (np.cross is slow on many short vectors)."""
-    ux, uy, uz = u[..., 0], u[..., 1], u[..., 2]
-    vx, vy, vz = v[..., 0], v[..., 1], v[..., 2]
-    return np.stack([uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx], axis=-1)
+def cross_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """out = a x b over the last axis (..., 3); `out` may be a strided view (a Jacobian's columns). np.cross is slow
+    on many short vectors (its axis shuffling costs more than the arithmetic)."""
+    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        np.multiply(a[..., j], b[..., k], out=out[..., i])
+        out[..., i] -= a[..., k] * b[..., j]
+    return out
+
+
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b over the last axis, (..., 3), as `cross_into` computes it."""
+    return cross_into(a, b, np.empty(np.broadcast_shapes(a.shape, b.shape)))
 
 
 def se3_exp(twists: np.ndarray) -> np.ndarray:
@@ -138,8 +145,8 @@ def se3_exp(twists: np.ndarray) -> np.ndarray:
     square = angle**2
     a = np.where(small, 0.5 - square / 24.0 + square**2 / 720.0, (1.0 - cos_angle) / safe**2)
     b = np.where(small, 1.0 / 6.0 - square / 120.0 + square**2 / 5040.0, (safe - sin_angle) / safe**3)
-    omega_rho = _cross(omega, rho)
-    out[..., :3, 3] = rho + a[..., None] * omega_rho + b[..., None] * _cross(omega, omega_rho)
+    omega_rho = cross(omega, rho)
+    out[..., :3, 3] = rho + a[..., None] * omega_rho + b[..., None] * cross(omega, omega_rho)
     out[..., 3, 3] = 1.0
     return out
 
@@ -159,8 +166,8 @@ def se3_log(transforms: np.ndarray) -> np.ndarray:
     square = angle**2
     series = 1.0 / 12.0 + square / 720.0 + square**2 / 30240.0
     c = np.where(small, series, (1.0 - half / np.tan(half)) / (4.0 * half**2))
-    omega_t = _cross(omega, translation)
-    rho = translation - 0.5 * omega_t + c[..., None] * _cross(omega, omega_t)
+    omega_t = cross(omega, translation)
+    rho = translation - 0.5 * omega_t + c[..., None] * cross(omega, omega_t)
     return np.concatenate([omega, rho], axis=-1)
 
 

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from threadpoolctl import ThreadpoolController
 
-from yoto.geometry import so3_exp, so3_log
+from yoto.geometry import cross_into, so3_exp, so3_log
 
 NORMAL_AGREEMENT = 0.5  # cos 60 deg: a point's expected normal and the surface normal must agree this well
 
@@ -201,7 +201,7 @@ def point_to_plane_gauss_newton(
         scale = np.maximum(config.surface_noise_m, 1.4826 * masked_row_medians(magnitude, use))
         weights = np.where(use, np.minimum(1.0, scale[:, None] / np.maximum(magnitude, 1e-12)), 0.0)
         weights /= config.surface_noise_m**2
-        jacobian = _jacobian(p - centres[:, None, :], n)
+        jacobian = point_to_plane_jacobian(p - centres[:, None, :], n)
         # The prior's deviation from the start (none before the first step).
         deviation = np.zeros((count, 6))
         if iteration > 0:
@@ -229,13 +229,11 @@ def point_to_plane_gauss_newton(
     return poses
 
 
-def _jacobian(lever: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """(K, M, 6) d r / d (w, tau) of point-to-plane residuals: (lever x n, n). The cross product written out (what
-    np.cross computes, without its axis shuffling, which cost more than the arithmetic here)."""
+def point_to_plane_jacobian(lever: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(..., 6) d r / d (w, tau) of point-to-plane residuals, (lever x n, n): the lever is the point's offset from
+    the rotation's centre (the point itself for rotation about the origin), the normal the surface's there."""
     jacobian = np.empty(lever.shape[:-1] + (6,))
-    jacobian[..., 0] = lever[..., 1] * normals[..., 2] - lever[..., 2] * normals[..., 1]
-    jacobian[..., 1] = lever[..., 2] * normals[..., 0] - lever[..., 0] * normals[..., 2]
-    jacobian[..., 2] = lever[..., 0] * normals[..., 1] - lever[..., 1] * normals[..., 0]
+    cross_into(lever, normals, jacobian[..., :3])
     jacobian[..., 3:] = normals
     return jacobian
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from yoto.geometry import invert_transform, se3_exp, se3_log, skew
+from yoto.geometry import cross_into, invert_transform, se3_exp, se3_log, skew
 from yoto.pointcloud import voxel_downsample
 from yoto.pose.field import SurfaceField
 from yoto.registration import masked_row_medians, transform_batch
@@ -285,7 +285,7 @@ def _add_normal_equations(
         # adjoint): so only the 6 x 6 normal equations B = a^T W a are summed over points, and the 12 x 12
         # block is [[B, B M^T], [M B, M B M^T]].
         J = np.empty(q.shape[:2] + (6,))
-        _cross_into(n, q, J[..., 0:3])
+        cross_into(n, q, J[..., 0:3])
         np.negative(n, out=J[..., 3:6])
         weighted = np.swapaxes(J * w[..., None], 1, 2)
         block = weighted @ J
@@ -303,10 +303,3 @@ def _add_normal_equations(
         hessian[:, side, side] += coupled @ np.swapaxes(adjoint, 1, 2)
         gradient[:, :6] += g
         gradient[:, side] += (adjoint @ g[:, :, None])[..., 0]
-
-
-def _cross_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
-    """out = a x b over the last axis (np.cross is slow on many short vectors)."""
-    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
-        np.multiply(a[..., j], b[..., k], out=out[..., i])
-        out[..., i] -= a[..., k] * b[..., j]

@@ -30,7 +30,12 @@ from scipy import ndimage
 
 from yoto.geometry import invert_transform, pose_from_twist, transform_points, twist_of_pose
 from yoto.objects.model import ObjectModel
-from yoto.registration import GaussNewtonConfig, plane_distances, point_to_plane_gauss_newton
+from yoto.registration import (
+    GaussNewtonConfig,
+    plane_distances,
+    point_to_plane_gauss_newton,
+    point_to_plane_jacobian,
+)
 
 CONTINUATION_FADE = 0.1  # beyond the known cells, the continued error fades where their smoothed weight is below this
 
@@ -112,7 +117,7 @@ class PadError:
         fit = point_to_plane_gauss_newton(model, points_start, np.eye(4)[None], solver)[0] @ start
         points_object = transform_points(fit, points_sensor)
         distance, matched, _, normals = plane_distances(model, points_object, solver.max_distance_m)
-        jacobian = np.concatenate([np.cross(points_object, normals), normals], axis=1)
+        jacobian = point_to_plane_jacobian(points_object, normals)
         twist = twist_of_pose(fit @ invert_transform(self.T_reference))
         information = jacobian[matched].T @ jacobian[matched] / solver.surface_noise_m**2
         self.fit_information += information

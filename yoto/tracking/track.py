@@ -55,7 +55,13 @@ from yoto.geometry import (
 )
 from yoto.objects.model import ObjectModel
 from yoto.pointcloud import voxel_downsample
-from yoto.registration import GaussNewtonConfig, plane_distances, point_to_plane_gauss_newton, truncated_plane_fit
+from yoto.registration import (
+    GaussNewtonConfig,
+    plane_distances,
+    point_to_plane_gauss_newton,
+    point_to_plane_jacobian,
+    truncated_plane_fit,
+)
 from yoto.tracking.fusion import (
     FusionConfig,
     SensorPoses,
@@ -437,7 +443,7 @@ class _Corrector:
         (`bias_points` points of `bias_noise_m`)."""
         c = self.config.correction
         _, matched, _, normals = plane_distances(self.model, points_object, c.max_distance_m)
-        jacobian = np.concatenate([np.cross(points_object, normals), normals], axis=1)[matched]
+        jacobian = point_to_plane_jacobian(points_object, normals)[matched]
         if len(jacobian) == 0:
             return np.zeros((6, 6)), np.zeros((6, 6))
         normal = jacobian.T @ jacobian
