@@ -24,11 +24,11 @@ from typing import Any
 import numpy as np
 
 from yoto.errors import InputError
-from yoto.geometry import quaternion_xyzw_to_rotation, rotation_to_quaternion_xyzw
+from yoto.geometry import make_transform, quaternion_xyzw_to_rotation, rotation_to_quaternion_xyzw
 from yoto.rig import bags
 from yoto.rig.motive import MotiveTake, is_motive_csv, read_motive_csv
 from yoto.rig.timeline import PointStream, PoseStream, Stream, clean_timeline, make_point_stream, make_pose_stream
-from yoto.sensor.presses import load_image
+from yoto.sensor.presses import COLOUR_IMAGE_MODES, load_image
 from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
 
 IMAGE_SUFFIXES = (".png",)
@@ -56,9 +56,11 @@ class ImageStream(Stream):
 def stamp_order(stamps_s: np.ndarray) -> np.ndarray:
     """The order that sorts a bag topic's header stamps, when they lag the bag's receive order by at most
     MAX_REORDER_S; else the bag order, which `clean_timeline` then refuses naming the step back."""
-    behind = np.maximum.accumulate(stamps_s) - stamps_s if len(stamps_s) else np.zeros(0)
-    if len(stamps_s) == 0 or not np.isfinite(stamps_s).all() or behind.max() > MAX_REORDER_S:
-        return np.arange(len(stamps_s))
+    bag_order = np.arange(len(stamps_s))
+    if len(stamps_s) == 0 or not np.isfinite(stamps_s).all():
+        return bag_order
+    if (np.maximum.accumulate(stamps_s) - stamps_s).max() > MAX_REORDER_S:
+        return bag_order
     return np.argsort(stamps_s, kind="stable")
 
 
@@ -83,7 +85,7 @@ def decode_image_message(message: Any, msgtype: str, spec: GelSightSpec, where: 
 
         try:
             with Image.open(io.BytesIO(bytes(message.data))) as image:
-                if image.mode not in ("RGB", "RGBA", "P"):  # as load_image: a GelSight frame is colour
+                if image.mode not in COLOUR_IMAGE_MODES:
                     raise InputError(
                         f"{where}: a compressed frame ({message.format}) is not a colour image (Pillow mode "
                         f"'{image.mode}'): is this the GelSight topic?",
@@ -270,10 +272,8 @@ class Recording:
             chain.append(parent)
             link = links[parent]
             if link.static:
-                T_parent = np.eye(4)
-                T_parent[:3, :3] = quaternion_xyzw_to_rotation(np.asarray(link.quaternions_xyzw[-1]))
-                T_parent[:3, 3] = link.positions[-1]
-                T_root_child = T_parent @ T_root_child
+                rotation = quaternion_xyzw_to_rotation(np.asarray(link.quaternions_xyzw[-1]))
+                T_root_child = make_transform(rotation, np.asarray(link.positions[-1])) @ T_root_child
             else:
                 T_parent_at, matched = self._tf_link_stream(link, parent).at(stamps)
                 covered &= matched

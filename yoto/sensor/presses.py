@@ -28,6 +28,9 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 # Images
 
 
+COLOUR_IMAGE_MODES = ("RGB", "RGBA", "P")  # Pillow modes of an 8-bit colour frame (a GelSight camera's)
+
+
 def load_image(path: str | Path, spec: GelSightSpec = GELSIGHT_MINI) -> np.ndarray:
     """Read an image file as (rows, cols, 3) uint8 RGB and check it has the sensor's size.
 
@@ -42,7 +45,7 @@ def load_image(path: str | Path, spec: GelSightSpec = GELSIGHT_MINI) -> np.ndarr
         raise InputError("image file not found", path)
     try:
         with Image.open(path) as handle:
-            if handle.mode not in ("RGB", "RGBA", "P"):
+            if handle.mode not in COLOUR_IMAGE_MODES:
                 raise InputError(f"expected an 8-bit colour image, got Pillow mode '{handle.mode}'", path)
             image = np.asarray(handle.convert("RGB"))
     except (UnidentifiedImageError, OSError) as exc:
