@@ -12,7 +12,7 @@ from scipy import ndimage
 from yoto.errors import InputError
 from yoto.sensor.ball_calibration import calibrate, round_trip_gain
 from yoto.sensor.calibration import SensorCalibration, load_calibration, with_background
-from yoto.sensor.models import model_colour_change, normalised_xy, position_polynomial
+from yoto.sensor.models import model_colour_change, monomial_exponents, monomials, normalised_xy
 from yoto.sensor.optical import height_gradients, render_image
 from yoto.sensor.reconstruction import reconstruct
 from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
@@ -246,7 +246,8 @@ def test_render_gain_makes_rendered_presses_read_like_the_real_ones(synthetic):
     gain, before, after = round_trip_gain(faint, changes, circles, BALL_RADIUS_PX, 0.8)
     assert before < 0.85 and abs(after - 1.0) < 0.03
     x, y = (v[20:-20:10, 20:-20:10].ravel() for v in normalised_xy(SPEC.height_px, SPEC.width_px))
-    assert np.all(np.abs(position_polynomial(np.stack([x, y], 1), gain) * 0.75 - 1.0) < 0.1)
+    exponents = monomial_exponents(2, faint.image_model.config.position_degree)
+    assert np.all(np.abs(monomials(np.stack([x, y], 1), exponents) @ gain * 0.75 - 1.0) < 0.1)
     fixed = replace(faint, image_model=replace(faint.image_model, gain=gain))
     ratios = []
     for (cx, cy, a), image in zip(synthetic["circles"][16:], synthetic["images"][16:], strict=True):

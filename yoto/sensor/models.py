@@ -358,9 +358,9 @@ class ImageModel:
     coefficients: np.ndarray  # (num_features, 3) float64
     max_gradient: float  # gradients are clamped to this magnitude (the largest seen in calibration)
     config: ImageModelConfig
-    gain: np.ndarray | None = None  # (M,) polynomial in the normalised pixel position (constant first) scaling the
-    # colour change so that the gradient model reads rendered ball presses as it reads the real ones
-    # (`ball_calibration.round_trip_gain`); None: 1 (files written before it)
+    gain: np.ndarray | None = None  # (M,) polynomial of `config.position_degree` in the normalised pixel position
+    # (constant first, `monomial_exponents` order) scaling the colour change so that the gradient model reads rendered
+    # ball presses as it reads the real ones (`ball_calibration.round_trip_gain`); None: 1 (files written before it)
 
     def predict(self, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
         """(rows, cols, 3) float32 colour change of (rows, cols) gradient maps (exactly zero where the gel is flat,
@@ -375,7 +375,7 @@ class ImageModel:
         change = np.zeros((rows, cols, 3), dtype=np.float32)
         values = self._evaluate(g, xy)
         if self.gain is not None:
-            values *= position_polynomial(xy, self.gain)[:, None]
+            values *= (monomials(xy, monomial_exponents(2, self.config.position_degree)) @ self.gain)[:, None]
         change[sloped] = values
         return change
 
@@ -397,17 +397,6 @@ class ImageModel:
     def arrays(self, prefix: str) -> dict[str, np.ndarray]:
         gain = {} if self.gain is None else {f"{prefix}gain": self.gain}
         return {f"{prefix}coefficients": self.coefficients, **gain}
-
-
-def position_polynomial(xy: np.ndarray, coefficients: np.ndarray) -> np.ndarray:
-    """(N,) values at normalised positions (N, 2) of the full polynomial in x, y whose (M,) coefficients are given
-    constant first, in `monomial_exponents` order (M = 1, 3, 6, 10, 15 for degree 0-4)."""
-    degree = 0
-    while (degree + 1) * (degree + 2) // 2 < len(coefficients):
-        degree += 1
-    if (degree + 1) * (degree + 2) // 2 != len(coefficients):
-        raise ValueError(f"{len(coefficients)} coefficients are no full polynomial in two variables")
-    return monomials(xy, monomial_exponents(2, degree)) @ coefficients
 
 
 def fit_image_model(
