@@ -455,15 +455,18 @@ def _pair_clouds(pair: ContactPair, model: ObjectModel, config: PoseConfig) -> l
 def refined_log_likelihood(
     pair: ContactPair, model: ObjectModel, T_world_object: np.ndarray, config: PoseConfig = PoseConfig()
 ) -> float:
-    """How well a given pose explains the pair once refined from there (twice, as the family step refines; the
-    hypotheses' log-likelihood, `hypotheses.log_likelihoods`). For diagnosis: the true pose's against the first
-    hypothesis's tells a truth the verification never reached (the truth explains the contacts better) from one
-    the score ranks below a wrong pose (it explains them worse: the model and the contacts disagree there)."""
+    """How well a given pose explains the pair once refined from there (`family_passes` times, as the family step
+    refines its poses; the hypotheses' log-likelihood, `hypotheses.log_likelihoods`). For diagnosis: the true pose's
+    against the first hypothesis's tells a truth the verification never reached (the truth explains the contacts
+    better) from one the score ranks below a wrong pose (it explains them worse: the model and the contacts disagree
+    there)."""
     field = surface_field(model, config.field_config)
     contacts = _pair_clouds(pair, model, config)
+    poses = T_world_object[None]
     with one_blas_thread():  # as the pose stage refines (sums in one order)
-        refined = refine_hypotheses(field, contacts, T_world_object[None], config.calibration, config.refine_config)
-        refined = refine_hypotheses(field, contacts, refined.T_world_object, config.calibration, config.refine_config)
+        for _ in range(max(config.family_passes, 1)):  # the family step refines at least once
+            refined = refine_hypotheses(field, contacts, poses, config.calibration, config.refine_config)
+            poses = refined.T_world_object
     return float(log_likelihoods(refined, config.hypotheses)[0])
 
 
