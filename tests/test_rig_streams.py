@@ -229,3 +229,28 @@ def test_an_aborted_bag_leaves_nothing(tmp_path):
         writer.write("/x", "geometry_msgs/msg/PointStamped", 1.0, writer.point_stamped(1.0, "w", np.zeros(3)))
         raise RuntimeError("interrupted")
     assert list(tmp_path.iterdir()) == []
+
+
+def _png_folder(folder: Path, names: list[str]) -> Path:
+    from PIL import Image
+
+    folder.mkdir()
+    for k, name in enumerate(names):
+        frame = np.full((240, 320, 3), 40 + k, np.uint8)  # each frame's grey level says which file it came from
+        Image.fromarray(frame).save(folder / name)
+    return folder
+
+
+def test_png_folders_are_read_in_time_order_and_numbered_frames_are_refused(tmp_path):
+    stamped = _png_folder(tmp_path / "stamped", ["left_12.500000.png", "left_12.466667.png", "left_12.533333.png"])
+    stream = read_image_stream(stamped, str(stamped), time_offset_s=12.0)
+    np.testing.assert_allclose(stream.timestamps_s, [0.466667, 0.5, 0.533333], atol=TOL["float"])
+    levels = [int(frame[0, 0, 0]) for _, frame in stream.frames(np.arange(3))]
+    assert levels == [41, 40, 42]  # sorted by stamp, not by name
+    wall_clock = _png_folder(tmp_path / "wall", ["1712345678.png", "1712345679.png", "1712345680.png"])
+    assert np.ptp(read_image_stream(wall_clock, str(wall_clock)).timestamps_s) == 2.0  # whole seconds are seconds
+    for name, names in (("padded", ["0000.png", "0001.png", "0002.png"]), ("bare", ["f_8.png", "f_9.png", "f_10.png"])):
+        folder = _png_folder(tmp_path / name, names)
+        with pytest.raises(InputError, match="frame by frame") as error:
+            read_image_stream(folder, str(folder))
+        assert str(folder) in str(error.value)

@@ -32,6 +32,7 @@ from yoto.sensor.presses import COLOUR_IMAGE_MODES, load_image
 from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
 
 IMAGE_SUFFIXES = (".png",)
+FRAME_NUMBER_BELOW = 1e6  # integer PNG names below this, one apart, are frame numbers, not seconds
 # A bag stores messages in receive order; header stamps may lag that order by network delays up to this. Further
 # back is a broken clock (a restarted recorder), refused by `clean_timeline`.
 MAX_REORDER_S = 1.0
@@ -118,13 +119,34 @@ def decode_image_message(message: Any, msgtype: str, spec: GelSightSpec, where: 
     return np.ascontiguousarray(frame if encoding == "rgb8" else frame[:, :, ::-1])
 
 
+def _stamp_text(path: Path) -> str:
+    """The part of a frame's file name that holds its timestamp: after the last underscore, before the suffix."""
+    return path.name[: -len(path.suffix)].rsplit("_", 1)[-1]
+
+
 def png_timestamp(path: Path) -> float:
     """The timestamp (seconds) in a frame's file name: `1712.345678.png` or `left_1712.345678.png`."""
-    stem = path.name[: -len(path.suffix)]
     try:
-        return float(stem.rsplit("_", 1)[-1])
+        return float(_stamp_text(path))
     except ValueError as exc:
         raise InputError("GelSight PNG names must be their timestamp in seconds (e.g. 1712.345678.png)", path) from exc
+
+
+def _refuse_frame_numbers(files: list[Path], times_s: np.ndarray, folder: Path) -> None:
+    """Refuse a folder whose PNGs are numbered frame by frame (`0000.png`, `frame_0001.png`) rather than stamped:
+    read as seconds, a 30 frames/s capture would pass for one frame a second and match the wrong mocap samples.
+    Whole-second wall-clock stamps (`1712345678.png`) are ~1e9 and pass."""
+    stamps = [_stamp_text(p) for p in files]
+    if len(files) < 2 or not all(s.isdigit() for s in stamps):
+        return
+    steps = np.diff(np.sort(times_s))
+    numbered = any(len(s) > 1 and s.startswith("0") for s in stamps) or times_s.max() < FRAME_NUMBER_BELOW
+    if numbered and np.all(steps == 1):
+        raise InputError(
+            f"the {len(files)} GelSight PNGs are numbered {times_s.min():.0f} to {times_s.max():.0f} frame by frame, "
+            "not named by their timestamp in seconds (e.g. 1712.345678.png): rename them to their capture times",
+            folder,
+        )
 
 
 def image_folder_stream(folder: Path, spec: GelSightSpec = GELSIGHT_MINI, offset_s: float = 0.0) -> ImageStream:
@@ -133,6 +155,7 @@ def image_folder_stream(folder: Path, spec: GelSightSpec = GELSIGHT_MINI, offset
     if not files:
         raise InputError("no GelSight frames (*.png named by their timestamp) in the folder", folder)
     times = np.array([png_timestamp(p) for p in files])
+    _refuse_frame_numbers(files, times, folder)
     order = np.argsort(times, kind="stable")
     files, times = [files[i] for i in order], times[order]
     kept, dropped, rate = clean_timeline(times, np.ones(len(times), bool), folder, folder.name)
