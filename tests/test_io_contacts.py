@@ -152,8 +152,12 @@ def test_bad_clouds_and_sensor_geometry(tmp_path, rng):
         read_contact_pair(write_contact_pair(tmp_path / "mm.json", pair))
 
     pair = _pair(rng)
-    pair.right.points_sensor[3] = np.nan
-    with pytest.raises(InputError, match="NaN"):
+    kept = pair.right.points_sensor.copy()
+    pair.right.points_sensor[[3, 8]] = np.nan  # an organised cloud's pixels without data: dropped
+    read = read_contact_pair(write_contact_pair(tmp_path / "organised.json", pair))
+    assert np.allclose(read.right.points_sensor, np.delete(kept, [3, 8], axis=0), atol=TOL["ply_text_m"])
+    pair.right.points_sensor[5, 2] = np.nan  # one coordinate missing: not a pixel without data
+    with pytest.raises(InputError, match="nan_right.ply: tactile cloud has 1 points with some coordinates NaN"):
         read_contact_pair(write_contact_pair(tmp_path / "nan.json", pair))
 
     pair = _pair(rng)

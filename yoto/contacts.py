@@ -189,13 +189,21 @@ def dual_contact_conditioning(offset: np.ndarray, n_left: np.ndarray, n_right: n
 
 
 def validate_tactile_points(points: np.ndarray, source: str | Path | None) -> np.ndarray:
-    """Check a tactile cloud is (N, 3), finite and large enough; return it as float64."""
+    """Check a tactile cloud is (N, 3), finite and large enough; return it as float64. Points whose three
+    coordinates are all NaN are dropped: an organised cloud (one point per pixel, PCL's convention) marks the
+    pixels without data so."""
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise InputError(f"tactile cloud must be (N, 3), got shape {points.shape}", source)
     if not np.isfinite(points).all():
+        points = points[~np.isnan(points).all(axis=1)]
         finite = np.isfinite(points).all(axis=1)
-        raise InputError(f"tactile cloud has {int((~finite).sum())} points with NaN or inf coordinates", source)
+        if not finite.all():
+            raise InputError(
+                f"tactile cloud has {int((~finite).sum())} points with some coordinates NaN or inf (a point "
+                "without data has all three NaN)",
+                source,
+            )
     if len(points) < MIN_TACTILE_POINTS:
         raise InputError(
             f"tactile cloud has only {len(points)} points; at least {MIN_TACTILE_POINTS} are needed to localize "
