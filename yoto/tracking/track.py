@@ -106,8 +106,8 @@ class CorrectionConfig:
     # correct only the directions they pin, where a reconstruction's smooth error (`bias_noise_m` over
     # `bias_points`) moves the fit by less than this turn and this shift (in those units, one unit); along the
     # others (a lone contact's spin and lever, the line through two flat contacts) the prediction stands
-    observable_rotation_rad: float = float(np.radians(2.0))
-    observable_translation_m: float = 0.002
+    observable_rotation_rad: float = float(np.radians(2.0))  # that turn ...
+    observable_translation_m: float = 0.002  # ... and that shift
     innovation_bound: float = 12.6  # a registration whose normalized innovation squared exceeds this (chi-square,
     # 6 degrees of freedom, 95%) has its information scaled down by bound / NIS
     max_correction_m: float = 0.003  # a frame asking for a larger jump than this is unusable (a wrong fit) ...
