@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,7 +16,8 @@ from yoto.io import write_ply_points
 from yoto.simulate.trajectory import TrajectoryConfig, TrajectorySimulator, write_trajectories, write_trajectory
 from yoto.tracking.bench import registration_at_truth, tactile_streams
 from yoto.tracking.evaluate import motion_interval, summarize_errors, tracking_errors
-from yoto.tracking.track import TrackConfig, touch_from_pair, track
+from yoto.tracking.streams import TactileStream
+from yoto.tracking.track import CorrectionConfig, TrackConfig, tactile_timing_warnings, touch_from_pair, track
 from yoto.trajectory import read_tum, tactile_frame_name
 
 pytest.importorskip("open3d")
@@ -338,3 +340,38 @@ def test_the_rest_frames_are_registered_as_they_arrive_and_the_map_explains_thei
 
     assert rms_at_fit(frames[-1]) > 1.2e-5  # measured 0.015 mm uncorrected, 0.002 mm corrected
     assert rms_at_fit(pad.correct(frames[-1])) < 0.25 * rms_at_fit(frames[-1])
+
+
+def test_frames_stamped_on_another_clock_are_named_in_a_warning(fruit_trajectory):
+    streams = tactile_streams(fruit_trajectory)
+    touch_s = fruit_trajectory.touch_time_s
+    assert tactile_timing_warnings(streams, fruit_trajectory.streams, touch_s) == []
+    shifted = {
+        side: TactileStream(stream.timestamps_s - 1.0, stream.load, stream.name, Path(f"rec/{side}_tactile"))
+        for side, stream in streams.items()
+    }
+    warnings = tactile_timing_warnings(shifted, fruit_trajectory.streams, touch_s)
+    assert len(warnings) == 2
+    for side, warning in zip(SIDES, warnings, strict=True):
+        assert warning.startswith(f"{side} tactile frames ({Path(f'rec/{side}_tactile')}")
+        early = int((shifted[side].timestamps_s < touch_s - 0.2).sum())
+        assert f"{early} stamped up to" in warning and "before the touch" in warning and "clock offset" in warning
+        assert "end 1.0" in warning or "end 0.9" in warning  # they stop a second before the pose stream
+
+
+def test_a_lone_contact_corrects_only_what_it_pins(builtin_models):
+    """With the right gel's frames missing, the left contact alone (a nearly flat figurine patch) cannot tell the
+    object's turn about it from a shift: corrected in every direction it turned the object by its own errors,
+    4.8 deg after 50 mm where the open loop keeps 1.5; corrected only along what it pins, 1.0 deg."""
+    model = builtin_models["figurine"]
+    trajectory = TrajectorySimulator(model, SHORT).trajectory(3, 0)
+    touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
+    left_only = {"left": tactile_streams(trajectory)["left"]}
+    drift = {}
+    for lone in (0, 1):
+        config = TrackConfig(correction=CorrectionConfig(observable_max_contacts=lone))
+        result = track(touch, trajectory.streams, model, left_only, config)
+        drift[lone] = settled(trajectory, result, result.T_world_object)["settled_drift"]
+    open_loop = settled(trajectory, result, result.T_world_object_open_loop)["settled_drift"]
+    assert drift[0]["deg"] > 2.0 * open_loop["deg"]  # every direction corrected: worse than no correction
+    assert drift[1]["deg"] < 0.8 * open_loop["deg"] and drift[1]["mm"] < 0.3 * open_loop["mm"]

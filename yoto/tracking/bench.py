@@ -118,13 +118,37 @@ def registration_at_truth(
     pad_corrected: bool = False,
 ) -> dict[str, Any]:
     """How far the closed loop's registration of every `every`-th instant with both frames lands from the truth
-    when it starts there: each frame's points mapped into the object through the sensor's TRUE pose on it.
+    when it starts there (`truth_registrations`), summarised: `offset_*`, its mean before the motion and after it;
+    `change`, how much it moved between the two, the drift a closed loop that believed its frames exactly would
+    show."""
+    stamps, twists = truth_registrations(trajectory, model, config, every, pad_corrected, motion)
+    result: dict[str, Any] = {"instants": len(stamps), "offset_before": None, "offset_after": None, "change": None}
+    if motion is None or not (stamps < motion[0]).any() or not (stamps > motion[1]).any():
+        return result
 
-    What remains is the measurement's own error (the reconstruction's smooth depth errors, the rim), which no
-    filter can tell from slip. `offset_*`: its mean before the motion and after it; `change`: how much it moved
-    between the two, the drift a closed loop that believed its frames exactly would show. `pad_corrected`: each
-    sensor's pad error is learnt from its frames before the motion (`PadError`, from the true pose) and removed
-    from every frame, as the closed loop does."""
+    def size(twist: np.ndarray) -> dict[str, float]:
+        return {"mm": 1e3 * float(np.linalg.norm(twist[3:])), "deg": float(np.degrees(np.linalg.norm(twist[:3])))}
+
+    start, end = twists[stamps < motion[0]].mean(axis=0), twists[stamps > motion[1]].mean(axis=0)
+    result.update(offset_before=size(start), offset_after=size(end), change=size(end - start))
+    return result
+
+
+def truth_registrations(
+    trajectory: SimulatedTrajectory,
+    model: ObjectModel,
+    config: CorrectionConfig,
+    every: int = 4,
+    pad_corrected: bool = False,
+    motion: tuple[float, float] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The closed loop's registration of every `every`-th instant with both frames, started at the truth: each
+    frame's points mapped into the object through the sensor's TRUE pose on it. Returns the instants' times (N,)
+    and the twists (N, 6) (object frame, rotation first) by which the registration moves the object from there.
+
+    What they hold is the measurement's own error (the reconstruction's smooth depth errors, the rim), which no
+    filter can tell from slip. `pad_corrected`: each sensor's pad error is learnt from its frames before the
+    `motion` (`PadError`, from the true pose) and removed from every frame, as the closed loop does."""
     tactile = tactile_streams(trajectory)
     pads: dict[str, PadError] = {}
     if pad_corrected and motion is not None:
@@ -155,17 +179,7 @@ def registration_at_truth(
         )
         offsets.append(twist_of_pose(point_to_plane_gauss_newton(model, points, np.eye(4)[None], solver)[0]))
         times.append(max(f.timestamp_s for f in chosen))
-    result: dict[str, Any] = {"instants": len(offsets), "offset_before": None, "offset_after": None, "change": None}
-    stamps, twists = np.array(times), np.array(offsets).reshape(-1, 6)
-    if motion is None or not (stamps < motion[0]).any() or not (stamps > motion[1]).any():
-        return result
-
-    def size(twist: np.ndarray) -> dict[str, float]:
-        return {"mm": 1e3 * float(np.linalg.norm(twist[3:])), "deg": float(np.degrees(np.linalg.norm(twist[:3])))}
-
-    start, end = twists[stamps < motion[0]].mean(axis=0), twists[stamps > motion[1]].mean(axis=0)
-    result.update(offset_before=size(start), offset_after=size(end), change=size(end - start))
-    return result
+    return np.array(times), np.array(offsets).reshape(-1, 6)
 
 
 def _pad_corrected(pads: dict[str, PadError], side: str, points_sensor: np.ndarray) -> np.ndarray:

@@ -28,7 +28,14 @@ from yoto.tracking.evaluate import (
     truth_at,
 )
 from yoto.tracking.streams import TactileStream, read_sensor_stream, read_tactile_stream
-from yoto.tracking.track import TrackConfig, TrackResult, touch_from_pair, touch_time_of, track
+from yoto.tracking.track import (
+    TrackConfig,
+    TrackResult,
+    tactile_timing_warnings,
+    touch_from_pair,
+    touch_time_of,
+    track,
+)
 from yoto.trajectory import PoseStream, write_tum
 
 
@@ -128,6 +135,7 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
         )
     touch = touch_from_pair(pair, T_world_object, time_s, time_source)
     touch.mismatch_m = mismatch
+    warnings += tactile_timing_warnings(tactile, streams, time_s) if tactile else []
     result = track(touch, streams, model, tactile or None, config)
     outcome = TrackOutcome(result, pose_source, warnings=warnings)
     mode = "closed loop (corrected by tactile frames)" if result.closed_loop else "open loop"

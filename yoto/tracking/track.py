@@ -102,6 +102,12 @@ class CorrectionConfig:
     # the contact slides over it, millimetres along a path: fully over this much travel of the sensors
     inlier_distance_m: float = 0.0003  # a registered point this close to the surface lies on it
     min_inlier_fraction: float = 0.5  # a frame with fewer of its points on the surface after registration is unusable
+    observable_max_contacts: int = 1  # instants with at most this many contacts (1: a lone contact; 2: all; 0: none)
+    # correct only the directions they pin, where a reconstruction's smooth error (`bias_noise_m` over
+    # `bias_points`) moves the fit by less than this turn and this shift (in those units, one unit); along the
+    # others (a lone contact's spin and lever, the line through two flat contacts) the prediction stands
+    observable_rotation_rad: float = float(np.radians(2.0))  # that turn ...
+    observable_translation_m: float = 0.002  # ... and that shift
     innovation_bound: float = 12.6  # a registration whose normalized innovation squared exceeds this (chi-square,
     # 6 degrees of freedom, 95%) has its information scaled down by bound / NIS
     max_correction_m: float = 0.003  # a frame asking for a larger jump than this is unusable (a wrong fit) ...
@@ -297,6 +303,40 @@ def track(
         closed[begin:] = fuse_object_poses(sensors, corrector.grasps, slice(begin, None))[0]
     result.T_world_object = closed
     return result
+
+
+def tactile_timing_warnings(
+    tactile: dict[str, TactileStream], streams: dict[str, PoseStream], touch_time_s: float, tolerance_s: float = 0.2
+) -> list[str]:
+    """Warnings for tactile frames whose times do not fit the pose streams, each naming its source: frames
+    stamped before the touch (never used) or outside the sensor's pose stream (no pose to register them at),
+    which is what a clock offset between the tactile and the pose recordings looks like; the frames still
+    fit the surface at the wrong sensor poses, so the track would be silently worse."""
+    warnings = []
+    for side, frames in tactile.items():
+        if len(frames) == 0:
+            continue
+        source = str(frames.source) if frames.source is not None else frames.name or side
+        poses = streams[side].timestamps_s
+        first, last = float(frames.timestamps_s[0]), float(frames.timestamps_s[-1])
+        problems = []
+        early = int((frames.timestamps_s < touch_time_s - tolerance_s).sum())
+        if early:
+            problems.append(f"{early} stamped up to {touch_time_s - first:.2f} s before the touch (not used)")
+        outside = int(
+            ((frames.timestamps_s < poses[0] - tolerance_s) | (frames.timestamps_s > poses[-1] + tolerance_s)).sum()
+        )
+        if outside:
+            problems.append(f"{outside} beyond the {side} pose stream's {poses[0]:.3f}-{poses[-1]:.3f} s (not used)")
+        if last < poses[-1] - tolerance_s and first < touch_time_s - tolerance_s:
+            problems.append(f"the frames end {poses[-1] - last:.2f} s before the pose stream")
+        if problems:
+            warnings.append(
+                f"{side} tactile frames ({source}, {first:.3f}-{last:.3f} s): " + "; ".join(problems) + ": is there a "
+                "clock offset between the tactile and the pose recordings? Frames at the wrong times are registered "
+                "at the wrong sensor poses"
+            )
+    return warnings
 
 
 def group_frames(
@@ -557,6 +597,17 @@ class _Corrector:
             [[var_r * np.eye(3), var_r * lever.T], [var_r * lever, var_t * np.eye(3) + var_r * lever @ lever.T]]
         )
 
+    def _observed(self, shared: np.ndarray) -> np.ndarray:
+        """The projection (6, 6) of an object-frame twist onto the directions an instant's contacts pin: the
+        eigen-directions of their shared-error information, in units of `observable_rotation_rad` and
+        `observable_translation_m`, along which that error moves the fit by less than one unit (oblique in rad and m,
+        orthogonal in those units)."""
+        c = self.config.correction
+        unit = np.array([c.observable_rotation_rad] * 3 + [c.observable_translation_m] * 3)
+        values, vectors = np.linalg.eigh(shared * np.outer(unit, unit))
+        pinned = vectors[:, values > 1.0]
+        return (pinned @ pinned.T) * np.outer(unit, 1.0 / unit)
+
     def _update(
         self, points_predicted: dict[str, np.ndarray], pose_noise: dict[str, np.ndarray], correction: np.ndarray
     ) -> str:
@@ -571,6 +622,9 @@ class _Corrector:
             per_frame, bias = self._information(transform_points(correction, side_points))
             white += per_frame @ np.linalg.inv(np.eye(6) + pose_noise[side] @ per_frame)
             shared += bias
+        observed = self._observed(shared) if len(points_predicted) <= c.observable_max_contacts else None
+        if observed is not None:
+            white = observed.T @ white @ observed  # the information of the correction's observed part alone
         covariance = self.covariance.copy()
         if self.bias_covariance is None:  # the bias's size in each direction, from the first contact's shape
             weak = np.diag([c.registration_prior_rotation_rad**-2] * 3 + [c.registration_prior_translation_m**-2] * 3)
@@ -588,6 +642,9 @@ class _Corrector:
         precision = prior_precision + observe.T @ white @ observe
         prior_mean = np.concatenate([np.zeros(6), self.rate, self.bias])
         mean = np.linalg.solve(precision, prior_precision @ prior_mean + observe.T @ white @ twist)
+        if observed is not None:  # along the directions the instant does not pin, the prediction stands: no change
+            # through the filter's correlations either (error, slip rate and bias alike)
+            mean = prior_mean + np.kron(np.eye(3), observed) @ (mean - prior_mean)
         moved_m, turned_rad = float(np.linalg.norm(mean[3:6])), float(np.linalg.norm(mean[:3]))
         if moved_m > c.max_correction_m or turned_rad > c.max_correction_rad:
             return f"jump ({moved_m * 1e3:.1f} mm, {np.degrees(turned_rad):.1f} deg)"
