@@ -21,6 +21,7 @@ Batches smaller than `SplitConfig.min_poses` stay in the calling process: a roun
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -87,6 +88,8 @@ class SplitExecutor(LocalExecutor):
         self.config = config
         self.split = 0  # refinements split between the two processes ...
         self.redone = 0  # ... and of those, refined again whole here (the halves ran different iteration counts)
+        self.helper_extra_cpu_ms = 0.0  # CPU time by which the helper's halves outlasted this process's halves:
+        # this process's CPU time plus this is the stage's wall time on two free cores (round trips aside)
 
     def _cut(self, count: int, least: int) -> int | None:
         """Where a batch of `count` poses is cut (the caller's share before it), or None to keep it here."""
@@ -108,8 +111,11 @@ class SplitExecutor(LocalExecutor):
         remote = self.helper.call(
             _remote_offsets, self.model, self.field_config, contacts, T_world_object[cut:], prior, config
         )
+        tick = time.process_time()
         here = evaluate_offsets(field, contacts, T_world_object[:cut], prior, config)
-        return np.concatenate([here, remote.result()])
+        there, helper_cpu_ms = remote.result()
+        self._account(tick, helper_cpu_ms)
+        return np.concatenate([here, there])
 
     def refine(
         self,
@@ -125,13 +131,18 @@ class SplitExecutor(LocalExecutor):
         remote = self.helper.call(
             _remote_refine, self.model, self.field_config, contacts, T_world_object[cut:], prior, config
         )
+        tick = time.process_time()
         here, iterations = _counted_refine(field, contacts, T_world_object[:cut], prior, config)
-        there, iterations_there = remote.result()
+        (there, iterations_there), helper_cpu_ms = remote.result()
+        self._account(tick, helper_cpu_ms)
         self.split += 1
         if iterations != iterations_there:  # the whole batch would have iterated as long as its slower half
             self.redone += 1
             return refine_hypotheses(field, contacts, T_world_object, prior, config)
         return joined(here, there)
+
+    def _account(self, tick: float, helper_cpu_ms: float) -> None:
+        self.helper_extra_cpu_ms += max(0.0, helper_cpu_ms - 1000.0 * (time.process_time() - tick))
 
 
 def joined(first: Refined, second: Refined) -> Refined:
@@ -175,11 +186,17 @@ def _remote_field(model: ObjectModel, field_config: FieldConfig) -> None:
     surface_field(model, field_config)
 
 
-def _remote_offsets(model: ObjectModel, field_config: FieldConfig, *arguments: Any) -> np.ndarray:
+def _remote_offsets(model: ObjectModel, field_config: FieldConfig, *arguments: Any) -> tuple[np.ndarray, float]:
+    """The helper's half of `evaluate_offsets`, and its CPU time (ms)."""
+    tick = time.process_time()
     with one_blas_thread():  # as the calling process's pose stage (sums in one order)
-        return evaluate_offsets(surface_field(model, field_config), *arguments)
+        scores = evaluate_offsets(surface_field(model, field_config), *arguments)
+    return scores, 1000.0 * (time.process_time() - tick)
 
 
-def _remote_refine(model: ObjectModel, field_config: FieldConfig, *arguments: Any) -> tuple[Refined, int]:
+def _remote_refine(model: ObjectModel, field_config: FieldConfig, *arguments: Any) -> tuple[tuple[Refined, int], float]:
+    """The helper's half of `refine_hypotheses` with its iteration count (`_counted_refine`), and its CPU time."""
+    tick = time.process_time()
     with one_blas_thread():
-        return _counted_refine(surface_field(model, field_config), *arguments)
+        refined = _counted_refine(surface_field(model, field_config), *arguments)
+    return refined, 1000.0 * (time.process_time() - tick)

@@ -384,7 +384,11 @@ def pose_from_candidates(
     numbers, bitwise, on two cores."""
     run = LOCAL if helper is None else SplitExecutor(helper, model, config.field_config)
     with one_blas_thread():
-        return _pose_from_candidates(pair, model, candidates, world, config, method, confidence_model, run)
+        estimate = _pose_from_candidates(pair, model, candidates, world, config, method, confidence_model, run)
+    if isinstance(run, SplitExecutor):  # what the second core did (executor.SplitExecutor's counts)
+        estimate.latency_ms.update(pose_helper_extra_cpu=run.helper_extra_cpu_ms, pose_split=run.split)
+        estimate.latency_ms["pose_split_redone"] = run.redone
+    return estimate
 
 
 def _pose_from_candidates(
