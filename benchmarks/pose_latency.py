@@ -159,7 +159,7 @@ def main() -> None:
             times: dict[str, list[float]] = defaultdict(list)
             if method in helpers:
                 helpers[method].prepare_object(model)
-                prepare_pose_helper(helpers[method], model, pose_config.field_config)
+                prepare_pose_helper(helpers[method], model, pose_config.field_config).result()
             for number, pair in enumerate(tqdm(pairs, desc=f"{name}: {method}", unit="pair", leave=False)):
                 candidates, world, latency = localize_contacts(pair, model, localizer)
                 helper = helpers.get(method)

@@ -40,7 +40,7 @@ def test_the_split_pose_stage_gives_one_process_s_estimate_bitwise(builtin_model
     calls = []
     call = LocalizerProcess.call
     monkeypatch.setattr(LocalizerProcess, "call", lambda self, *a: calls.append(a[0].__name__) or call(self, *a))
-    prepare_pose_helper(helper, model, COARSE)
+    prepare_pose_helper(helper, model, COARSE).result()
     localizer = make_localizer("match")
     config = PoseConfig(search="always", suggest_next_touch=False, field_config=COARSE)
     for index in range(2):

@@ -15,7 +15,7 @@ Batches smaller than `SplitConfig.min_poses` stay in the calling process: a roun
 ~0.1-0.3 ms. Without a helper (`LOCAL`) everything runs in the calling process, as it always did.
 
     with LocalizerProcess(localizer) as helper:
-        prepare_pose_helper(helper, model)
+        prepare_pose_helper(helper, model).result()
         estimate = estimate_pose(pair, model, localizer, config, helper)
 """
 
@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from yoto.localize.helper import LocalizerProcess
+from yoto.localize.helper import LocalizerProcess, Pending
 from yoto.objects.model import ObjectModel
 from yoto.pose.field import FieldConfig, SurfaceField, surface_field
 from yoto.pose.refine import CalibrationPrior, ContactPoints, RefineConfig, Refined, evaluate_offsets, refine_hypotheses
@@ -152,10 +152,11 @@ def joined(first: Refined, second: Refined) -> Refined:
 
 def prepare_pose_helper(
     helper: LocalizerProcess, model: ObjectModel, field_config: FieldConfig = FieldConfig()
-) -> None:
-    """Send `model` to the helper and build its surface field there now (waits for it): the first pose of an object
-    then does not wait for it (`LocalizerProcess.prepare_object` prepares the localizer's per-model data)."""
-    helper.call(_remote_field, model, field_config).result()
+) -> Pending:
+    """Send `model` to the helper and let it build its surface field now, while this process goes on (`result()`
+    waits for it): the first pose of an object then does not wait for it (`LocalizerProcess.prepare_object`
+    prepares the localizer's per-model data)."""
+    return helper.call(_remote_field, model, field_config)
 
 
 class _CountingField(SurfaceField):
