@@ -51,6 +51,15 @@ class CpuTimed:
         return candidates
 
 
+def timed_pose_stage(*arguments, helper=None):
+    """`pose_from_candidates(*arguments, helper=helper)` and this process's CPU time for it (ms)."""
+    from yoto.pose.pipeline import pose_from_candidates
+
+    tick = time.process_time()
+    estimate = pose_from_candidates(*arguments, helper=helper)
+    return estimate, 1000.0 * (time.process_time() - tick)
+
+
 def same_estimate(first, second) -> bool:
     """Whether two pose estimates hold the same numbers, bit for bit (latencies aside)."""
 
@@ -117,7 +126,7 @@ def main() -> None:
     from yoto.localize.helper import LocalizerProcess
     from yoto.objects.build import load_object_model
     from yoto.pose.executor import prepare_pose_helper
-    from yoto.pose.pipeline import PAPER, PoseConfig, localize_contacts, pose_from_candidates
+    from yoto.pose.pipeline import PAPER, PoseConfig, localize_contacts
     from yoto.provenance import run_info
     from yoto.training.data import find_pair_files_recursive
 
@@ -163,18 +172,13 @@ def main() -> None:
             for number, pair in enumerate(tqdm(pairs, desc=f"{name}: {method}", unit="pair", leave=False)):
                 candidates, world, latency = localize_contacts(pair, model, localizer)
                 helper = helpers.get(method)
+                stage = (pair, model, candidates, world, pose_config, method)
                 if helper is not None and number % 2:  # the two-core pose stage first on every other pair
-                    cpu = time.process_time()
-                    split = pose_from_candidates(pair, model, candidates, world, pose_config, method, helper=helper)
-                    cpu_split = 1000.0 * (time.process_time() - cpu)
-                cpu = time.process_time()
-                estimate = pose_from_candidates(pair, model, candidates, world, pose_config, method)
-                cpu_pose = 1000.0 * (time.process_time() - cpu)
+                    split, cpu_split = timed_pose_stage(*stage, helper=helper)
+                estimate, cpu_pose = timed_pose_stage(*stage)
                 if helper is not None:
                     if number % 2 == 0:
-                        cpu = time.process_time()
-                        split = pose_from_candidates(pair, model, candidates, world, pose_config, method, helper=helper)
-                        cpu_split = 1000.0 * (time.process_time() - cpu)
+                        split, cpu_split = timed_pose_stage(*stage, helper=helper)
                     checked[method] += 1
                     if not same_estimate(estimate, split):
                         unequal[method].append(f"{name} #{number}")
