@@ -42,6 +42,9 @@ class SplitConfig:
     min_poses: int = 16  # refinements of fewer poses stay in the calling process (see docs/pose.md) ...
     min_scored: int = 1000  # ... and cheap scores (`evaluate_offsets`, ~1 us a pose) of fewer
     helper_share: float = 0.5  # share of a split batch the helper computes
+    max_wait_share: float = 0.5  # a split after which this process waited for the helper's half longer than this
+    # share of the time its own half took finds no free core for the helper (it ran when this process waited) ...
+    slow_splits: int = 2  # ... and after this many of them the rest of the pose stage stays in this process
 
 
 class LocalExecutor:
@@ -91,10 +94,11 @@ class SplitExecutor(LocalExecutor):
         self.redone = 0  # ... and of those, refined again whole here (the halves ran different iteration counts)
         self.helper_extra_cpu_ms = 0.0  # CPU time by which the helper's halves outlasted this process's halves:
         # this process's CPU time plus this is the stage's wall time on two free cores (round trips aside)
+        self.slow = 0  # splits that found no free core for the helper (SplitConfig.max_wait_share)
 
     def _cut(self, count: int, least: int) -> int | None:
         """Where a batch of `count` poses is cut (the caller's share before it), or None to keep it here."""
-        if count < max(least, 2):
+        if count < max(least, 2) or self.slow >= self.config.slow_splits:
             return None
         return min(max(int(round(count * (1.0 - self.config.helper_share))), 1), count - 1)
 
@@ -112,10 +116,11 @@ class SplitExecutor(LocalExecutor):
         remote = self.helper.call(
             _remote_offsets, self.model, self.field_config, contacts, T_world_object[cut:], prior, config
         )
-        tick = time.process_time()
+        tick, start = time.process_time(), time.perf_counter()
         here = evaluate_offsets(field, contacts, T_world_object[:cut], prior, config)
+        done = time.perf_counter()
         there, helper_cpu_ms = remote.result()
-        self._account(tick, helper_cpu_ms)
+        self._account(tick, helper_cpu_ms, start, done)
         return np.concatenate([here, there])
 
     def refine(
@@ -132,18 +137,22 @@ class SplitExecutor(LocalExecutor):
         remote = self.helper.call(
             _remote_refine, self.model, self.field_config, contacts, T_world_object[cut:], prior, config
         )
-        tick = time.process_time()
+        tick, start = time.process_time(), time.perf_counter()
         here, iterations = _counted_refine(field, contacts, T_world_object[:cut], prior, config)
+        done = time.perf_counter()
         (there, iterations_there), helper_cpu_ms = remote.result()
-        self._account(tick, helper_cpu_ms)
+        self._account(tick, helper_cpu_ms, start, done)
         self.split += 1
         if iterations != iterations_there:  # the whole batch would have iterated on past the half that stopped first
             self.redone += 1
             return refine_hypotheses(field, contacts, T_world_object, prior, config)
         return joined(here, there)
 
-    def _account(self, tick: float, helper_cpu_ms: float) -> None:
+    def _account(self, tick: float, helper_cpu_ms: float, start: float, done: float) -> None:
+        """Record a split: the helper's CPU time beyond this process's (`tick`: its CPU clock when its half began),
+        and whether this process then waited long for the helper (`start`, `done`: its wall clock around its half)."""
         self.helper_extra_cpu_ms += max(0.0, helper_cpu_ms - 1000.0 * (time.process_time() - tick))
+        self.slow += time.perf_counter() - done > self.config.max_wait_share * (done - start)
 
 
 def joined(first: Refined, second: Refined) -> Refined:

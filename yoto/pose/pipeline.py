@@ -386,8 +386,8 @@ def pose_from_candidates(
     with one_blas_thread():
         estimate = _pose_from_candidates(pair, model, candidates, world, config, method, confidence_model, run)
     if isinstance(run, SplitExecutor):  # what the second core did (executor.SplitExecutor's counts)
-        estimate.latency_ms.update(pose_helper_extra_cpu=run.helper_extra_cpu_ms, pose_split=run.split)
-        estimate.latency_ms["pose_split_redone"] = run.redone
+        counts = {"pose_split": run.split, "pose_split_redone": run.redone, "pose_split_slow": run.slow}
+        estimate.latency_ms.update(pose_helper_extra_cpu=run.helper_extra_cpu_ms, **counts)
     return estimate
 
 
