@@ -9,7 +9,11 @@ the pose stage turns its candidates into a pose. Timed, per method:
   suggestion for ambiguous poses is left out, as in the stage's own `latency_ms["pose"]`);
 - per pose: both contacts plus the pose stage, what a robot waits for after a grasp; with `--concurrent` also
   with the two contacts localized at once, the right one in a helper process (`localize_contacts(..., helper)`,
-  `yoto.localize.helper.LocalizerProcess`), the pair's wall time (contacts and their world-side measurements).
+  `yoto.localize.helper.LocalizerProcess`), the pair's wall time (contacts and their world-side measurements);
+  and the pose stage on two cores, half of each large batch of poses in that helper (`pose_from_candidates(...,
+  helper=)`, `yoto.pose.executor`), run on the same candidates beside the one-process pose stage (which goes
+  first alternates pair by pair), its result checked bitwise against the one-process one, the ratio of the two
+  wall times per pair; "per pose, both cores" is both contacts at once plus that pose stage.
 
 The first pair of each (object, method) is warm-up and not counted (anchor maps, KD-trees, block encodings,
 lazy imports are built there; the once-per-object preparation is reported on its own). Medians and p90s,
@@ -45,6 +49,40 @@ class CpuTimed:
         candidates = self.localizer.localize(points_sensor, model, truth_p_object)
         self.cpu_ms.append(1000.0 * (time.process_time() - tick))
         return candidates
+
+
+def timed_pose_stage(*arguments, helper=None):
+    """`pose_from_candidates(*arguments, helper=helper)` and this process's CPU time for it (ms)."""
+    from yoto.pose.pipeline import pose_from_candidates
+
+    tick = time.process_time()
+    estimate = pose_from_candidates(*arguments, helper=helper)
+    return estimate, 1000.0 * (time.process_time() - tick)
+
+
+def same_estimate(first, second) -> bool:
+    """Whether two pose estimates hold the same numbers, bit for bit (latencies aside)."""
+
+    def same(a, b) -> bool:
+        if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+            return (
+                isinstance(a, np.ndarray)
+                and isinstance(b, np.ndarray)
+                and a.dtype == b.dtype
+                and (a.shape == b.shape and a.tobytes() == b.tobytes())
+            )
+        if isinstance(a, dict):
+            return isinstance(b, dict) and a.keys() == b.keys() and all(same(a[k], b[k]) for k in a)
+        if isinstance(a, (list, tuple)):
+            return type(a) is type(b) and len(a) == len(b) and all(same(x, y) for x, y in zip(a, b))
+        if isinstance(a, float):
+            return isinstance(b, float) and np.float64(a).tobytes() == np.float64(b).tobytes()
+        if hasattr(a, "__dataclass_fields__"):
+            return type(a) is type(b) and all(same(getattr(a, n), getattr(b, n)) for n in a.__dataclass_fields__)
+        return a == b
+
+    fields = [n for n in first.__dataclass_fields__ if n != "latency_ms"]
+    return all(same(getattr(first, n), getattr(second, n)) for n in fields)
 
 
 def percentiles(values: list[float]) -> dict[str, float]:
@@ -87,7 +125,8 @@ def main() -> None:
     from yoto.localize import make_localizer
     from yoto.localize.helper import LocalizerProcess
     from yoto.objects.build import load_object_model
-    from yoto.pose.pipeline import PAPER, PoseConfig, localize_contacts, pose_from_candidates
+    from yoto.pose.executor import prepare_pose_helper
+    from yoto.pose.pipeline import PAPER, PoseConfig, localize_contacts
     from yoto.provenance import run_info
     from yoto.training.data import find_pair_files_recursive
 
@@ -116,6 +155,8 @@ def main() -> None:
     load_before = os.getloadavg()
     results: dict = {**run_info(), "pose_stage": args.pose_stage, "seed": args.seed, "objects": {}, "all": {}}
     pooled: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
+    unequal: dict[str, list[str]] = defaultdict(list)  # method -> pairs whose two-core pose differs (none expected)
+    checked: dict[str, int] = defaultdict(int)  # method -> pairs checked (the warm-up pairs too)
     for name, (model, pairs) in work.items():
         results["objects"][name] = {}
         for method in args.methods:
@@ -127,13 +168,21 @@ def main() -> None:
             times: dict[str, list[float]] = defaultdict(list)
             if method in helpers:
                 helpers[method].prepare_object(model)
+                prepare_pose_helper(helpers[method], model, pose_config.field_config).result()
             for number, pair in enumerate(tqdm(pairs, desc=f"{name}: {method}", unit="pair", leave=False)):
                 candidates, world, latency = localize_contacts(pair, model, localizer)
-                cpu = time.process_time()
-                estimate = pose_from_candidates(pair, model, candidates, world, pose_config, method)
-                cpu_pose = 1000.0 * (time.process_time() - cpu)
-                if method in helpers:
-                    _, _, both = localize_contacts(pair, model, localizer.localizer, helpers[method])
+                helper = helpers.get(method)
+                stage = (pair, model, candidates, world, pose_config, method)
+                if helper is not None and number % 2:  # the two-core pose stage first on every other pair
+                    split, cpu_split = timed_pose_stage(*stage, helper=helper)
+                estimate, cpu_pose = timed_pose_stage(*stage)
+                if helper is not None:
+                    if number % 2 == 0:
+                        split, cpu_split = timed_pose_stage(*stage, helper=helper)
+                    checked[method] += 1
+                    if not same_estimate(estimate, split):
+                        unequal[method].append(f"{name} #{number}")
+                    _, _, both = localize_contacts(pair, model, localizer.localizer, helper)
                 if number == 0:
                     continue  # warm-up
                 contact_ms = [latency[f"localize_{side}"] for side in SIDES]
@@ -144,9 +193,18 @@ def main() -> None:
                 times["contact_cpu_ms"] += localizer.cpu_ms[-2:]
                 times["pose_cpu_ms"].append(sum(localizer.cpu_ms[-2:]) + cpu_pose)
                 times["pair_ms"].append(latency["localize_pair"])
-                if method in helpers:
+                if helper is not None:
                     times["pair_concurrent_ms"].append(both["localize_pair"])
                     times["pose_concurrent_ms"].append(both["localize_pair"] + estimate.latency_ms["pose"])
+                    times["pose_stage_split_ms"].append(split.latency_ms["pose"])
+                    times["pose_stage_split_cpu_ms"].append(cpu_split)  # this process's share only
+                    times["pose_stage_split_ratio"].append(split.latency_ms["pose"] / estimate.latency_ms["pose"])
+                    times["pose_both_cores_ms"].append(both["localize_pair"] + split.latency_ms["pose"])
+                    # CPU time on the critical path (what two free cores would take, round trips aside): this
+                    # process's plus the time the helper's halves outlasted its own; for the contacts the slower.
+                    critical = cpu_split + split.latency_ms["pose_helper_extra_cpu"]
+                    times["pose_stage_split_critical_cpu_ms"].append(critical)
+                    times["pose_both_cores_critical_cpu_ms"].append(max(localizer.cpu_ms[-2:]) + critical)
             for key, values in times.items():
                 pooled[method][key] += values
             results["objects"][name][method] = {
@@ -157,12 +215,18 @@ def main() -> None:
         helper.close()
     results["all"] = {method: {key: percentiles(v) for key, v in times.items()} for method, times in pooled.items()}
     results["load_average"] = {"start": load_before, "end": os.getloadavg()}
+    results["two_core_pose_unequal"] = dict(unequal)
 
     def row(label: str, stats: dict) -> str:
         def cell(key: str) -> str:
             return f"{stats[key]['median']:7.1f} / {stats[key]['p90']:7.1f}"
 
-        concurrent = f" {cell('pair_concurrent_ms')} | {cell('pose_concurrent_ms')} |" if args.concurrent else ""
+        concurrent = (
+            f" {cell('pair_concurrent_ms')} | {cell('pose_concurrent_ms')} | {cell('pose_stage_split_ms')} "
+            f"| {stats['pose_stage_split_ratio']['median']:5.3f} | {cell('pose_both_cores_ms')} |"
+            if args.concurrent
+            else ""
+        )
         return (
             f"| {label} | {cell('contact_ms')} | {stats['contact_cpu_ms']['median']:6.1f} | {cell('pose_stage_ms')} "
             f"| {stats['pose_stage_cpu_ms']['median']:6.1f} | {cell('pose_ms')} "
@@ -176,8 +240,13 @@ def main() -> None:
         "Latency in ms, median / p90 (warm-up pair excluded); CPU: the process's CPU time, median",
         "",
         "| object: method | per contact | CPU | pose stage | CPU | per pose | CPU |"
-        + (" both contacts at once | per pose, contacts at once |" if args.concurrent else ""),
-        "|---|---|---|---|---|---|---|" + ("---|---|" if args.concurrent else ""),
+        + (
+            " both contacts at once | per pose, contacts at once | pose stage, two cores | two / one core, per "
+            "pair | per pose, both cores |"
+            if args.concurrent
+            else ""
+        ),
+        "|---|---|---|---|---|---|---|" + ("---|---|---|---|---|" if args.concurrent else ""),
     ]
     for name, methods in results["objects"].items():
         lines += [row(f"{name}: {method}", stats) for method, stats in methods.items()]
@@ -186,7 +255,19 @@ def main() -> None:
         if "pair_concurrent_ms" in stats:
             lines.append(
                 f"\n{method}: both contacts of a pair one after the other {stats['pair_ms']['median']:.1f} ms, at once "
-                f"{stats['pair_concurrent_ms']['median']:.1f} ms (medians, wall clock)."
+                f"{stats['pair_concurrent_ms']['median']:.1f} ms (medians, wall clock). Pose stage on one core "
+                f"{stats['pose_stage_ms']['median']:.1f} ms, on two {stats['pose_stage_split_ms']['median']:.1f} ms "
+                f"(per-pair ratio {stats['pose_stage_split_ratio']['median']:.3f}); per pose, both cores: "
+                f"{stats['pose_both_cores_ms']['median']:.1f} ms. CPU time on the critical path (this process's, "
+                f"plus the helper's beyond it; what two free cores would take): pose stage on one core "
+                f"{stats['pose_stage_cpu_ms']['median']:.1f} ms, on two "
+                f"{stats['pose_stage_split_critical_cpu_ms']['median']:.1f} ms; per pose "
+                f"{stats['pose_cpu_ms']['median']:.1f} ms, both cores "
+                f"{stats['pose_both_cores_critical_cpu_ms']['median']:.1f} ms. "
+                "Two-core poses bitwise equal to one core's: "
+                f"{checked[method] - len(unequal[method])} of {checked[method]}"
+                + (f" (unequal, checked on every pair: {', '.join(unequal[method])})" if unequal[method] else "")
+                + "."
             )
     if "icp" in results["all"]:
         icp = results["all"]["icp"]

@@ -13,6 +13,8 @@ object costs the same seconds in the helper as in the caller; `prepare_object` d
 that a contact costs its transfer: the tactile cloud (~0.5 MB) and the candidates back, 0.05-0.2 ms of CPU to
 pickle. The calling thread writes a request to the helper's pipe itself, then goes on with its own contact: no
 background thread of this process has to win the GIL from it before the helper can start.
+The pose stage uses the same helper for half of its batches of poses (`call`, `yoto.pose.executor`): one helper
+process per session serves both.
 A script that starts one needs the usual `if __name__ == "__main__":` guard of spawned processes.
 
     with LocalizerProcess(localizer) as helper:
@@ -26,6 +28,7 @@ import multiprocessing
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection
 from typing import Any
@@ -75,6 +78,12 @@ class LocalizerProcess:
         """Localize one contact in the helper. The answer's `result()`: its candidates, its world-side measurement
         (`contact_in_world`) and the helper's time for the candidates (ms)."""
         return self._request("localize", model, contact.points_sensor, contact.T_world_sensor, truth_p_object)
+
+    def call(self, function: Callable[..., Any], model: ObjectModel, *arguments: Any) -> Pending:
+        """Run `function(model, *arguments)` in the helper, `model` being its copy there (sent once, as for
+        `submit`). `function` is pickled by name: a module-level function (the pose stage's halves of its batches,
+        `yoto.pose.executor`); the answer's `result()` is what it returns."""
+        return self._request("call", model, function, arguments)
 
     def close(self) -> None:
         """Stop the helper process (after the request it is working on, if any)."""
@@ -158,6 +167,9 @@ def _run(localizer: ContactLocalizer, kind: str, model: ObjectModel, arguments: 
         if prepare is not None:
             prepare(model)
         return None
+    if kind == "call":
+        function, function_arguments = arguments
+        return function(model, *function_arguments)
     points_sensor, T_world_sensor, truth_p_object = arguments
     tick = time.perf_counter()
     candidates = localizer.localize(points_sensor, model, truth_p_object)

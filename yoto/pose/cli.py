@@ -76,8 +76,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--both-cores",
         action="store_true",
-        help="localize each pair's right contact in a helper process while this one localizes the left (faster "
-        "when a second core is idle, slower on a busy machine; docs/localization.md)",
+        help="localize each pair's right contact in a helper process while this one localizes the left, and score "
+        "and refine half of the pose stage's batches there (the same poses, bit for bit; faster when a second core "
+        "is idle, slower on a busy machine; docs/pose.md)",
     )
     parser.set_defaults(run=run)
 
@@ -177,6 +178,7 @@ def run(args: argparse.Namespace) -> int:
     from yoto.localize.helper import LocalizerProcess
     from yoto.objects.build import load_object_model
     from yoto.objects.model import ObjectModel
+    from yoto.pose.executor import prepare_pose_helper
     from yoto.pose.pipeline import estimate_pose, pose_result_path
     from yoto.sensor.pair_images import ImageSides
 
@@ -195,6 +197,8 @@ def run(args: argparse.Namespace) -> int:
                 key = args.model or pair.object_name
                 if key not in models:
                     models[key] = load_object_model(key, args.workspace)
+                    if helper is not None:  # the helper builds its copy of the field while this process works
+                        prepare_pose_helper(helper, models[key], pose_config.field_config)
                 model = models[key]
                 estimate = estimate_pose(pair, model, localizer, pose_config, helper)
                 result = estimate.to_json(model)

@@ -44,6 +44,7 @@ from yoto.localize.helper import LocalizerProcess
 from yoto.objects.model import ObjectModel
 from yoto.objects.symmetry import Symmetry
 from yoto.pose.confidence import ConfidenceModel, confidence_features, featureless, load_confidence_model
+from yoto.pose.executor import LOCAL, LocalExecutor, SplitExecutor, joined
 from yoto.pose.field import FieldConfig, SurfaceField, surface_field
 from yoto.pose.hypotheses import (
     Hypotheses,
@@ -62,7 +63,6 @@ from yoto.pose.refine import (
     RefineConfig,
     Refined,
     contact_points,
-    evaluate_offsets,
     refine_hypotheses,
     thinned,
 )
@@ -270,6 +270,7 @@ def _verify_and_refine(
     screened: int,
     refined: int,
     neighbours: bool = False,
+    run: LocalExecutor = LOCAL,
 ) -> Refined:
     """Screen the seeds and refine the best distinct ones.
 
@@ -277,16 +278,17 @@ def _verify_and_refine(
     `screened` get a short refinement on a few points; the best pose of each of the `refined`
     most likely distinct hypotheses among those is refined in full; with `neighbours`, the neighbours of the most
     likely of them (`hypotheses.neighbour_poses`) are screened the same way (most land back on a hypothesis
-    already found), and the best of `neighbours_refined` distinct ones refined in full.
+    already found), and the best of `neighbours_refined` distinct ones refined in full. `run` computes the batches
+    (`executor.SplitExecutor`: half of each in a helper process).
     """
     refine = config.refine_config
-    score = evaluate_offsets(field, contacts, seeds, config.calibration, refine)
+    score = run.offsets(field, contacts, seeds, config.calibration, refine)
     chosen = np.argsort(-score, kind="stable")[:screened]
     short = replace(refine, iterations=refine.screen_iterations)
     screening = thinned(contacts, refine.screen_points, refine.screen_free_points)
-    first = refine_hypotheses(field, screening, seeds[chosen], config.calibration, short)
+    first = run.refine(field, screening, seeds[chosen], config.calibration, short)
     best = _best_distinct(first, symmetry, config.hypotheses, refined)
-    full = refine_hypotheses(field, contacts, first.T_world_object[best], config.calibration, refine)
+    full = run.refine(field, contacts, first.T_world_object[best], config.calibration, refine)
     if not neighbours or not config.hypotheses.neighbours_of:
         return full
     grouped = group_hypotheses(full, symmetry, config.hypotheses)
@@ -295,10 +297,10 @@ def _verify_and_refine(
     top = grouped.member[: config.hypotheses.neighbours_of]
     near = neighbour_poses(full.T_world_object[top], config.hypotheses)
     if config.neighbours_refined:
-        first = refine_hypotheses(field, screening, near, config.calibration, short)
+        first = run.refine(field, screening, near, config.calibration, short)
         near = first.T_world_object[_best_distinct(first, symmetry, config.hypotheses, config.neighbours_refined)]
-    more = refine_hypotheses(field, contacts, near, config.calibration, refine)
-    return _joined(full, more)
+    more = run.refine(field, contacts, near, config.calibration, refine)
+    return joined(full, more)
 
 
 def _fill_family(
@@ -308,6 +310,7 @@ def _fill_family(
     hypotheses: Hypotheses,
     symmetry: Symmetry,
     config: PoseConfig,
+    run: LocalExecutor = LOCAL,
 ) -> tuple[Refined, Hypotheses]:
     """The refined poses and their hypotheses, with poses along the weakest directions of the most likely
     hypotheses (`hypotheses.family_poses`) refined as well: where the two contacts leave a family of poses (a mug
@@ -317,16 +320,13 @@ def _fill_family(
     family = family_poses(field, contacts, hypotheses, config.hypotheses, config.refine_config.max_distance_m)
     if not len(family):
         return refined, hypotheses
-    more = _verify_and_refine(field, contacts, family, symmetry, config, config.family_screened, config.family_refined)
+    more = _verify_and_refine(
+        field, contacts, family, symmetry, config, config.family_screened, config.family_refined, run=run
+    )
     for _ in range(config.family_passes - 1):  # each pass starts where the last stopped
-        more = refine_hypotheses(field, contacts, more.T_world_object, config.calibration, config.refine_config)
-    refined = _joined(refined, more)
+        more = run.refine(field, contacts, more.T_world_object, config.calibration, config.refine_config)
+    refined = joined(refined, more)
     return refined, group_hypotheses(refined, symmetry, config.hypotheses)
-
-
-def _joined(first: Refined, second: Refined) -> Refined:
-    """Two sets of refined poses as one."""
-    return Refined(*(np.concatenate([getattr(first, n), getattr(second, n)]) for n in first.__dataclass_fields__))
 
 
 def _best_distinct(refined: Refined, symmetry: Symmetry, config: HypothesisConfig, count: int) -> np.ndarray:
@@ -376,11 +376,19 @@ def pose_from_candidates(
     config: PoseConfig = PoseConfig(),
     method: str = "",
     confidence_model: ConfidenceModel | None = None,
+    helper: LocalizerProcess | None = None,
 ) -> PoseEstimate:
     """The pose stage proper, from localized candidates. `latency_ms` holds `pose` (this stage's own time) and
-    `next_touch` when one was computed. BLAS runs on one thread (`registration.one_blas_thread`)."""
+    `next_touch` when one was computed. BLAS runs on one thread (`registration.one_blas_thread`). With `helper`
+    (a `LocalizerProcess`), half of each large batch of poses is scored and refined there (`executor`): the same
+    numbers, bitwise, on two cores."""
+    run = LOCAL if helper is None else SplitExecutor(helper, model, config.field_config)
     with one_blas_thread():
-        return _pose_from_candidates(pair, model, candidates, world, config, method, confidence_model)
+        estimate = _pose_from_candidates(pair, model, candidates, world, config, method, confidence_model, run)
+    if isinstance(run, SplitExecutor):  # what the second core did (executor.SplitExecutor's counts)
+        counts = {"pose_split": run.split, "pose_split_redone": run.redone, "pose_split_slow": run.slow}
+        estimate.latency_ms.update(pose_helper_extra_cpu=run.helper_extra_cpu_ms, **counts)
+    return estimate
 
 
 def _pose_from_candidates(
@@ -391,6 +399,7 @@ def _pose_from_candidates(
     config: PoseConfig,
     method: str,
     confidence_model: ConfidenceModel | None,
+    run: LocalExecutor,
 ) -> PoseEstimate:
     tick = time.perf_counter()
     if not config.joint_selection:
@@ -412,18 +421,18 @@ def _pose_from_candidates(
                 if searched
                 else (config.candidates_screened, config.candidates_refined)
             )
-            refined = _verify_and_refine(field, contacts, seeds, model.symmetry, config, screened, kept, searched)
+            refined = _verify_and_refine(field, contacts, seeds, model.symmetry, config, screened, kept, searched, run)
     hypotheses = None if refined is None else group_hypotheses(refined, model.symmetry, config.hypotheses)
     if config.search == "auto" and not _decisive(hypotheses, shapes, config):
         searched = True
         seeds = _seeds(model, world, shapes, candidates, config, search=True)
         if len(seeds):
             refined = _verify_and_refine(
-                field, contacts, seeds, model.symmetry, config, config.screened, config.seeds_refined, True
+                field, contacts, seeds, model.symmetry, config, config.screened, config.seeds_refined, True, run
             )
             hypotheses = group_hypotheses(refined, model.symmetry, config.hypotheses)
     if searched and refined is not None and hypotheses is not None and len(hypotheses) > 1:
-        refined, hypotheses = _fill_family(field, contacts, refined, hypotheses, model.symmetry, config)
+        refined, hypotheses = _fill_family(field, contacts, refined, hypotheses, model.symmetry, config, run)
     if refined is None or hypotheses is None or not len(hypotheses):
         return _closed_form_estimate(pair, model, candidates, world, config, method, tick)
     estimate = _estimate(pair, model, candidates, world, shapes, refined, hypotheses, searched, config, method)
@@ -559,7 +568,7 @@ def fuse_next_touch(
         more = _verify_and_refine(
             field, contacts, second_seeds, model.symmetry, config, config.screened, config.seeds_refined
         )
-        refined = _joined(refined, more)
+        refined = joined(refined, more)
     hypotheses = group_hypotheses(refined, model.symmetry, config.hypotheses)
     shapes = _contact_shapes(pair, estimate.world, config)
     fused = _estimate(
@@ -697,10 +706,11 @@ def estimate_pose(
     helper: LocalizerProcess | None = None,
 ) -> PoseEstimate:
     """Localize both contacts of `pair` on `model` and estimate T_world_object with its hypotheses. With `helper`
-    (a `LocalizerProcess` holding a copy of `localizer`), the right contact is localized there at the same time."""
+    (a `LocalizerProcess` holding a copy of `localizer`), the right contact is localized there at the same time,
+    and half of the pose stage's large batches are computed there (the same numbers, bitwise)."""
     start = time.perf_counter()
     candidates, world, latency = localize_contacts(pair, model, localizer, helper)
-    estimate = pose_from_candidates(pair, model, candidates, world, config, localizer.name)
+    estimate = pose_from_candidates(pair, model, candidates, world, config, localizer.name, helper=helper)
     estimate.latency_ms = {**latency, **estimate.latency_ms, "total": 1000.0 * (time.perf_counter() - start)}
     return estimate
 

@@ -1,0 +1,116 @@
+"""The pose stage on two cores (`yoto.pose.executor`): half of each batch in a helper process, bitwise as on one."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from yoto.geometry import se3_exp
+from yoto.localize import make_localizer
+from yoto.localize.helper import LocalizerProcess
+from yoto.pose import pipeline
+from yoto.pose.executor import SplitConfig, SplitExecutor, prepare_pose_helper
+from yoto.pose.field import FieldConfig, surface_field
+from yoto.pose.pipeline import PoseConfig, _pair_clouds, localize_contacts, pose_from_candidates
+from yoto.pose.refine import evaluate_offsets, refine_hypotheses
+from yoto.registration import one_blas_thread
+from yoto.simulate.scenarios import PairSimulator
+
+COARSE = FieldConfig(cell_m=0.002)  # a field built in a second, here and in the helper
+
+
+class AlwaysSplit(SplitExecutor):
+    """A split executor that splits whether or not the helper finds a free core."""
+
+    def __init__(self, *arguments):
+        super().__init__(*arguments, config=SplitConfig(slow_splits=10**9))
+
+
+@pytest.fixture(scope="module")
+def helper():
+    with LocalizerProcess(make_localizer("match")) as process:
+        yield process
+
+
+def _bitwise_equal(first, second) -> None:
+    for name in first.__dataclass_fields__:
+        a, b = getattr(first, name), getattr(second, name)
+        assert a.shape == b.shape and a.tobytes() == b.tobytes(), name
+
+
+def test_the_split_pose_stage_gives_one_process_s_estimate_bitwise(builtin_models, helper, monkeypatch):
+    """Hypotheses, probabilities, corrections, confidence features and confidence of pairs that search (hundreds
+    of seeds screened, tens refined: batches split between the two processes) are those of one process, bit for
+    bit."""
+    model = builtin_models["fruit"]
+    calls = []
+    call = LocalizerProcess.call
+    monkeypatch.setattr(LocalizerProcess, "call", lambda self, *a: calls.append(a[0].__name__) or call(self, *a))
+    monkeypatch.setattr(pipeline, "SplitExecutor", AlwaysSplit)  # however busy the machine running the test
+    prepare_pose_helper(helper, model, COARSE).result()
+    localizer = make_localizer("match")
+    config = PoseConfig(search="always", suggest_next_touch=False, field_config=COARSE)
+    for index in range(2):
+        pair = PairSimulator(model).pair(seed=11, index=index).pair
+        candidates, world, _ = localize_contacts(pair, model, localizer)
+        calls.clear()
+        one = pose_from_candidates(pair, model, candidates, world, config, "match")
+        assert not calls
+        two = pose_from_candidates(pair, model, candidates, world, config, "match", helper=helper)
+        assert calls.count("_remote_refine") >= 5 and calls.count("_remote_offsets") >= 1
+        _bitwise_equal(one.hypotheses, two.hypotheses)
+        assert one.T_world_object.tobytes() == two.T_world_object.tobytes()
+        assert one.hypothesis_corrections.tobytes() == two.hypothesis_corrections.tobytes()
+        assert one.features == two.features and one.confidence == two.confidence
+        assert one.fit_rms_m == two.fit_rms_m
+
+
+def test_a_split_batch_is_refined_again_whole_when_its_halves_stop_apart(builtin_models, helper):
+    """The refinement stops when every pose of its batch has converged: poses that converge at once, split from
+    poses that do not, would stop early in their half. The executor sees the halves ran different iteration counts
+    and refines the whole batch itself; the result is the one-process refinement either way, and the scores of a
+    split batch are too."""
+    model = builtin_models["fruit"]
+    simulated = PairSimulator(model).pair(seed=11, index=0)
+    pair = simulated.pair
+    config = PoseConfig(field_config=COARSE)
+    field = surface_field(model, config.field_config)
+    contacts = _pair_clouds(pair, model, config)
+    refine = replace(
+        config.refine_config, step_tolerance=3e-3
+    )  # the near poses stop after 3 iterations, the far ones run 8
+    truth = pair.T_world_mesh_true @ model.T_mesh_object
+    rng = np.random.default_rng(3)
+    near = truth @ se3_exp(rng.normal(scale=[0.002] * 3 + [0.0002] * 3, size=(8, 6)))
+    far = truth @ se3_exp(rng.normal(scale=[0.1] * 3 + [0.005] * 3, size=(8, 6)))
+    executor = SplitExecutor(helper, model, COARSE, SplitConfig(min_poses=4, min_scored=4, slow_splits=10**9))
+    with one_blas_thread():
+        for poses, redone in ((np.concatenate([near, far]), 1), (np.concatenate([far, far[::-1]]), 0)):
+            before = executor.redone
+            alone = refine_hypotheses(field, contacts, poses, config.calibration, refine)
+            split = executor.refine(field, contacts, poses, config.calibration, refine)
+            _bitwise_equal(alone, split)
+            assert executor.redone - before == redone
+        scores = executor.offsets(field, contacts, poses, config.calibration, refine)
+        assert scores.tobytes() == evaluate_offsets(field, contacts, poses, config.calibration, refine).tobytes()
+    assert executor.split == 2
+
+
+def test_without_a_free_core_for_the_helper_the_stage_stays_in_this_process(builtin_models, helper):
+    """Splits after which this process waited long for the helper's half (here: any wait at all) mean the helper
+    finds no free core; after `slow_splits` of them the batches stay here, with the same numbers."""
+    model = builtin_models["fruit"]
+    pair = PairSimulator(model).pair(seed=11, index=0).pair
+    config = PoseConfig(field_config=COARSE)
+    field = surface_field(model, config.field_config)
+    contacts = _pair_clouds(pair, model, config)
+    truth = pair.T_world_mesh_true @ model.T_mesh_object
+    poses = truth @ se3_exp(np.random.default_rng(4).normal(scale=[0.05] * 3 + [0.003] * 3, size=(20, 6)))
+    executor = SplitExecutor(helper, model, COARSE, SplitConfig(max_wait_share=-1.0, slow_splits=2))
+    with one_blas_thread():
+        alone = refine_hypotheses(field, contacts, poses, config.calibration, config.refine_config)
+        for _ in range(3):
+            _bitwise_equal(alone, executor.refine(field, contacts, poses, config.calibration, config.refine_config))
+    assert executor.split == 2 and executor.slow == 2

@@ -1,0 +1,213 @@
+"""The pose stage's batched work on two cores: half of each batch of poses in a helper process, bitwise as on one.
+
+Most of the pose stage scores and refines batches of poses (hundreds of seeds screened, tens refined in full), and
+every row of those batches is computed on its own: `evaluate_offsets` and `refine_hypotheses` give a pose the same
+numbers whatever other poses share its batch, with one exception: the refinement stops when every pose's step is
+below its tolerance, so a pose iterates as long as the slowest pose of its batch. A `SplitExecutor` writes the
+second half of a batch to a helper process (`yoto.localize.helper.LocalizerProcess`: the one that localizes a
+pair's right contact, holding the object model and building its surface field there once), computes the first half
+itself meanwhile, and joins the two. Each half counts the Gauss-Newton iterations it ran (the field's gradient
+reads); when both ran as many the joined batch is what one process computes (each half stopped at the first
+iteration where all of its poses were below the tolerance, and none earlier, so the whole batch stops there too);
+otherwise the caller refines the whole batch again itself, which is rare (see docs/pose.md) and costs only time.
+
+Small batches stay in the calling process (`SplitConfig`): both halves pay a refinement's fixed cost (~2.5 ms in
+full, ~1.5 ms short: its numpy calls per iteration), and a round trip through the helper's pipe 60-80 us. Without a
+helper (`LOCAL`) everything runs in the calling process, as it always did.
+
+    with LocalizerProcess(localizer) as helper:
+        prepare_pose_helper(helper, model).result()
+        estimate = estimate_pose(pair, model, localizer, config, helper)
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from yoto.localize.helper import LocalizerProcess, Pending
+from yoto.objects.model import ObjectModel
+from yoto.pose.field import FieldConfig, SurfaceField, surface_field
+from yoto.pose.refine import CalibrationPrior, ContactPoints, RefineConfig, Refined, evaluate_offsets, refine_hypotheses
+from yoto.registration import one_blas_thread
+
+
+@dataclass(frozen=True)
+class SplitConfig:
+    """When the pose stage's batches are split between the calling process and its helper."""
+
+    min_poses: int = 16  # refinements of fewer poses stay in the calling process (see docs/pose.md) ...
+    min_scored: int = 1000  # ... and cheap scores (`evaluate_offsets`, ~1 us a pose) of fewer
+    helper_share: float = 0.5  # share of a split batch the helper computes
+    max_wait_share: float = 0.5  # a split after which this process waited for the helper's half longer than this
+    # share of the time its own half took finds no free core for the helper (it ran when this process waited) ...
+    slow_splits: int = 2  # ... and after this many of them the rest of the pose stage stays in this process
+
+
+class LocalExecutor:
+    """The pose stage's batched work in the calling process (what `pose_from_candidates` does without a helper)."""
+
+    def offsets(
+        self,
+        field: SurfaceField,
+        contacts: list[ContactPoints],
+        T_world_object: np.ndarray,
+        prior: CalibrationPrior,
+        config: RefineConfig,
+    ) -> np.ndarray:
+        """`refine.evaluate_offsets`."""
+        return evaluate_offsets(field, contacts, T_world_object, prior, config)
+
+    def refine(
+        self,
+        field: SurfaceField,
+        contacts: list[ContactPoints],
+        T_world_object: np.ndarray,
+        prior: CalibrationPrior,
+        config: RefineConfig,
+    ) -> Refined:
+        """`refine.refine_hypotheses`."""
+        return refine_hypotheses(field, contacts, T_world_object, prior, config)
+
+
+LOCAL = LocalExecutor()
+
+
+class SplitExecutor(LocalExecutor):
+    """The pose stage's batches split between the calling process and `helper` (one object model, one field)."""
+
+    def __init__(
+        self,
+        helper: LocalizerProcess,
+        model: ObjectModel,
+        field_config: FieldConfig,
+        config: SplitConfig = SplitConfig(),
+    ):
+        self.helper = helper
+        self.model = model
+        self.field_config = field_config
+        self.config = config
+        self.split = 0  # refinements split between the two processes ...
+        self.redone = 0  # ... and of those, refined again whole here (the halves ran different iteration counts)
+        self.helper_extra_cpu_ms = 0.0  # CPU time by which the helper's halves outlasted this process's halves:
+        # this process's CPU time plus this is the stage's wall time on two free cores (round trips aside)
+        self.slow = 0  # splits that found no free core for the helper (SplitConfig.max_wait_share)
+
+    def _cut(self, count: int, least: int) -> int | None:
+        """Where a batch of `count` poses is cut (the caller's share before it), or None to keep it here."""
+        if count < max(least, 2) or self.slow >= self.config.slow_splits:
+            return None
+        return min(max(int(round(count * (1.0 - self.config.helper_share))), 1), count - 1)
+
+    def offsets(
+        self,
+        field: SurfaceField,
+        contacts: list[ContactPoints],
+        T_world_object: np.ndarray,
+        prior: CalibrationPrior,
+        config: RefineConfig,
+    ) -> np.ndarray:
+        cut = self._cut(len(T_world_object), self.config.min_scored)
+        if cut is None:
+            return evaluate_offsets(field, contacts, T_world_object, prior, config)
+        remote = self.helper.call(
+            _remote_offsets, self.model, self.field_config, contacts, T_world_object[cut:], prior, config
+        )
+        tick, start = time.process_time(), time.perf_counter()
+        here = evaluate_offsets(field, contacts, T_world_object[:cut], prior, config)
+        done = time.perf_counter()
+        there, helper_cpu_ms = remote.result()
+        self._account(tick, helper_cpu_ms, start, done)
+        return np.concatenate([here, there])
+
+    def refine(
+        self,
+        field: SurfaceField,
+        contacts: list[ContactPoints],
+        T_world_object: np.ndarray,
+        prior: CalibrationPrior,
+        config: RefineConfig,
+    ) -> Refined:
+        cut = self._cut(len(T_world_object), self.config.min_poses)
+        if cut is None:
+            return refine_hypotheses(field, contacts, T_world_object, prior, config)
+        remote = self.helper.call(
+            _remote_refine, self.model, self.field_config, contacts, T_world_object[cut:], prior, config
+        )
+        tick, start = time.process_time(), time.perf_counter()
+        here, iterations = _counted_refine(field, contacts, T_world_object[:cut], prior, config)
+        done = time.perf_counter()
+        (there, iterations_there), helper_cpu_ms = remote.result()
+        self._account(tick, helper_cpu_ms, start, done)
+        self.split += 1
+        if iterations != iterations_there:  # the whole batch would have iterated on past the half that stopped first
+            self.redone += 1
+            return refine_hypotheses(field, contacts, T_world_object, prior, config)
+        return joined(here, there)
+
+    def _account(self, tick: float, helper_cpu_ms: float, start: float, done: float) -> None:
+        """Record a split: the helper's CPU time beyond this process's (`tick`: its CPU clock when its half began),
+        and whether this process then waited long for the helper (`start`, `done`: its wall clock around its half)."""
+        self.helper_extra_cpu_ms += max(0.0, helper_cpu_ms - 1000.0 * (time.process_time() - tick))
+        self.slow += time.perf_counter() - done > self.config.max_wait_share * (done - start)
+
+
+def joined(first: Refined, second: Refined) -> Refined:
+    """Two sets of refined poses as one."""
+    return Refined(*(np.concatenate([getattr(first, n), getattr(second, n)]) for n in first.__dataclass_fields__))
+
+
+def prepare_pose_helper(
+    helper: LocalizerProcess, model: ObjectModel, field_config: FieldConfig = FieldConfig()
+) -> Pending:
+    """Send `model` to the helper and let it build its surface field now, while this process goes on (`result()`
+    waits for it): the first pose of an object then does not wait for it (`LocalizerProcess.prepare_object`
+    prepares the localizer's per-model data)."""
+    return helper.call(_remote_field, model, field_config)
+
+
+class _CountingField(SurfaceField):
+    """A surface field that counts the reads with a gradient (one per contact and Gauss-Newton iteration)."""
+
+    def __init__(self, field: SurfaceField):  # the same grid and lookup tables, no copy
+        self.__dict__.update(field.__dict__)
+        self.gradient_reads = 0
+
+    def distance(self, points_object: np.ndarray, with_gradient: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        self.gradient_reads += with_gradient
+        return super().distance(points_object, with_gradient)
+
+
+def _counted_refine(
+    field: SurfaceField,
+    contacts: list[ContactPoints],
+    T_world_object: np.ndarray,
+    prior: CalibrationPrior,
+    config: RefineConfig,
+) -> tuple[Refined, int]:
+    """`refine_hypotheses` and how many field reads with a gradient it made (its iterations times the contacts)."""
+    counting = _CountingField(field)
+    return refine_hypotheses(counting, contacts, T_world_object, prior, config), counting.gradient_reads
+
+
+def _remote_field(model: ObjectModel, field_config: FieldConfig) -> None:
+    surface_field(model, field_config)
+
+
+def _remote_offsets(model: ObjectModel, field_config: FieldConfig, *arguments: Any) -> tuple[np.ndarray, float]:
+    """The helper's half of `evaluate_offsets`, and its CPU time (ms)."""
+    tick = time.process_time()
+    with one_blas_thread():  # as the calling process's pose stage (sums in one order)
+        scores = evaluate_offsets(surface_field(model, field_config), *arguments)
+    return scores, 1000.0 * (time.process_time() - tick)
+
+
+def _remote_refine(model: ObjectModel, field_config: FieldConfig, *arguments: Any) -> tuple[tuple[Refined, int], float]:
+    """The helper's half of `refine_hypotheses` with its iteration count (`_counted_refine`), and its CPU time."""
+    tick = time.process_time()
+    with one_blas_thread():
+        refined = _counted_refine(surface_field(model, field_config), *arguments)
+    return refined, 1000.0 * (time.process_time() - tick)
