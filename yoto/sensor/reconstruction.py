@@ -83,6 +83,12 @@ ANCHOR_RELATIVE_DEPTH = 0.3
 # not explain them (`lighting_explained` below LIGHTING_EXPLAINED: tilted faces 0.34-0.77, lighting 0.99). A flat
 # press changes no colour at all and stays "no contact".
 FAINT_MIN_BLOCKS = 8
+# The depth scale of a reconstructed contact (true heights over reconstructed ones) is known only roughly: the
+# gradient model reads a press's slopes to a few percent, but an object's contact is not a ball press (broad faces,
+# slopes beyond the calibrated range read short, the rim the Poisson solve bends). DEPTH_SCALE_SIGMA is the 1-sigma
+# of its log that every reconstructed cloud carries to the pose stage (`Reconstruction.depth_scale_sigma`), which
+# estimates the scale per contact under that prior.
+DEPTH_SCALE_SIGMA = 0.2
 
 
 @dataclass
@@ -101,6 +107,11 @@ class Reconstruction:
     @property
     def max_depth_m(self) -> float:
         return float(-self.points_sensor[:, 2].min()) if len(self.points_sensor) else 0.0
+
+    @property
+    def depth_scale_sigma(self) -> float:
+        """1-sigma of the log of the factor the cloud's heights may be off by (`DEPTH_SCALE_SIGMA`)."""
+        return DEPTH_SCALE_SIGMA if self.contact else 0.0
 
     @property
     def touches_border(self) -> bool:
