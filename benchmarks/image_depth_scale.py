@@ -33,6 +33,7 @@ def main() -> None:
     parser.add_argument("--objects", nargs="+", default=["figurine"])
     parser.add_argument("-n", type=int, default=20, help="pairs per object")
     parser.add_argument("--variation", type=float, default=0.0, help="image variation (yoto bench --image-variation)")
+    parser.add_argument("--sigmas", type=float, nargs="+", help="also these priors (1-sigma of the log scale)")
     parser.add_argument("--workspace", help="workspace holding the object models")
     parser.add_argument("--json", help="write the per-pair rows here")
     args = parser.parse_args()
@@ -69,7 +70,12 @@ def main() -> None:
                 rows.append({"object": model.name, "pair": simulated.index, "reconstructed": False})
                 continue
             with_prior = replace(simulated.pair, **sides)
-            exact = replace(with_prior, **{s: replace(c, depth_scale_sigma=0.0) for s, c in sides.items()})
+            variants = {"scale": with_prior}
+            for sigma in [0.0, *(args.sigmas or [])]:
+                label = "exact" if sigma == 0 else f"sigma {sigma:g}"
+                variants[label] = replace(
+                    with_prior, **{s: replace(c, depth_scale_sigma=sigma) for s, c in sides.items()}
+                )
             row = {"object": model.name, "pair": simulated.index, "reconstructed": True, "true_scale": truth_scale}
             try:
                 candidates, world, _ = localize_contacts(with_prior, model, localizer)
@@ -78,7 +84,7 @@ def main() -> None:
                 rows.append(row)
                 continue
             T_true = simulated.pair.T_world_mesh_true @ model.T_mesh_object
-            for label, pair in (("scale", with_prior), ("exact", exact)):
+            for label, pair in variants.items():
                 tick = time.process_time()
                 estimate = pose_from_candidates(pair, model, candidates, world, pose_config, "match")
                 cpu_ms = 1000.0 * (time.process_time() - tick)
@@ -119,9 +125,9 @@ def main() -> None:
             f"|estimated / true - 1| median on right poses {np.median(on_right) if len(on_right) else np.nan:.3f} "
             f"(heights as exact: {np.median(np.abs(1 / truth - 1)):.3f})"
         )
-        for label in ("exact", "scale"):
+        for label in [k for k in done[0] if k == "exact" or k == "scale" or k.startswith("sigma")]:
             print(
-                f"  {label:5s}: right {np.mean([r[label]['right'] for r in done]):.0%}, truth among "
+                f"  {label:9s}: right {np.mean([r[label]['right'] for r in done]):.0%}, truth among "
                 f"{np.mean([r[label]['truth_among'] for r in done]):.0%}, pose stage CPU median "
                 f"{np.median([r[label]['cpu_ms'] for r in done]):.1f} ms per pair"
             )
