@@ -189,13 +189,13 @@ def evaluate_fit(
             T = T @ se3_exp(corrections[:, contact.sensor])
         if depth_scale is None or not contact.depth_scale_sigma > 0:
             q = transform_batch(T, np.vstack([contact.points_sensor, contact.free_sensor]))
-        else:
-            q = np.concatenate(
-                [
-                    transform_batch(T, _scaled_heights(contact.points_sensor, depth_scale[:, c])),
-                    transform_batch(T, contact.free_sensor),
-                ],
-                axis=1,
+        else:  # the points' heights scaled per pose, the free space as it is
+            points = _scaled_heights(contact.points_sensor, depth_scale[:, c])
+            q = transform_batch(
+                T,
+                np.concatenate(
+                    [points, np.broadcast_to(contact.free_sensor, (len(T), *contact.free_sensor.shape))], axis=1
+                ),
             )
         distance, _ = field.distance(q, with_gradient=False)
         count = len(contact.points_sensor)
@@ -324,9 +324,8 @@ def _add_normal_equations(
     for c, contact in enumerate(contacts):
         s = contact.sensor
         A = T_object_world @ contact.T_world_sensor @ corrections[:, s]  # object <- sensor
-        points, with_scale = contact.points_sensor, depth_scale is not None and contact.depth_scale_sigma > 0
-        if depth_scale is not None and with_scale:
-            points = _scaled_heights(points, depth_scale[:, c])
+        factor = depth_scale[:, c] if depth_scale is not None and contact.depth_scale_sigma > 0 else None
+        points = contact.points_sensor if factor is None else _scaled_heights(contact.points_sensor, factor)
         q = transform_batch(A, points)
         r, n = field.distance(q)
         assert n is not None
@@ -358,7 +357,7 @@ def _add_normal_equations(
         hessian[:, side, side] += coupled @ np.swapaxes(adjoint, 1, 2)
         gradient[:, :6] += g
         gradient[:, side] += (adjoint @ g[:, :, None])[..., 0]
-        if with_scale:
+        if factor is not None:
             # d r / d log s = n . (R e_z) s z: the normal in the sensor frame (m = R^T n) along z, times the height
             along = np.einsum("kmi,ki->km", n, A[:, :3, 2]) * points[..., 2]
             row = (weighted @ along[..., None])[..., 0]  # a^T W j
