@@ -18,6 +18,7 @@ were needed (a wrong hypothesis needs large ones, or fits badly even with them).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -146,7 +147,12 @@ class Refined:
     correction_cost: np.ndarray  # (K,) Mahalanobis square of both corrections under the calibration prior, plus
     # that of each estimated depth scale's log under its prior
     start_offset: np.ndarray  # (K, 6) twist from the starting pose (object frame)
-    depth_scale: np.ndarray  # (K, C) each contact's estimated depth scale (1 where its depth is taken as exact)
+    depth_scale: np.ndarray = dataclasses.field(default_factory=lambda: np.ones((0, 0)))  # (K, C) each estimated
+    # depth scale (1 where its depth is taken as exact; left out: 1 everywhere)
+
+    def __post_init__(self) -> None:
+        if self.depth_scale.size == 0:  # left out
+            self.depth_scale = np.ones(self.fit_rms_m.shape)
 
     def subset(self, index: np.ndarray) -> Refined:
         return Refined(*(getattr(self, name)[index] for name in self.__dataclass_fields__))
