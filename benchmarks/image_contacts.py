@@ -134,7 +134,7 @@ def main() -> None:
             return render_image(height, calibration, rng)
 
     spec = calibration.spec
-    limit = calibration.image_model.max_gradient  # the largest slope the calibration saw (its 99.5th percentile)
+    slope_limit = calibration.image_model.max_gradient  # the largest slope the calibration saw (its 99.5th percentile)
     localizer = make_localizer("match")
     rows = []
     for name in args.objects:
@@ -176,8 +176,8 @@ def main() -> None:
                     radii_true_mm=quadric_radii_mm(truth, press.contact_mask, spec),
                     radii_reconstructed_mm=quadric_radii_mm(recon.height_map_m, press.contact_mask, spec),
                     mask_covers=float((recon.mask & felt).sum() / felt.sum()),
-                    steep_true=float(np.mean(true_slope[recon.mask] > limit)),
-                    steep_read=float(np.mean(np.hypot(*recon.gradients)[recon.mask] > 0.9 * limit)),
+                    steep_true=float(np.mean(true_slope[recon.mask] > slope_limit)),
+                    steep_read=float(np.mean(np.hypot(*recon.gradients)[recon.mask] > 0.9 * slope_limit)),
                     core_covers=float((recon.core_mask & felt).sum() / felt.sum()),
                 )
                 p_true = simulated.contacts[side].p_object
