@@ -84,9 +84,9 @@ ANCHOR_RELATIVE_DEPTH = 0.3
 # press changes no colour at all and stays "no contact".
 FAINT_MIN_BLOCKS = 8
 # The depth scale of a reconstructed contact (true heights over reconstructed ones) is known only to a few percent:
-# on ball presses the calibration did not see, the gradient model reads a press's slopes 3-4% off (median |1 - ratio|
-# of read over true, and the fitted radius's median |error| 3.3%, docs/sensor.md), and an object's contact can be
-# further off (broad faces, slopes beyond the calibrated range read short). DEPTH_SCALE_SIGMA is the 1-sigma of its
+# on ball presses the calibration did not see, the sphere fitted to the reconstruction has its radius 3.3% off
+# (median |error|, `yoto sensor validate`, docs/sensor.md), and an object's contact can be further off (broad faces
+# read shallow, slopes beyond the calibrated range read short). DEPTH_SCALE_SIGMA is the 1-sigma of its
 # log that a reconstructed cloud carries to the pose stage (`Reconstruction.depth_scale_sigma`), which estimates
 # the scale per contact under that prior. Wider priors (0.1, 0.2) let wrong poses fit as well (docs/sensor.md).
 DEPTH_SCALE_SIGMA = 0.05
