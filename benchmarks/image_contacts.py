@@ -6,6 +6,7 @@ calibrated from ball presses it renders), reconstructed, and compared with the t
 - depth (deepest point) ratio, RMS height error over the felt contact (raw, and after removing a plane, which the
   matched filter ignores), principal curvature radii of a quadric fitted over the contact (true / reconstructed);
 - the share of the felt contact (true depth > 0.05 mm) covered by the localization mask and by the core;
+- the share of the mask steeper than the calibration's slope range (truly, and as read: above 0.9 of it);
 - the matched filter's top-1 localization error for the clean cloud and for the image's cloud.
 With `--figures DIR`, one PNG per contact: the image, the reconstructed height, the localization mask (and its
 core), and the localized contact on the object next to the truth.
@@ -133,6 +134,7 @@ def main() -> None:
             return render_image(height, calibration, rng)
 
     spec = calibration.spec
+    slope_limit = calibration.image_model.max_gradient  # the largest slope the calibration saw (its 99.5th percentile)
     localizer = make_localizer("match")
     rows = []
     for name in args.objects:
@@ -150,7 +152,7 @@ def main() -> None:
                 press = simulated.contacts[side].press
                 truth = press.height_map_m
                 image = render(truth, np.random.default_rng(1000 * (index + 1) + done))
-                recon = reconstruct(image, calibration)
+                recon = reconstruct(image, calibration, keep_gradients=True)
                 felt = truth < -5e-5
                 row = {
                     "object": model.name,
@@ -165,6 +167,8 @@ def main() -> None:
                     rows.append(row)
                     continue
                 error = recon.height_map_m.astype(np.float64) - truth
+                assert recon.gradients is not None
+                true_slope = np.hypot(*np.gradient(truth, spec.pixel_size_m))
                 row.update(
                     depth_ratio=float(recon.max_depth_m / -truth.min()),
                     rms_mm=float(np.sqrt(np.mean(error[felt] ** 2)) * 1e3),
@@ -172,6 +176,8 @@ def main() -> None:
                     radii_true_mm=quadric_radii_mm(truth, press.contact_mask, spec),
                     radii_reconstructed_mm=quadric_radii_mm(recon.height_map_m, press.contact_mask, spec),
                     mask_covers=float((recon.mask & felt).sum() / felt.sum()),
+                    steep_true=float(np.mean(true_slope[recon.mask] > slope_limit)),
+                    steep_read=float(np.mean(np.hypot(*recon.gradients)[recon.mask] > 0.9 * slope_limit)),
                     core_covers=float((recon.core_mask & felt).sum() / felt.sum()),
                 )
                 p_true = simulated.contacts[side].p_object
@@ -185,7 +191,8 @@ def main() -> None:
                     f"{row['rms_mm']:.3f} mm ({row['rms_after_plane_mm']:.3f} after a plane), radii "
                     f"{row['radii_true_mm'][0]:.0f}/{row['radii_true_mm'][1]:.0f} -> "
                     f"{row['radii_reconstructed_mm'][0]:.0f}/{row['radii_reconstructed_mm'][1]:.0f} mm, mask covers "
-                    f"{row['mask_covers']:.0%} (core {row['core_covers']:.0%}), localization clean "
+                    f"{row['mask_covers']:.0%} (core {row['core_covers']:.0%}), beyond the calibrated slope: true "
+                    f"{row['steep_true']:.0%}, read {row['steep_read']:.0%}, localization clean "
                     f"{row['localization_clean_mm']:.1f} mm, image {row['localization_image_mm']:.1f} mm"
                 )
                 if args.figures:

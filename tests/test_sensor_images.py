@@ -280,6 +280,7 @@ def test_points_win_over_images_unless_from_images(image_pair, builtin_models):
     """A side with both a cloud and an image uses the cloud; `from_images` (`yoto pose --from-images`) the image."""
     from yoto.contacts import read_contact_pair
     from yoto.sensor.pair_images import ImageSides
+    from yoto.sensor.reconstruction import DEPTH_SCALE_SIGMA
 
     folder = image_pair["root"] / "both"
     path = write_image_pair(
@@ -290,6 +291,9 @@ def test_points_win_over_images_unless_from_images(image_pair, builtin_models):
     from_images = read_contact_pair(path, images, from_images=True)
     assert from_points.left.source.suffix == ".ply" and from_images.left.source.suffix == ".png"
     assert from_images.left.image is not None and from_images.left.image.image.name == "left.png"
+    # A reconstructed cloud's depth is known up to a factor: it carries the reconstruction's prior on it, which the
+    # pose stage estimates under; a cloud read from a PLY file is taken as exact.
+    assert from_images.left.depth_scale_sigma == DEPTH_SCALE_SIGMA > 0 and from_points.left.depth_scale_sigma == 0
     truth = image_pair["simulated"].pair
     assert np.allclose(from_points.left.points_sensor, truth.right.points_sensor)
     # The reconstructed cloud is the left contact: its centroid lies near the true left cloud's.

@@ -59,8 +59,9 @@ class TactileImage:
     calibration: Path | None = None  # the sensor's calibration file (else the reader's default)
 
 
-# Turns an image side into its tactile cloud (N, 3), sensor frame, metres (yoto.sensor.pair_images.ImageSides).
-ImageReconstructor = Callable[[TactileImage], np.ndarray]
+# Turns an image side into its tactile cloud (N, 3), sensor frame, metres, and the 1-sigma of the log of its depth
+# scale (TactileContact.depth_scale_sigma) (yoto.sensor.pair_images.ImageSides).
+ImageReconstructor = Callable[[TactileImage], tuple[np.ndarray, float]]
 
 
 @dataclass
@@ -71,6 +72,8 @@ class TactileContact:
     T_world_sensor: np.ndarray  # (4, 4) the sensor's calibrated pose
     source: Path | None = None  # the PLY (or image) file it came from, for messages
     image: TactileImage | None = None  # the GelSight image the side gives, if any (kept on rewrite)
+    depth_scale_sigma: float = 0.0  # 1-sigma of the log of the factor its heights may be off by (a cloud
+    # reconstructed from an image: the reconstruction's; the pose stage then estimates the factor); 0: exact
 
 
 @dataclass
@@ -345,10 +348,11 @@ def _read_side(
             path,
         )
     try:
-        points = images(image)
+        points, depth_scale_sigma = images(image)
     except NoContactError as exc:
         raise NoContactError(f"{side}: {exc.problem}", exc.path) from exc
-    return TactileContact(validate_tactile_points(points, image.image), T_world_sensor, image.image, image)
+    points = validate_tactile_points(points, image.image)
+    return TactileContact(points, T_world_sensor, image.image, image, depth_scale_sigma)
 
 
 def _side_file(record: dict, key: str, side: str, path: Path) -> Path:

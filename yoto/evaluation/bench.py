@@ -294,8 +294,9 @@ def simulate_benchmark_pairs(model: ObjectModel, config: BenchConfig, simulator=
 
 def pairs_via_images(pairs: list, config: BenchConfig) -> list:
     """The same simulated pairs (same poses, same truth), each tactile cloud replaced by the reconstruction of the
-    GelSight image its noise-free gel height map renders to (`yoto.sensor.optical.image_route`); a frame the
-    reconstruction finds no contact in gives an empty cloud, which the methods count as a failure."""
+    GelSight image its noise-free gel height map renders to (`yoto.sensor.optical.image_route`), with the
+    reconstruction's depth-scale prior (`TactileContact.depth_scale_sigma`); a frame the reconstruction finds no
+    contact in gives an empty cloud, which the methods count as a failure."""
     from dataclasses import replace
 
     from yoto.sensor.optical import image_route
@@ -304,10 +305,13 @@ def pairs_via_images(pairs: list, config: BenchConfig) -> list:
     to_cloud = image_route(config.image_calibration, config.image_variation)
     out = []
     for simulated in tqdm(pairs, desc="rendering and reconstructing images", unit="pair", leave=False):
-        sides = {
-            side: replace(simulated.pair.contact(side), points_sensor=to_cloud(simulated.height_maps[side]))
-            for side in SIDES
-        }
+        sides = {}
+        for side in SIDES:
+            result = to_cloud.reconstruction(simulated.height_maps[side])
+            points, sigma = (
+                (np.zeros((0, 3)), 0.0) if result is None else (result.points_sensor, result.depth_scale_sigma)
+            )
+            sides[side] = replace(simulated.pair.contact(side), points_sensor=points, depth_scale_sigma=sigma)
         out.append(replace(simulated, pair=replace(simulated.pair, **sides)))
     return out
 

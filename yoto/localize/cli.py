@@ -76,7 +76,7 @@ def read_tactile_input(path: str, images: ImageSides) -> np.ndarray:
     from yoto.sensor.presses import IMAGE_SUFFIXES
 
     if Path(path).suffix.lower() in IMAGE_SUFFIXES:
-        return validate_tactile_points(images(TactileImage(Path(path), images.background)), path)
+        return validate_tactile_points(images(TactileImage(Path(path), images.background))[0], path)
     points, _ = read_ply_points(path)
     return validate_tactile_points(points, path)
 

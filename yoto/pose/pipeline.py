@@ -128,6 +128,7 @@ class PoseEstimate:
     confidence: float  # calibrated probability that T_world_object is within 5 mm and 5 deg of the truth
     features: dict[str, float] = field(default_factory=dict)  # what the confidence was computed from
     fit_rms_m: tuple[float, float] = (float("nan"), float("nan"))  # each cloud's residual after its correction
+    depth_scale: tuple[float, float] = (1.0, 1.0)  # each cloud's depth scale as refined (1: its heights taken as exact)
     corrections: np.ndarray | None = None  # (2, 6) each sensor's correction twist (rotation vector, translation)
     hypothesis_corrections: np.ndarray | None = None  # (H, 2, 6) the same under each hypothesis
     next_touch: NextTouch | None = None
@@ -456,6 +457,7 @@ def _pair_clouds(pair: ContactPair, model: ObjectModel, config: PoseConfig) -> l
             s,
             model.point_spacing_m,
             config.refine_config,
+            pair.contact(side).depth_scale_sigma,
         )
         for s, side in enumerate(SIDES)
     ]
@@ -517,6 +519,7 @@ def _estimate(
         confidence=float("nan"),
         features=confidence_features(hypotheses, refined, solution, chosen, shapes, searched, model.symmetry),
         fit_rms_m=(float(refined.fit_rms_m[best, 0]), float(refined.fit_rms_m[best, 1])),
+        depth_scale=(float(refined.depth_scale[best, 0]), float(refined.depth_scale[best, 1])),
         corrections=corrections,
         hypothesis_corrections=refined.corrections[shown.member],
         searched=searched,
@@ -545,7 +548,9 @@ def fuse_next_touch(
     spacing = model.point_spacing_m
     touches = [*((pair.contact(side), side) for side in SIDES), *earlier, (touch, sensor)]
     contacts = [
-        contact_points(c.points_sensor, c.T_world_sensor, SIDES.index(side), spacing, config.refine_config)
+        contact_points(
+            c.points_sensor, c.T_world_sensor, SIDES.index(side), spacing, config.refine_config, c.depth_scale_sigma
+        )
         for c, side in touches
     ]
     now = pair

@@ -18,6 +18,7 @@ were needed (a wrong hypothesis needs large ones, or fits badly even with them).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -84,6 +85,8 @@ class ContactPoints:
     sensor: int  # which sensor (0: left, 1: right): contacts of one sensor share its calibration error
     free_sensor: np.ndarray  # (F, 3) points the object cannot occupy: the gel where it saw no contact (just
     # inside the gel surface), and the face of the housing around it
+    depth_scale_sigma: float = 0.0  # 1-sigma of the log of the cloud's depth scale (its heights below the pad plane
+    # may be off by a factor, e.g. reconstructed from an image): estimated per contact when > 0; 0: exact
 
 
 def free_space_points(points_sensor: np.ndarray, config: RefineConfig) -> np.ndarray:
@@ -114,16 +117,22 @@ def free_space_points(points_sensor: np.ndarray, config: RefineConfig) -> np.nda
 
 
 def contact_points(
-    points_sensor: np.ndarray, T_world_sensor: np.ndarray, sensor: int, spacing_m: float, config: RefineConfig
+    points_sensor: np.ndarray,
+    T_world_sensor: np.ndarray,
+    sensor: int,
+    spacing_m: float,
+    config: RefineConfig,
+    depth_scale_sigma: float = 0.0,
 ) -> ContactPoints:
-    """A fixed, deterministic subset of a tactile cloud at the model's point spacing, and its free space."""
+    """A fixed, deterministic subset of a tactile cloud at the model's point spacing, and its free space;
+    `depth_scale_sigma` as in `ContactPoints`."""
     stride = max(1, len(points_sensor) // (20 * config.points_per_contact))  # thin dense clouds before voxelising
     (points,) = voxel_downsample(points_sensor[::stride], spacing_m)
     if len(points) > config.points_per_contact:
         rng = np.random.default_rng(config.seed)
         points = points[np.sort(rng.choice(len(points), config.points_per_contact, replace=False))]
     free = free_space_points(points_sensor, config)
-    return ContactPoints(points, np.asarray(T_world_sensor, dtype=np.float64), sensor, free)
+    return ContactPoints(points, np.asarray(T_world_sensor, dtype=np.float64), sensor, free, depth_scale_sigma)
 
 
 @dataclass
@@ -135,8 +144,15 @@ class Refined:
     fit_rms_m: np.ndarray  # (K, C) truncated RMS residual of each contact after the corrections
     inlier_fraction: np.ndarray  # (K, C) share of each contact's points within inlier_distance_m of the surface
     free_rms_m: np.ndarray  # (K, C) RMS depth (truncated) of each contact's free-space points inside the object
-    correction_cost: np.ndarray  # (K,) Mahalanobis square of both corrections under the calibration prior
+    correction_cost: np.ndarray  # (K,) Mahalanobis square of both corrections under the calibration prior, plus
+    # that of each estimated depth scale's log under its prior
     start_offset: np.ndarray  # (K, 6) twist from the starting pose (object frame)
+    depth_scale: np.ndarray = dataclasses.field(default_factory=lambda: np.ones((0, 0)))  # (K, C) each estimated
+    # depth scale (1 where its depth is taken as exact; left out: 1 everywhere)
+
+    def __post_init__(self) -> None:
+        if self.depth_scale.size == 0:  # left out
+            self.depth_scale = np.ones(self.fit_rms_m.shape)
 
     def subset(self, index: np.ndarray) -> Refined:
         return Refined(*(getattr(self, name)[index] for name in self.__dataclass_fields__))
@@ -150,7 +166,13 @@ def thinned(contacts: list[ContactPoints], count: int, free_count: int | None = 
         return points if most is None else points[:: max(1, -(-len(points) // max(most, 1)))]
 
     return [
-        ContactPoints(stride(c.points_sensor, count), c.T_world_sensor, c.sensor, stride(c.free_sensor, free_count))
+        ContactPoints(
+            stride(c.points_sensor, count),
+            c.T_world_sensor,
+            c.sensor,
+            stride(c.free_sensor, free_count),
+            c.depth_scale_sigma,
+        )
         for c in contacts
     ]
 
@@ -161,16 +183,26 @@ def evaluate_fit(
     T_world_object: np.ndarray,
     corrections: np.ndarray | None,
     config: RefineConfig,
+    depth_scale: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Truncated RMS residual, inlier fraction and free-space violation (each (K, C)) of every contact under K
-    poses (and sensor corrections, or none)."""
+    poses (and sensor corrections, or none; and each contact's depth scale (K, C), or none: its heights as given)."""
     T_object_world = invert_transform(T_world_object)
     rms, inliers, free = [], [], []
-    for contact in contacts:
+    for c, contact in enumerate(contacts):
         T = T_object_world @ contact.T_world_sensor
         if corrections is not None:
             T = T @ se3_exp(corrections[:, contact.sensor])
-        q = transform_batch(T, np.vstack([contact.points_sensor, contact.free_sensor]))
+        if depth_scale is None or not contact.depth_scale_sigma > 0:
+            q = transform_batch(T, np.vstack([contact.points_sensor, contact.free_sensor]))
+        else:  # the points' heights scaled per pose, the free space as it is
+            points = _scaled_heights(contact.points_sensor, depth_scale[:, c])
+            q = transform_batch(
+                T,
+                np.concatenate(
+                    [points, np.broadcast_to(contact.free_sensor, (len(T), *contact.free_sensor.shape))], axis=1
+                ),
+            )
         distance, _ = field.distance(q, with_gradient=False)
         count = len(contact.points_sensor)
         magnitude = np.abs(distance[:, :count])
@@ -225,35 +257,57 @@ def refine_hypotheses(
 ) -> Refined:
     """Refine K object poses (K, 4, 4) jointly with a correction per sensor (see the module docstring), each
     correction starting from `corrections_start` (K, 2, 6) twists where given (e.g. what an earlier refinement of
-    the same sensors found), else from none."""
+    the same sensors found), else from none.
+
+    A contact with `depth_scale_sigma` > 0 also gets a depth scale s = exp(u), u ~ N(0, depth_scale_sigma): its
+    points (x, y, z) are read as (x, y, s z), heights scaled along the sensor's normal about the pad plane (an image
+    reconstruction's depth is known only up to such a factor). Without such contacts the system and its results
+    are exactly those of the 18 parameters alone."""
     poses = np.array(T_world_object, dtype=np.float64).reshape(-1, 4, 4)
     start_inverse = invert_transform(poses)
     count = len(poses)
+    scaled = [c for c, contact in enumerate(contacts) if contact.depth_scale_sigma > 0]
+    size = 18 + len(scaled)
     corrections = np.tile(np.eye(4), (count, 2, 1, 1))  # E per side
-    information = np.zeros((18, 18))
+    information = np.zeros((size, size))
     information[:6, :6] = np.diag([1.0 / config.prior_rotation_rad**2] * 3 + [1.0 / config.prior_translation_m**2] * 3)
     calibration = prior.information()
     information[6:12, 6:12] = np.diag(calibration)
-    information[12:, 12:] = np.diag(calibration)
-    deviation = np.zeros((count, 18))  # twists from the start and of the corrections, accumulated to first order
+    information[12:18, 12:18] = np.diag(calibration)
+    scale_information = np.array([1.0 / contacts[c].depth_scale_sigma ** 2 for c in scaled])
+    information[18:, 18:] = np.diag(scale_information)
+    log_scale = np.zeros((count, len(contacts)))
+    deviation = np.zeros((count, size))  # twists from the start and of the corrections, accumulated to first order
     if corrections_start is not None:
         corrections = se3_exp(np.asarray(corrections_start, dtype=np.float64).reshape(count, 2, 6))
-        deviation[:, 6:] = np.asarray(corrections_start).reshape(count, 12)
+        deviation[:, 6:18] = np.asarray(corrections_start).reshape(count, 12)
     for _ in range(config.iterations):
-        hessian = np.broadcast_to(information, (count, 18, 18)).copy()
+        hessian = np.broadcast_to(information, (count, size, size)).copy()
         gradient = deviation @ information
-        _add_normal_equations(field, contacts, poses, corrections, config, hessian, gradient)
+        depth_scale = np.exp(log_scale) if scaled else None
+        _add_normal_equations(field, contacts, poses, corrections, config, hessian, gradient, depth_scale)
         step = -np.linalg.solve(hessian, gradient[:, :, None])[:, :, 0]
         deviation += step
-        updates = se3_exp(step.reshape(count, 3, 6))
+        updates = se3_exp(step[:, :18].reshape(count, 3, 6))
         poses = poses @ updates[:, 0]
         corrections = corrections @ updates[:, 1:]
+        log_scale[:, scaled] += step[:, 18:]
         if np.abs(step).max() < config.step_tolerance:
             break
     twists = np.stack([se3_log(corrections[:, 0]), se3_log(corrections[:, 1])], axis=1)
-    rms, inliers, free = evaluate_fit(field, contacts, poses, twists, config)
+    depth_scale = np.exp(log_scale)
+    rms, inliers, free = evaluate_fit(field, contacts, poses, twists, config, depth_scale if scaled else None)
     correction_cost = np.einsum("ksi,i,ksi->k", twists, calibration, twists)
-    return Refined(poses, twists, rms, inliers, free, correction_cost, se3_log(start_inverse @ poses))
+    if scaled:
+        correction_cost = correction_cost + log_scale[:, scaled] ** 2 @ scale_information
+    return Refined(poses, twists, rms, inliers, free, correction_cost, se3_log(start_inverse @ poses), depth_scale)
+
+
+def _scaled_heights(points_sensor: np.ndarray, depth_scale: np.ndarray) -> np.ndarray:
+    """(K, M, 3) the points (M, 3) with their heights (z, about the pad plane) scaled by each of K factors."""
+    points = np.broadcast_to(points_sensor, (len(depth_scale),) + points_sensor.shape).copy()
+    points[..., 2] *= depth_scale[:, None]
+    return points
 
 
 def _add_normal_equations(
@@ -264,15 +318,21 @@ def _add_normal_equations(
     config: RefineConfig,
     hessian: np.ndarray,
     gradient: np.ndarray,
+    depth_scale: np.ndarray | None = None,
 ) -> None:
-    """Add the clouds' robustly weighted Gauss-Newton system into `hessian` (K, 18, 18) and `gradient` (K, 18):
-    the object pose's twist, then each sensor's correction, at K poses (K, 4, 4) and corrections (K, 2, 4, 4)."""
+    """Add the clouds' robustly weighted Gauss-Newton system into `hessian` (K, 18 + S, 18 + S) and `gradient`
+    (K, 18 + S): the object pose's twist, then each sensor's correction, at K poses (K, 4, 4) and corrections
+    (K, 2, 4, 4); then the log depth scale of each of the S contacts with `depth_scale_sigma` > 0, in order, at
+    `depth_scale` (K, C) (None: there are none)."""
     T_object_world = invert_transform(poses)
     weight_scale = 1.0 / config.surface_noise_m**2
-    for contact in contacts:
+    scale_row = 18
+    for c, contact in enumerate(contacts):
         s = contact.sensor
         A = T_object_world @ contact.T_world_sensor @ corrections[:, s]  # object <- sensor
-        q = transform_batch(A, contact.points_sensor)
+        factor = depth_scale[:, c] if depth_scale is not None and contact.depth_scale_sigma > 0 else None
+        points = contact.points_sensor if factor is None else _scaled_heights(contact.points_sensor, factor)
+        q = transform_batch(A, points)
         r, n = field.distance(q)
         assert n is not None
         magnitude = np.abs(r)
@@ -303,3 +363,15 @@ def _add_normal_equations(
         hessian[:, side, side] += coupled @ np.swapaxes(adjoint, 1, 2)
         gradient[:, :6] += g
         gradient[:, side] += (adjoint @ g[:, :, None])[..., 0]
+        if factor is not None:
+            # d r / d log s = n . (R e_z) s z: the normal in the sensor frame (m = R^T n) along z, times the height
+            along = np.einsum("kmi,ki->km", n, A[:, :3, 2]) * points[..., 2]
+            row = (weighted @ along[..., None])[..., 0]  # a^T W j
+            hessian[:, :6, scale_row] += row
+            hessian[:, scale_row, :6] += row
+            moved = (adjoint @ row[..., None])[..., 0]
+            hessian[:, side, scale_row] += moved
+            hessian[:, scale_row, side] += moved
+            hessian[:, scale_row, scale_row] += np.sum(w * along**2, axis=1)
+            gradient[:, scale_row] += np.sum(w * along * r, axis=1)
+            scale_row += 1

@@ -14,12 +14,16 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import ndimage
 
 from yoto.errors import InputError
 from yoto.sensor.calibration import SensorCalibration
+
+if TYPE_CHECKING:
+    from yoto.sensor.reconstruction import Reconstruction
 
 log = logging.getLogger("yoto")
 
@@ -113,12 +117,53 @@ def render_varied(
 Renderer = Callable[[np.ndarray, "np.random.Generator | None"], np.ndarray]
 
 
+class ImagePath:
+    """A height map -> tactile cloud function that goes through a rendered GelSight image and its reconstruction
+    (`image_path_reconstructor`); `reconstruction(height_map_m)` gives the whole reconstruction (None: refused)."""
+
+    def __init__(
+        self, calibration: SensorCalibration, sensor_noise: bool, render: Renderer | None, variation: OpticsVariation
+    ):
+        self.calibration = calibration
+        self.sensor_noise = sensor_noise
+        self.render = render
+        self.variation = variation
+
+    def image(self, height_map_m: np.ndarray) -> np.ndarray:
+        """The GelSight image of a gel height map, its noise seeded from the height map."""
+        import hashlib
+
+        rng = None
+        if self.sensor_noise or not self.variation.none:
+            digest = hashlib.sha256(np.ascontiguousarray(height_map_m, dtype=np.float64).tobytes()).digest()
+            rng = np.random.default_rng(int.from_bytes(digest[:8], "little"))
+        if self.render is not None:
+            return self.render(height_map_m, rng if self.sensor_noise else None)
+        if rng is not None and not self.variation.none:
+            return render_varied(height_map_m, self.calibration, rng, self.variation)
+        return render_image(height_map_m, self.calibration, rng)
+
+    def reconstruction(self, height_map_m: np.ndarray) -> Reconstruction | None:
+        """The reconstruction of the height map's image; None where the reconstruction refuses the frame."""
+        from yoto.sensor.reconstruction import reconstruct
+
+        try:
+            return reconstruct(self.image(height_map_m), self.calibration)
+        except InputError as exc:
+            log.warning("a rendered frame was refused, its contact gives no cloud: %s", exc)
+            return None
+
+    def __call__(self, height_map_m: np.ndarray) -> np.ndarray:
+        result = self.reconstruction(height_map_m)
+        return np.zeros((0, 3)) if result is None else result.points_sensor
+
+
 def image_path_reconstructor(
     calibration: SensorCalibration,
     sensor_noise: bool = True,
     render: Renderer | None = None,
     variation: OpticsVariation = OpticsVariation(),
-) -> Callable[[np.ndarray], np.ndarray]:
+) -> ImagePath:
     """A height map -> tactile cloud function that goes through a rendered GelSight image and its reconstruction.
 
     Plug it into the contact simulator (`PairSimulator(..., reconstruct=...)`) so contacts carry the real
@@ -130,31 +175,10 @@ def image_path_reconstructor(
     it refuses (InputError, e.g. a contact covering nearly the whole pad reads as another sensor's background):
     a lab's pipeline would get no cloud from it either, and the benchmark counts the contact as failed.
     """
-    import hashlib
-
-    from yoto.sensor.reconstruction import reconstruct
-
-    def height_map_to_points(height_map_m: np.ndarray) -> np.ndarray:
-        rng = None
-        if sensor_noise or not variation.none:
-            digest = hashlib.sha256(np.ascontiguousarray(height_map_m, dtype=np.float64).tobytes()).digest()
-            rng = np.random.default_rng(int.from_bytes(digest[:8], "little"))
-        if render is not None:
-            image = render(height_map_m, rng if sensor_noise else None)
-        elif rng is not None and not variation.none:
-            image = render_varied(height_map_m, calibration, rng, variation)
-        else:
-            image = render_image(height_map_m, calibration, rng)
-        try:
-            return reconstruct(image, calibration).points_sensor
-        except InputError as exc:
-            log.warning("a rendered frame was refused, its contact gives no cloud: %s", exc)
-            return np.zeros((0, 3))
-
-    return height_map_to_points
+    return ImagePath(calibration, sensor_noise, render, variation)
 
 
-def image_route(source: str, variation: float = 0.0) -> Callable[[np.ndarray], np.ndarray]:
+def image_route(source: str, variation: float = 0.0) -> ImagePath:
     """The height map -> image -> reconstructed cloud function a benchmark names by `source`.
 
     `source`: a calibration file (images from its own fitted optical model), or `shading[:SEED]`: images from the

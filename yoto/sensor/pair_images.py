@@ -55,9 +55,10 @@ class ImageSides:
         calibration = self.calibration(side.calibration, side.background or self.background)
         return reconstruct(load_image(side.image, calibration.spec), calibration, source=side.image)
 
-    def __call__(self, side: TactileImage) -> np.ndarray:
-        """The side's tactile cloud (N, 3), sensor frame, metres; NoContactError when the frame shows none."""
+    def __call__(self, side: TactileImage) -> tuple[np.ndarray, float]:
+        """The side's tactile cloud (N, 3), sensor frame, metres, and the 1-sigma of the log of its depth scale
+        (`Reconstruction.depth_scale_sigma`); NoContactError when the frame shows none."""
         result = self.reconstruct(side)
         if not result.contact:
             raise NoContactError(result.reason, side.image)
-        return result.points_sensor
+        return result.points_sensor, result.depth_scale_sigma

@@ -83,6 +83,13 @@ ANCHOR_RELATIVE_DEPTH = 0.3
 # not explain them (`lighting_explained` below LIGHTING_EXPLAINED: tilted faces 0.34-0.77, lighting 0.99). A flat
 # press changes no colour at all and stays "no contact".
 FAINT_MIN_BLOCKS = 8
+# The depth scale of a reconstructed contact (true heights over reconstructed ones) is known only to a few percent:
+# on ball presses the calibration did not see, the sphere fitted to the reconstruction has its radius 3.3% off
+# (median |error|, `yoto sensor validate`, docs/sensor.md), and an object's contact can be further off (broad faces
+# read shallow, slopes beyond the calibrated range read short). DEPTH_SCALE_SIGMA is the 1-sigma of its
+# log that a reconstructed cloud carries to the pose stage (`Reconstruction.depth_scale_sigma`), which estimates
+# the scale per contact under that prior. Wider priors (0.1, 0.2) let wrong poses fit as well (docs/sensor.md).
+DEPTH_SCALE_SIGMA = 0.05
 
 
 @dataclass
@@ -101,6 +108,11 @@ class Reconstruction:
     @property
     def max_depth_m(self) -> float:
         return float(-self.points_sensor[:, 2].min()) if len(self.points_sensor) else 0.0
+
+    @property
+    def depth_scale_sigma(self) -> float:
+        """1-sigma of the log of the factor the cloud's heights may be off by (`DEPTH_SCALE_SIGMA`)."""
+        return DEPTH_SCALE_SIGMA if self.contact else 0.0
 
     @property
     def touches_border(self) -> bool:
