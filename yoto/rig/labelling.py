@@ -381,7 +381,7 @@ def label_trial(
     trial.frame = frames[chosen]
     trial.labelled = LabelledContact(
         object_name=model.name,
-        contact=TactileContact(recon.points_sensor, T_world_sensor),
+        contact=TactileContact(recon.points_sensor, T_world_sensor, depth_scale_sigma=recon.depth_scale_sigma),
         T_world_mesh=T_world_body @ T_objectbody_mesh,
         p_mesh=p_mesh,
         side=side.name,
