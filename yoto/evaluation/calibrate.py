@@ -18,7 +18,7 @@ import hashlib
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -37,8 +37,10 @@ from yoto.evaluation.bench import (
     trusted_threshold,
 )
 from yoto.io import read_json, write_json_atomic, write_text_atomic
+from yoto.objects.model import ObjectModel
 from yoto.pose.confidence import FEATURES, ConfidenceModel, fit_logistic
-from yoto.pose.pipeline import localize_contacts, pose_from_candidates
+from yoto.pose.hypotheses import pose_distances
+from yoto.pose.pipeline import PoseEstimate, localize_contacts, pose_from_candidates
 from yoto.provenance import run_info
 
 log = logging.getLogger("yoto")
@@ -64,6 +66,9 @@ class Rows:
     features: list[list[float]]  # per pair, in FEATURES order
     right: list[bool]
     confidence: list[float]  # the confidence the pose stage reported when the rows were collected
+    hypotheses: list[list[list[float]]] = field(default_factory=list)  # per pair, per reported hypothesis:
+    # probability, log-likelihood, distance from the first (mm, deg modulo symmetry), whether it is right; for
+    # studying new features on the same rows without simulating them again
 
 
 def collect_rows(spec: str, config: CalibrationConfig, cache_dir: Path, workspace: str | Path | None) -> Rows:
@@ -100,8 +105,27 @@ def collect_rows(spec: str, config: CalibrationConfig, cache_dir: Path, workspac
         rows.features.append([estimate.features[name] for name in FEATURES])
         rows.right.append(bool(errors["translation_mm"] < RIGHT_MM and errors["rotation_deg"] < RIGHT_DEG))
         rows.confidence.append(float(estimate.confidence))
+        rows.hypotheses.append(hypothesis_rows(model, estimate, pair.T_world_mesh_true))
     write_json_atomic(cache, asdict(rows))
     return rows
+
+
+def hypothesis_rows(model: ObjectModel, estimate: PoseEstimate, T_world_mesh_true: np.ndarray) -> list[list[float]]:
+    """Per reported hypothesis: probability, log-likelihood, translation (mm) and rotation (deg, modulo symmetry)
+    from the first, and whether it is right (1.0) or not (0.0)."""
+    poses = estimate.hypotheses.T_world_object
+    translation, rotation = pose_distances(poses, poses[0], model.symmetry)
+    truth_translation, truth_rotation = pose_distances(poses, T_world_mesh_true @ model.T_mesh_object, model.symmetry)
+    right = (1000.0 * truth_translation < RIGHT_MM) & (np.degrees(truth_rotation) < RIGHT_DEG)
+    return np.column_stack(
+        [
+            estimate.hypotheses.probability,
+            estimate.hypotheses.log_likelihood,
+            1000.0 * translation,
+            np.degrees(rotation),
+            right.astype(np.float64),
+        ]
+    ).tolist()
 
 
 def roc_auc(score: np.ndarray, positive: np.ndarray) -> float:
