@@ -18,7 +18,7 @@ import hashlib
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +40,7 @@ from yoto.io import read_json, write_json_atomic, write_text_atomic
 from yoto.objects.model import ObjectModel
 from yoto.pose.confidence import FEATURES, ConfidenceModel, fit_logistic
 from yoto.pose.hypotheses import pose_distances
-from yoto.pose.pipeline import PoseEstimate, localize_contacts, pose_from_candidates
+from yoto.pose.pipeline import PoseConfig, PoseEstimate, localize_contacts, pose_from_candidates
 from yoto.provenance import run_info
 
 log = logging.getLogger("yoto")
@@ -71,15 +71,21 @@ class Rows:
     # studying new features on the same rows without simulating them again
 
 
+def rows_key(config: CalibrationConfig, fingerprint: str, localizer: object, pose_config: PoseConfig) -> str:
+    """The cache key of an object's rows. Rows describe the localizer and the pose stage that made them: their
+    settings (the localizer's dataclass configs, the pose stage's config) are part of the key, so a changed default
+    (a cut in the localizer, say) never reuses rows made by the old one."""
+    localizer_settings = [repr(value) for value in vars(localizer).values() if is_dataclass(value)]
+    settings = [asdict(config), fingerprint, FEATURES, localizer_settings, repr(pose_config)]
+    return hashlib.sha256(json.dumps(settings).encode()).hexdigest()[:12]
+
+
 def collect_rows(spec: str, config: CalibrationConfig, cache_dir: Path, workspace: str | Path | None) -> Rows:
     """The rows of one object (cached in `cache_dir`)."""
     from yoto.localize import make_localizer
 
     model = resolve_object(spec, workspace)
-    key = hashlib.sha256(json.dumps([asdict(config), model.fingerprint, FEATURES]).encode()).hexdigest()[:12]
-    cache = cache_dir / f"{model.name}__{key}.json"
-    if cache.exists():
-        return Rows(**read_json(cache))
+    localizer = make_localizer(config.method)
     bench = BenchConfig(
         num_pairs=config.pairs_per_object,
         seed=config.seed,
@@ -88,8 +94,10 @@ def collect_rows(spec: str, config: CalibrationConfig, cache_dir: Path, workspac
         retouch=False,
     )
     pose_config = bench.pose_config("full")
+    cache = cache_dir / f"{model.name}__{rows_key(config, model.fingerprint, localizer, pose_config)}.json"
+    if cache.exists():
+        return Rows(**read_json(cache))
     pairs = simulate_benchmark_pairs(model, bench)
-    localizer = make_localizer(config.method)
     rows = Rows(model.name, [], [], [])
     for simulated in tqdm(pairs, desc=f"{model.name}: pose features", unit="pair", leave=False):
         pair = simulated.pair
