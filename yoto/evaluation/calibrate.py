@@ -18,7 +18,7 @@ import hashlib
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -37,8 +37,10 @@ from yoto.evaluation.bench import (
     trusted_threshold,
 )
 from yoto.io import read_json, write_json_atomic, write_text_atomic
+from yoto.objects.model import ObjectModel
 from yoto.pose.confidence import FEATURES, ConfidenceModel, fit_logistic
-from yoto.pose.pipeline import localize_contacts, pose_from_candidates
+from yoto.pose.hypotheses import pose_distances
+from yoto.pose.pipeline import PoseConfig, PoseEstimate, localize_contacts, pose_from_candidates
 from yoto.provenance import run_info
 
 log = logging.getLogger("yoto")
@@ -64,6 +66,18 @@ class Rows:
     features: list[list[float]]  # per pair, in FEATURES order
     right: list[bool]
     confidence: list[float]  # the confidence the pose stage reported when the rows were collected
+    hypotheses: list[list[list[float]]] = field(default_factory=list)  # per pair, per reported hypothesis:
+    # probability, log-likelihood, distance from the first (mm, deg modulo symmetry), whether it is right; for
+    # studying new features on the same rows without simulating them again
+
+
+def rows_key(config: CalibrationConfig, fingerprint: str, localizer: object, pose_config: PoseConfig) -> str:
+    """The cache key of an object's rows. Rows describe the localizer and the pose stage that made them: their
+    settings (the localizer's dataclass configs, the pose stage's config) are part of the key, so a changed default
+    (a cut in the localizer, say) never reuses rows made by the old one."""
+    localizer_settings = [repr(value) for value in vars(localizer).values() if is_dataclass(value)]
+    settings = [asdict(config), fingerprint, FEATURES, localizer_settings, repr(pose_config)]
+    return hashlib.sha256(json.dumps(settings).encode()).hexdigest()[:12]
 
 
 def collect_rows(spec: str, config: CalibrationConfig, cache_dir: Path, workspace: str | Path | None) -> Rows:
@@ -71,10 +85,7 @@ def collect_rows(spec: str, config: CalibrationConfig, cache_dir: Path, workspac
     from yoto.localize import make_localizer
 
     model = resolve_object(spec, workspace)
-    key = hashlib.sha256(json.dumps([asdict(config), model.fingerprint, FEATURES]).encode()).hexdigest()[:12]
-    cache = cache_dir / f"{model.name}__{key}.json"
-    if cache.exists():
-        return Rows(**read_json(cache))
+    localizer = make_localizer(config.method)
     bench = BenchConfig(
         num_pairs=config.pairs_per_object,
         seed=config.seed,
@@ -83,8 +94,10 @@ def collect_rows(spec: str, config: CalibrationConfig, cache_dir: Path, workspac
         retouch=False,
     )
     pose_config = bench.pose_config("full")
+    cache = cache_dir / f"{model.name}__{rows_key(config, model.fingerprint, localizer, pose_config)}.json"
+    if cache.exists():
+        return Rows(**read_json(cache))
     pairs = simulate_benchmark_pairs(model, bench)
-    localizer = make_localizer(config.method)
     rows = Rows(model.name, [], [], [])
     for simulated in tqdm(pairs, desc=f"{model.name}: pose features", unit="pair", leave=False):
         pair = simulated.pair
@@ -100,8 +113,27 @@ def collect_rows(spec: str, config: CalibrationConfig, cache_dir: Path, workspac
         rows.features.append([estimate.features[name] for name in FEATURES])
         rows.right.append(bool(errors["translation_mm"] < RIGHT_MM and errors["rotation_deg"] < RIGHT_DEG))
         rows.confidence.append(float(estimate.confidence))
+        rows.hypotheses.append(hypothesis_rows(model, estimate, pair.T_world_mesh_true))
     write_json_atomic(cache, asdict(rows))
     return rows
+
+
+def hypothesis_rows(model: ObjectModel, estimate: PoseEstimate, T_world_mesh_true: np.ndarray) -> list[list[float]]:
+    """Per reported hypothesis: probability, log-likelihood, translation (mm) and rotation (deg, modulo symmetry)
+    from the first, and whether it is right (1.0) or not (0.0)."""
+    poses = estimate.hypotheses.T_world_object
+    translation, rotation = pose_distances(poses, poses[0], model.symmetry)
+    truth_translation, truth_rotation = pose_distances(poses, T_world_mesh_true @ model.T_mesh_object, model.symmetry)
+    right = (1000.0 * truth_translation < RIGHT_MM) & (np.degrees(truth_rotation) < RIGHT_DEG)
+    return np.column_stack(
+        [
+            estimate.hypotheses.probability,
+            estimate.hypotheses.log_likelihood,
+            1000.0 * translation,
+            np.degrees(rotation),
+            right.astype(np.float64),
+        ]
+    ).tolist()
 
 
 def roc_auc(score: np.ndarray, positive: np.ndarray) -> float:
