@@ -121,19 +121,25 @@ class _Decoys:
 
 def test_joint_search_recovers_what_the_localizers_missed(builtin_models, tmp_path, rng):
     """Both localizer candidates are wrong: the paper's stage solves the wrong pair; the joint two-contact search
-    finds the surface locations whose geometry fits the pair and verifies them with the clouds."""
+    finds the surface locations whose geometry fits the pair and verifies them with the clouds. Of four pairs one
+    (the first) leaves a family of poses that explain both contacts equally well (40 hypotheses of equal
+    probability, the first 70-100 deg off whatever the seeds' score): the search must get the other three."""
     model = builtin_models["figurine"]
-    pair = read_contact_pair(write_foreign_pairs(model, tmp_path, rng, 1)[0])
     decoys = [model.points_object[i].astype(float) for i in (0, 20000, 5000, 30000)]
-    found = estimate_pose(pair, model, _Decoys(decoys[:2]), PoseConfig(search="always"))
-    paper = estimate_pose(pair, model, _Decoys(decoys[2:]), PAPER)
-    assert found.searched
-    assert pose_errors(found.T_world_mesh, pair.T_world_mesh_true, model)["translation_mm"] < 2.0
-    assert pose_errors(paper.T_world_mesh, pair.T_world_mesh_true, model)["translation_mm"] > 10.0
-    # The first hypothesis is the pose; probabilities are a distribution over the hypotheses found.
-    assert np.allclose(found.hypotheses.T_world_object[0], found.T_world_object)
-    assert found.hypotheses.probability.sum() <= 1.0 + TOL["float"]
-    assert np.all(np.diff(found.hypotheses.probability) <= 0)
+    right = 0
+    for path in write_foreign_pairs(model, tmp_path, rng, 4):
+        pair = read_contact_pair(path)
+        found = estimate_pose(pair, model, _Decoys(decoys[:2]), PoseConfig(search="always", suggest_next_touch=False))
+        paper = estimate_pose(pair, model, _Decoys(decoys[2:]), PAPER)
+        assert found.searched
+        errors = pose_errors(found.T_world_mesh, pair.T_world_mesh_true, model)
+        right += errors["translation_mm"] < 2.0 and errors["rotation_deg"] < 3.0
+        assert pose_errors(paper.T_world_mesh, pair.T_world_mesh_true, model)["translation_mm"] > 10.0
+        # The first hypothesis is the pose; probabilities are a distribution over the hypotheses found.
+        assert np.allclose(found.hypotheses.T_world_object[0], found.T_world_object)
+        assert found.hypotheses.probability.sum() <= 1.0 + TOL["float"]
+        assert np.all(np.diff(found.hypotheses.probability) <= 0)
+    assert right >= 3
 
 
 def _miscalibrated(pair, rng, translation_m=0.001, rotation_rad=np.radians(1.0)):
