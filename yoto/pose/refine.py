@@ -55,8 +55,12 @@ class RefineConfig:
     """How hypotheses are verified and refined."""
 
     points_per_contact: int = 120  # tactile points used per contact (after down-sampling to the model spacing)
-    verify_points: int = 10  # of these, the points used to score unrefined seeds
-    seed_tilt_rad: float = float(np.radians(4.0))  # how far an unrefined seed's normals may be off (sampling)
+    verify_points: int = 10  # of these, the points used to score unrefined seeds ...
+    verify_free_points: int = 12  # ... with this many of each contact's free-space points (0: none), ...
+    verify_free_noise_m: float = 5e-5  # ... an RMS depth of the object inside them costing what a cloud's spread
+    # of this does (the hypotheses' free-space weight: 0.1 mm over 4 effectively independent points)
+    seed_tilt_rad: float = float(np.radians(4.0))  # how far an unrefined seed's normals may be off (sampling) ...
+    seed_offset_m: float = 0.002  # ... and its clouds off the surface (sampling, key tolerance), besides calibration
     screen_points: int = 24  # of these, the points used by the short refinement that screens many seeds
     screen_iterations: int = 3  # iterations of that short refinement
     screen_free_points: int = 48  # free-space points per contact that score that short refinement
@@ -224,26 +228,39 @@ def evaluate_offsets(
 
     Each cloud may sit off the surface by an offset along the normal and a small tilt (what a sensor's calibration
     error, and a seed's own error, do to it): a plane a + b x + c y (sensor x, y) is fitted to its points' signed
-    distances; what remains is the shape's disagreement, and the offset and tilt are penalised by the calibration
-    prior and `seed_tilt_rad`. Uses `verify_points` points per contact.
+    distances; what remains is the shape's disagreement (truncated at `fit_tau_m`; a point beyond the capture
+    range `max_distance_m` touches nothing and counts as truncated: the field is clamped there, and a cloud that
+    floats clear of the surface would otherwise read as one lying flat at an offset), and the offset and tilt are
+    penalised by the calibration prior and the seed's own `seed_offset_m`, `seed_tilt_rad`. Free space: the
+    contact's free-space points, moved by the cloud's offset, may not lie inside the object (a seed that slides a
+    contact along a face, away from the edge the pad saw, puts the object where the pad felt nothing). Uses
+    `verify_points` points and `verify_free_points` free-space points per contact.
     """
     T_object_world = invert_transform(np.asarray(T_world_object, dtype=np.float64).reshape(-1, 4, 4))
-    offset_std = max(prior.translation_m, 1e-5) / _MEAN_NORM_3D
+    offset_std = np.hypot(max(prior.translation_m, 1e-5) / _MEAN_NORM_3D, config.seed_offset_m)
     tilt_std = np.hypot(max(prior.rotation_rad, 1e-4) * _ANGLE_TO_AXIS_STD, config.seed_tilt_rad)
     score = np.zeros(len(T_object_world))
-    for contact in thinned(contacts, config.verify_points):
+    for contact in thinned(contacts, config.verify_points, config.verify_free_points):
         points = contact.points_sensor
-        q = transform_batch(T_object_world @ contact.T_world_sensor, points)
+        free = contact.free_sensor if config.verify_free_points else contact.free_sensor[:0]
+        q = transform_batch(T_object_world @ contact.T_world_sensor, np.vstack([points, free]))
         distance, _ = field.distance(q, with_gradient=False)
+        distance, free_distance = distance[:, : len(points)], distance[:, len(points) :]
         centred = points[:, :2] - points[:, :2].mean(axis=0)
         design = np.column_stack([np.ones(len(points)), centred])
         plane = distance @ np.linalg.pinv(design).T  # (K, 3): offset, tilt x, tilt y
-        spread = np.sqrt(np.mean(np.minimum(np.abs(distance - plane @ design.T), config.fit_tau_m) ** 2, axis=1))
+        residual = np.minimum(np.abs(distance - plane @ design.T), config.fit_tau_m)
+        residual[np.abs(distance) >= config.max_distance_m] = config.fit_tau_m
+        spread = np.sqrt(np.mean(residual**2, axis=1))
         score -= 0.5 * (
             (spread / config.surface_noise_m) ** 2
             + (plane[:, 0] / offset_std) ** 2
             + np.sum(plane[:, 1:] ** 2, axis=1) / tilt_std**2
         )
+        if free_distance.shape[1]:  # the free space moved with the cloud's offset (a tilt fitted over the small
+            # contact is not trusted across the pad)
+            depth = np.clip(plane[:, :1] - free_distance, 0.0, config.free_tau_m)
+            score -= 0.5 * np.mean(depth**2, axis=1) / config.verify_free_noise_m**2
     return score
 
 
