@@ -243,17 +243,17 @@ def test_refined_log_likelihood_tells_the_truth_from_a_wrong_pose(builtin_models
     assert np.all(np.array(away) < np.array(truth) - 100.0)
 
 
-def test_seed_score_counts_clouds_that_touch_nothing_as_the_worst_fit(builtin_models, tmp_path, rng):
+def test_strict_seed_score_counts_clouds_that_touch_nothing_as_the_worst_fit(builtin_models, tmp_path, rng):
     """The cheap score of unrefined seeds: a seed that puts both clouds beyond the capture range, touching nothing,
     scores as badly as clouds whose every point is off by the truncation (a distance field clamped far from the
     surface reads as a cloud lying flat at an offset, which once outranked seeds near the truth that touched the
     surface imperfectly), and far below the truth."""
     from yoto.pose.field import surface_field
-    from yoto.pose.refine import CalibrationPrior, RefineConfig, contact_points, evaluate_offsets
+    from yoto.pose.refine import STRICT_SEED_SCORE, CalibrationPrior, contact_points, evaluate_offsets
 
     model = builtin_models["figurine"]
     field = surface_field(model)
-    config = RefineConfig()
+    config = STRICT_SEED_SCORE
     worst = -0.5 * 2 * (config.fit_tau_m / config.surface_noise_m) ** 2  # both contacts fully truncated
     for path in write_foreign_pairs(model, tmp_path, rng, 3):
         pair = read_contact_pair(path)
@@ -271,7 +271,7 @@ def test_seed_score_counts_clouds_that_touch_nothing_as_the_worst_fit(builtin_mo
         assert truth > worst / 2
 
 
-def test_seed_score_sees_free_space_beside_an_edge():
+def test_strict_seed_score_sees_free_space_beside_an_edge():
     """A contact 3 mm from a box's edge, the other mid-face: sliding the box so that the first contact lies further
     from the edge keeps both clouds on the faces (the clouds alone cannot tell), but puts the object where the pad
     felt nothing; the cheap score's free-space points rank the slid seeds below the truth."""
@@ -279,14 +279,14 @@ def test_seed_score_sees_free_space_beside_an_edge():
 
     from yoto.objects.model import ObjectModelConfig, build_object_model
     from yoto.pose.field import surface_field
-    from yoto.pose.refine import CalibrationPrior, RefineConfig, contact_points, evaluate_offsets
+    from yoto.pose.refine import STRICT_SEED_SCORE, CalibrationPrior, contact_points, evaluate_offsets
 
     model = build_object_model(
         trimesh.creation.box(extents=[0.08, 0.06, 0.04]), "box", ObjectModelConfig(num_points=40_000)
     )
     surface = model.mesh_object.sample(200_000, seed=np.random.default_rng(0))
     low, high = surface.min(axis=0), surface.max(axis=0)
-    config = RefineConfig()
+    config = STRICT_SEED_SCORE
     contacts = []
     for sensor, (p, n) in enumerate((([high[0], high[1] - 0.003, 0.0], [1.0, 0, 0]), ([low[0], 0, 0], [-1.0, 0, 0]))):
         points, T_world_sensor = foreign_tactile_cloud(surface, np.array(n), np.array(p), 0.0, 0.001)

@@ -56,11 +56,12 @@ class RefineConfig:
 
     points_per_contact: int = 120  # tactile points used per contact (after down-sampling to the model spacing)
     verify_points: int = 10  # of these, the points used to score unrefined seeds ...
-    verify_free_points: int = 12  # ... with this many of each contact's free-space points (0: none), ...
+    verify_free_points: int = 0  # ... with this many of each contact's free-space points (0: none; 12 measured) ...
     verify_free_noise_m: float = 5e-5  # ... an RMS depth of the object inside them costing what a cloud's spread
     # of this does (the hypotheses' free-space weight: 0.1 mm over 4 effectively independent points)
+    verify_capture_truncated: bool = False  # points beyond the capture range count as truncated in that score
     seed_tilt_rad: float = float(np.radians(4.0))  # how far an unrefined seed's normals may be off (sampling) ...
-    seed_offset_m: float = 0.002  # ... and its clouds off the surface (sampling, key tolerance), besides calibration
+    seed_offset_m: float = 0.0  # ... and its clouds off the surface (sampling, key tolerance; 2 mm measured)
     screen_points: int = 24  # of these, the points used by the short refinement that screens many seeds
     screen_iterations: int = 3  # iterations of that short refinement
     screen_free_points: int = 48  # free-space points per contact that score that short refinement
@@ -78,6 +79,12 @@ class RefineConfig:
     free_tau_m: float = 0.001  # a free-space point inside the object counts at most this deep
     step_tolerance: float = 1e-5  # stop when every update is below this (radians and metres)
     seed: int = 0  # which tactile points are used
+
+
+# The seeds' cheap score with floating clouds truncated, a seed's own offset allowed and free space checked
+# (docs/pose.md: truth among 95 -> 96%, right 88 -> 89%, but confident 77 -> 74% at the shipped confidence fit and
+# +12 ms CPU per searched pair): not default until the confidence is refitted on the features it moves.
+STRICT_SEED_SCORE = RefineConfig(verify_capture_truncated=True, seed_offset_m=0.002, verify_free_points=12)
 
 
 @dataclass
@@ -228,13 +235,13 @@ def evaluate_offsets(
 
     Each cloud may sit off the surface by an offset along the normal and a small tilt (what a sensor's calibration
     error, and a seed's own error, do to it): a plane a + b x + c y (sensor x, y) is fitted to its points' signed
-    distances; what remains is the shape's disagreement (truncated at `fit_tau_m`; a point beyond the capture
-    range `max_distance_m` touches nothing and counts as truncated: the field is clamped there, and a cloud that
-    floats clear of the surface would otherwise read as one lying flat at an offset), and the offset and tilt are
-    penalised by the calibration prior and the seed's own `seed_offset_m`, `seed_tilt_rad`. Free space: the
-    contact's free-space points, moved by the cloud's offset, may not lie inside the object (a seed that slides a
-    contact along a face, away from the edge the pad saw, puts the object where the pad felt nothing). Uses
-    `verify_points` points and `verify_free_points` free-space points per contact.
+    distances; what remains is the shape's disagreement (truncated at `fit_tau_m`; with `verify_capture_truncated`
+    a point beyond the capture range `max_distance_m` touches nothing and counts as truncated: the field is
+    clamped there, and a cloud that floats clear of the surface reads as one lying flat at an offset), and the
+    offset and tilt are penalised by the calibration prior and the seed's own `seed_offset_m`, `seed_tilt_rad`.
+    Free space: the contact's free-space points, moved by the cloud's offset, may not lie inside the object (a seed
+    that slides a contact along a face, away from the edge the pad saw, puts the object where the pad felt
+    nothing). Uses `verify_points` points and `verify_free_points` free-space points per contact.
     """
     T_object_world = invert_transform(np.asarray(T_world_object, dtype=np.float64).reshape(-1, 4, 4))
     offset_std = np.hypot(max(prior.translation_m, 1e-5) / _MEAN_NORM_3D, config.seed_offset_m)
@@ -250,7 +257,8 @@ def evaluate_offsets(
         design = np.column_stack([np.ones(len(points)), centred])
         plane = distance @ np.linalg.pinv(design).T  # (K, 3): offset, tilt x, tilt y
         residual = np.minimum(np.abs(distance - plane @ design.T), config.fit_tau_m)
-        residual[np.abs(distance) >= config.max_distance_m] = config.fit_tau_m
+        if config.verify_capture_truncated:
+            residual[np.abs(distance) >= config.max_distance_m] = config.fit_tau_m
         spread = np.sqrt(np.mean(residual**2, axis=1))
         score -= 0.5 * (
             (spread / config.surface_noise_m) ** 2
