@@ -218,7 +218,9 @@ def test_too_small_clouds_raise_clear_errors(builtin_models):
     tiny[:, 2] -= 0.0002
     with pytest.raises(DegenerateGeometryError, match="fewer than|ICP needs at least"):
         localizer.localize(tiny, model)
-    with pytest.raises(InputError, match="NaN"):
+    with pytest.raises(InputError, match="NaN"):  # one coordinate missing: not an organised cloud's empty pixel
+        localizer.localize(np.where(np.arange(3) == 2, np.nan, np.zeros((100, 3))), model)
+    with pytest.raises(InputError, match="only 0 points"):  # all empty pixels: nothing left to localize
         localizer.localize(np.full((100, 3), np.nan), model)
     with pytest.raises(InputError, match="estimation"):
         IcpConfig(estimation="point_to_point")
