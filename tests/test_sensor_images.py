@@ -266,8 +266,12 @@ def test_pose_reads_pair_files_whose_sides_are_images(image_pair, builtin_models
     assert main(args) == 1
     assert "a GelSight image needs the sensor's calibration: give one (`--calibration CAL`" in capsys.readouterr().out
     assert main([*args, "--calibration", str(image_pair["calibration"])]) == 0
-    error = json.loads(path.with_suffix(".pose.json").read_text())["error"]
+    result = json.loads(path.with_suffix(".pose.json").read_text())
+    error = result["error"]
     assert error["translation_mm"] < 2.0 and error["rotation_deg"] < 2.0, error
+    # Each reconstructed cloud's depth scale was estimated with the pose (a clean cloud's stays exactly 1).
+    scales = [result[side]["depth_scale"] for side in ("left", "right")]
+    assert all(0.8 < scale < 1.25 and scale != 1.0 for scale in scales), scales
     # A side naming its own calibration (relative to the pair file) needs no --calibration.
     payload = read_json(path)
     for side in ("left", "right"):

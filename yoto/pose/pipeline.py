@@ -153,6 +153,7 @@ class PoseEstimate:
                 "probability": float(contact.probability),
                 "p_world_measured": self.world[side].p_world.tolist(),
                 "surface_rms_mm": 1000.0 * float(self.fit_rms_m[s]),
+                "depth_scale": float(self.depth_scale[s]),  # the factor its heights were read by (1: as given)
                 "sensor_correction": None
                 if self.corrections is None
                 else {
