@@ -30,3 +30,21 @@ def test_oracle_benchmark_reports_both_localizations_and_resumes(tmp_path):
 
     again = run_benchmark(["fruit"], methods, config, out, workspace=tmp_path / "ws")
     assert again["all"]["Oracle"]["localization_chosen_mm"] == oracle["localization_chosen_mm"]
+
+    # Cached results are reused by the code that made them and by no other: a result cached by another commit is
+    # computed again, and its file rewritten with this code's stamp.
+    from yoto import provenance
+    from yoto.evaluation import bench
+
+    (cached,) = (out / "partial").glob("fruit__Oracle__*.json")
+    stored = json.loads(cached.read_text())
+    assert stored["fingerprint"]["code"] == {"yoto": bench.__version__, "commit": provenance.git_commit()}
+    stored["results"][0]["translation_mm"] = [123.0, 123.0, 123.0]  # not what this code finds
+    cached.write_text(json.dumps(stored))
+    reused = run_benchmark(["fruit"], methods, config, out, workspace=tmp_path / "ws")
+    assert reused["all"]["Oracle"]["translation_mm"]["median"] == 123.0
+    stored["fingerprint"]["code"]["commit"] = "0000000"  # as an older YOTO would have cached it
+    cached.write_text(json.dumps(stored))
+    fresh = run_benchmark(["fruit"], methods, config, out, workspace=tmp_path / "ws")
+    assert fresh["all"]["Oracle"]["translation_mm"] == oracle["translation_mm"]
+    assert json.loads(cached.read_text())["fingerprint"]["code"]["commit"] == provenance.git_commit()
