@@ -20,7 +20,7 @@ from yoto.geometry import (
     transform_points,
 )
 from yoto.metrics import pose_errors
-from yoto.pose.pipeline import PAPER, PoseConfig, estimate_pose
+from yoto.pose.pipeline import PAPER, PoseConfig, _pair_clouds, estimate_pose
 
 
 def foreign_tactile_cloud(
@@ -159,7 +159,7 @@ def test_refinement_with_sensor_corrections(builtin_models, tmp_path, rng):
     fit of both clouds (a calibration prior of almost zero)."""
     from yoto.geometry import random_perturbation, rotation_angle_rad
     from yoto.pose.field import surface_field
-    from yoto.pose.refine import CalibrationPrior, RefineConfig, contact_points, evaluate_fit, refine_hypotheses
+    from yoto.pose.refine import CalibrationPrior, RefineConfig, evaluate_fit, refine_hypotheses
 
     model = builtin_models["figurine"]
     field = surface_field(model)
@@ -169,12 +169,7 @@ def test_refinement_with_sensor_corrections(builtin_models, tmp_path, rng):
         pair = read_contact_pair(path)
         _miscalibrated(pair, rng)
         T_true = pair.T_world_mesh_true @ model.T_mesh_object
-        contacts = [
-            contact_points(
-                pair.contact(s).points_sensor, pair.contact(s).T_world_sensor, i, model.point_spacing_m, config
-            )
-            for i, s in enumerate(("left", "right"))
-        ]
+        contacts = _pair_clouds(pair, model, PoseConfig(refine_config=config))
         starts = np.array([T_true @ random_perturbation(rng, 0.0015, np.radians(1.5)) for _ in range(3)])
         for prior, store in ((CalibrationPrior(), joint), (CalibrationPrior(1e-6, 1e-6), rigid)):
             refined = refine_hypotheses(field, contacts, starts, prior, config)
@@ -249,7 +244,7 @@ def test_strict_seed_score_counts_clouds_that_touch_nothing_as_the_worst_fit(bui
     surface reads as a cloud lying flat at an offset, which once outranked seeds near the truth that touched the
     surface imperfectly), and far below the truth."""
     from yoto.pose.field import surface_field
-    from yoto.pose.refine import STRICT_SEED_SCORE, CalibrationPrior, contact_points, evaluate_offsets
+    from yoto.pose.refine import STRICT_SEED_SCORE, CalibrationPrior, evaluate_offsets
 
     model = builtin_models["figurine"]
     field = surface_field(model)
@@ -259,12 +254,7 @@ def test_strict_seed_score_counts_clouds_that_touch_nothing_as_the_worst_fit(bui
         pair = read_contact_pair(path)
         _miscalibrated(pair, rng)
         T_true = pair.T_world_mesh_true @ model.T_mesh_object
-        contacts = [
-            contact_points(
-                pair.contact(s).points_sensor, pair.contact(s).T_world_sensor, i, model.point_spacing_m, config
-            )
-            for i, s in enumerate(("left", "right"))
-        ]
+        contacts = _pair_clouds(pair, model, PoseConfig(refine_config=config))
         seeds = np.array([T_true, T_true @ make_transform(np.eye(3), [0.3, 0.0, 0.0])])
         truth, away = evaluate_offsets(field, contacts, seeds, CalibrationPrior(), config)
         assert away <= worst

@@ -171,10 +171,12 @@ class Refined:
 
 def thinned(contacts: list[ContactPoints], count: int, free_count: int | None = None) -> list[ContactPoints]:
     """The contacts with at most `count` points each, and at most `free_count` free-space points (None: all; an
-    even stride through them)."""
+    even stride through them; 0: none)."""
 
     def stride(points: np.ndarray, most: int | None) -> np.ndarray:
-        return points if most is None else points[:: max(1, -(-len(points) // max(most, 1)))]
+        if most is None:
+            return points
+        return points[:: max(1, -(-len(points) // most))] if most > 0 else points[:0]
 
     return [
         ContactPoints(
@@ -249,8 +251,7 @@ def evaluate_offsets(
     score = np.zeros(len(T_object_world))
     for contact in thinned(contacts, config.verify_points, config.verify_free_points):
         points = contact.points_sensor
-        free = contact.free_sensor if config.verify_free_points else contact.free_sensor[:0]
-        q = transform_batch(T_object_world @ contact.T_world_sensor, np.vstack([points, free]))
+        q = transform_batch(T_object_world @ contact.T_world_sensor, np.vstack([points, contact.free_sensor]))
         distance, _ = field.distance(q, with_gradient=False)
         distance, free_distance = distance[:, : len(points)], distance[:, len(points) :]
         centred = points[:, :2] - points[:, :2].mean(axis=0)
