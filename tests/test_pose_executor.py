@@ -11,7 +11,7 @@ from yoto.geometry import se3_exp
 from yoto.localize import make_localizer
 from yoto.localize.helper import LocalizerProcess
 from yoto.pose import pipeline
-from yoto.pose.executor import SplitConfig, SplitExecutor, prepare_pose_helper
+from yoto.pose.executor import SplitConfig, SplitExecutor, _remote_half, prepare_pose_helper
 from yoto.pose.field import FieldConfig, surface_field
 from yoto.pose.pipeline import PoseConfig, _pair_clouds, localize_contacts, pose_from_candidates
 from yoto.pose.refine import evaluate_offsets, refine_hypotheses
@@ -47,7 +47,12 @@ def test_the_split_pose_stage_gives_one_process_s_estimate_bitwise(builtin_model
     model = builtin_models["fruit"]
     calls = []
     call = LocalizerProcess.call
-    monkeypatch.setattr(LocalizerProcess, "call", lambda self, *a: calls.append(a[0].__name__) or call(self, *a))
+
+    def recorded(self, function, model, *arguments):  # what the helper computes: a half batch's function, by name
+        calls.append((arguments[1] if function is _remote_half else function).__name__)
+        return call(self, function, model, *arguments)
+
+    monkeypatch.setattr(LocalizerProcess, "call", recorded)
     monkeypatch.setattr(pipeline, "SplitExecutor", AlwaysSplit)  # however busy the machine running the test
     prepare_pose_helper(helper, model, COARSE).result()
     localizer = make_localizer("match")
@@ -59,7 +64,7 @@ def test_the_split_pose_stage_gives_one_process_s_estimate_bitwise(builtin_model
         one = pose_from_candidates(pair, model, candidates, world, config, "match")
         assert not calls
         two = pose_from_candidates(pair, model, candidates, world, config, "match", helper=helper)
-        assert calls.count("_remote_refine") >= 5 and calls.count("_remote_offsets") >= 1
+        assert calls.count("_counted_refine") >= 5 and calls.count("evaluate_offsets") >= 1
         _bitwise_equal(one.hypotheses, two.hypotheses)
         assert one.T_world_object.tobytes() == two.T_world_object.tobytes()
         assert one.hypothesis_corrections.tobytes() == two.hypothesis_corrections.tobytes()

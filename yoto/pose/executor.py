@@ -23,6 +23,7 @@ helper (`LOCAL`) everything runs in the calling process, as it always did.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -113,14 +114,7 @@ class SplitExecutor(LocalExecutor):
         cut = self._cut(len(T_world_object), self.config.min_scored)
         if cut is None:
             return evaluate_offsets(field, contacts, T_world_object, prior, config)
-        remote = self.helper.call(
-            _remote_offsets, self.model, self.field_config, contacts, T_world_object[cut:], prior, config
-        )
-        tick, start = time.process_time(), time.perf_counter()
-        here = evaluate_offsets(field, contacts, T_world_object[:cut], prior, config)
-        done = time.perf_counter()
-        there, helper_cpu_ms = remote.result()
-        self._account(tick, helper_cpu_ms, start, done)
+        here, there = self._halves(evaluate_offsets, cut, field, contacts, T_world_object, prior, config)
         return np.concatenate([here, there])
 
     def refine(
@@ -134,25 +128,38 @@ class SplitExecutor(LocalExecutor):
         cut = self._cut(len(T_world_object), self.config.min_poses)
         if cut is None:
             return refine_hypotheses(field, contacts, T_world_object, prior, config)
-        remote = self.helper.call(
-            _remote_refine, self.model, self.field_config, contacts, T_world_object[cut:], prior, config
+        (here, iterations), (there, iterations_there) = self._halves(
+            _counted_refine, cut, field, contacts, T_world_object, prior, config
         )
-        tick, start = time.process_time(), time.perf_counter()
-        here, iterations = _counted_refine(field, contacts, T_world_object[:cut], prior, config)
-        done = time.perf_counter()
-        (there, iterations_there), helper_cpu_ms = remote.result()
-        self._account(tick, helper_cpu_ms, start, done)
         self.split += 1
         if iterations != iterations_there:  # the whole batch would have iterated on past the half that stopped first
             self.redone += 1
             return refine_hypotheses(field, contacts, T_world_object, prior, config)
         return joined(here, there)
 
-    def _account(self, tick: float, helper_cpu_ms: float, start: float, done: float) -> None:
-        """Record a split: the helper's CPU time beyond this process's (`tick`: its CPU clock when its half began),
-        and whether this process then waited long for the helper (`start`, `done`: its wall clock around its half)."""
+    def _halves(
+        self,
+        local: Callable[..., Any],
+        cut: int,
+        field: SurfaceField,
+        contacts: list[ContactPoints],
+        T_world_object: np.ndarray,
+        prior: CalibrationPrior,
+        config: RefineConfig,
+    ) -> tuple[Any, Any]:
+        """`local` (a module-level function of the field and these arguments) on the poses before `cut` here, and
+        on the rest in the helper meanwhile; both results. Records the helper's CPU time beyond this process's, and
+        whether this process then waited long for the helper (no free core)."""
+        pending = self.helper.call(
+            _remote_half, self.model, self.field_config, local, contacts, T_world_object[cut:], prior, config
+        )
+        tick, start = time.process_time(), time.perf_counter()
+        here = local(field, contacts, T_world_object[:cut], prior, config)
+        done = time.perf_counter()
+        there, helper_cpu_ms = pending.result()
         self.helper_extra_cpu_ms += max(0.0, helper_cpu_ms - 1000.0 * (time.process_time() - tick))
         self.slow += time.perf_counter() - done > self.config.max_wait_share * (done - start)
+        return here, there
 
 
 def joined(first: Refined, second: Refined) -> Refined:
@@ -197,17 +204,12 @@ def _remote_field(model: ObjectModel, field_config: FieldConfig) -> None:
     surface_field(model, field_config)
 
 
-def _remote_offsets(model: ObjectModel, field_config: FieldConfig, *arguments: Any) -> tuple[np.ndarray, float]:
-    """The helper's half of `evaluate_offsets`, and its CPU time (ms)."""
+def _remote_half(
+    model: ObjectModel, field_config: FieldConfig, local: Callable[..., Any], *arguments: Any
+) -> tuple[Any, float]:
+    """The helper's half of a batch: `local` (`evaluate_offsets`, `_counted_refine`) with the helper's field, and
+    its CPU time (ms)."""
     tick = time.process_time()
     with one_blas_thread():  # as the calling process's pose stage (sums in one order)
-        scores = evaluate_offsets(surface_field(model, field_config), *arguments)
-    return scores, 1000.0 * (time.process_time() - tick)
-
-
-def _remote_refine(model: ObjectModel, field_config: FieldConfig, *arguments: Any) -> tuple[tuple[Refined, int], float]:
-    """The helper's half of `refine_hypotheses` with its iteration count (`_counted_refine`), and its CPU time."""
-    tick = time.process_time()
-    with one_blas_thread():
-        refined = _counted_refine(surface_field(model, field_config), *arguments)
-    return refined, 1000.0 * (time.process_time() - tick)
+        result = local(surface_field(model, field_config), *arguments)
+    return result, 1000.0 * (time.process_time() - tick)
