@@ -44,6 +44,7 @@ class MatchLocalizer:
         self.config = config
 
     def prepare_object(self, model: ObjectModel) -> AnchorMaps:
+        parent_surface(model)  # the candidate ICP's k-d tree (tens of milliseconds), built ahead too
         return anchor_maps(model, self.config.anchors)
 
     def image(self, points_sensor: np.ndarray, model: ObjectModel) -> ContactImage:
