@@ -2,9 +2,9 @@
 
 A contact's Gauss-Newton passes and residual fits ask about 9,300 times for the parent point nearest a tactile
 point (within a reach): about a quarter of its CPU time. pykdtree answers the same question as SciPy's
-`cKDTree` with the same point (it is exact too: every candidate of the 60 latency-benchmark contacts bitwise
-equal) in less time: 1.0 ms less per contact (mean of paired differences, docs/localization.md). Without it the
-model's own `cKDTree` answers, with the same results.
+`cKDTree` with the same point (it is exact too: the candidates of 180 benchmark contacts are bitwise equal) in
+less time: about 1.1 ms less CPU per contact (docs/localization.md). Without it the model's own `cKDTree`
+answers, with the same results.
 
 pykdtree splits a query over OpenMP threads; the matched filter runs on one core (the other belongs to the pair's
 second contact, `yoto.localize.helper`), and OpenMP threads that wait for a busy core spin: on a loaded 2-core
@@ -35,7 +35,7 @@ except ImportError:  # the `fast` extra is not installed: the model's cKDTree an
 
 @dataclass(frozen=True)
 class ParentSurface:
-    """A model's parent cloud as `yoto.registration.SurfaceCloud`, its nearest-point lookups on pykdtree."""
+    """A model's parent cloud as `yoto.registration.SurfaceCloud`, its lookups on pykdtree where installed."""
 
     points_object: np.ndarray  # (N, 3) the model's parent points
     normals_object: np.ndarray  # (N, 3) their outward unit normals
