@@ -368,3 +368,71 @@ def test_the_candidate_icp_goes_on_with_the_starts_that_fit_best(fruit_contacts)
     assert np.abs(full[far] - one_step[far]).max() > 1e-5  # the later iterations move the far starts
     assert np.abs(pruned[near] - full[near]).max() < TOL["float"]
     assert np.abs(pruned[far] - one_step[far]).max() < TOL["float"]
+
+
+def test_the_candidate_icp_lookups_answer_as_the_models_kd_tree(fruit_contacts, monkeypatch):
+    """The candidate ICP's parent surface (pykdtree where installed) finds the same nearest points as the model's
+    cKDTree, near the surface and beyond the reach, and the localizer's candidates are bitwise the same with either."""
+    pytest.importorskip("pykdtree")
+    import yoto.localize.match.localizer as match_localizer
+    from yoto.localize.match.lookup import ParentSurface, one_openmp_thread, parent_surface
+
+    model, contacts = fruit_contacts
+    surface = parent_surface(model)
+    assert parent_surface(model) is surface and surface.kdtree is not model.kdtree  # cached, and pykdtree's
+    rng = np.random.default_rng(3)
+    # Points up to 3 mm off the surface along the normal, some beyond the 2 mm reach: found or not, as the cKDTree.
+    index = rng.choice(len(model.points_object), 2000, replace=False)
+    offsets = rng.uniform(-0.003, 0.003, (2000, 1)) * model.normals_object[index] + rng.normal(0, 2e-4, (2000, 3))
+    points = model.points_object[index].astype(np.float64) + offsets
+    with one_openmp_thread():
+        gaps, found_index = surface.kdtree.query(points, distance_upper_bound=0.002)
+    expected_gaps, expected_index = model.kdtree.query(points, distance_upper_bound=0.002)
+    found = np.isfinite(expected_gaps)
+    assert 0 < found.sum() < len(points)
+    assert np.array_equal(np.isfinite(gaps), found) and np.array_equal(found_index[found], expected_index[found])
+    assert np.allclose(gaps[found], expected_gaps[found], rtol=0, atol=TOL["float_round_trip"])
+
+    localizer = MatchLocalizer()
+    points_sensor = contacts[0][0]
+    fast = localizer.localize(points_sensor, model)
+    monkeypatch.setattr(
+        match_localizer, "parent_surface", lambda m: ParentSurface(m.points_object, m.normals_object, m.kdtree)
+    )
+    slow = localizer.localize(points_sensor, model)
+    assert len(fast) == len(slow)
+    for a, b in zip(fast, slow, strict=True):
+        assert np.array_equal(a.p_object, b.p_object) and a.probability == b.probability and a.details == b.details
+
+
+def test_the_contact_centre_measures_only_the_patch_around_the_point_nearest_the_centroid(rng):
+    """contact_in_sensor measures distances from the point nearest the centroid only for the points that can lie
+    within the fit radius of it: the same answer, bit for bit, as measuring every point, on a dome, on a ring whose
+    nearest point lies far from its centroid, and on a cloud too sparse for the radius (the nearest points then)."""
+    from yoto.contacts import LOCAL_FIT_MIN_POINTS, LOCAL_FIT_RADIUS_M, _contact_in_sensor
+    from yoto.pointcloud import covariance_eigh
+
+    def every_point(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        centroid = np.array([points[:, axis].mean() for axis in range(3)])
+        offsets = points - centroid
+        from_centroid = np.einsum("ij,ij->i", offsets, offsets)
+        from_nearest = points - points[np.argmin(from_centroid)]
+        squared = np.einsum("ij,ij->i", from_nearest, from_nearest)
+        neighbours = np.flatnonzero(squared <= LOCAL_FIT_RADIUS_M**2)
+        if len(neighbours) < LOCAL_FIT_MIN_POINTS:
+            neighbours = np.argsort(squared)[:LOCAL_FIT_MIN_POINTS]
+        normal = covariance_eigh(points[neighbours])[2][:, 0]
+        normal = normal if normal[2] <= 0 else -normal
+        along = offsets @ normal
+        closest = np.argpartition(from_centroid - along * along, 8)[:8]
+        return centroid + along[closest].mean() * normal, normal
+
+    xy = rng.uniform(-0.008, 0.008, (20000, 2))
+    dome = np.column_stack([xy, -0.001 + 10.0 * (xy**2).sum(axis=1)])
+    radius = np.hypot(xy[:, 0], xy[:, 1])
+    ring = dome[(radius > 0.004) & (radius < 0.007)]
+    sparse = dome[:60]
+    for points in (dome, ring, sparse):
+        centre, normal = _contact_in_sensor(points)
+        expected_centre, expected_normal = every_point(points)
+        assert np.array_equal(centre, expected_centre) and np.array_equal(normal, expected_normal)

@@ -154,12 +154,18 @@ def _contact_in_sensor(points_sensor: np.ndarray) -> tuple[np.ndarray, np.ndarra
     offsets = points_sensor - centroid
     # Plain distances beat building a KD-tree for one query on a dense (~20k-point) tactile cloud.
     from_centroid = np.einsum("ij,ij->i", offsets, offsets)
-    nearest = points_sensor[np.argmin(from_centroid)]
-    from_nearest = points_sensor - nearest
+    closest = np.argmin(from_centroid)
+    nearest = points_sensor[closest]
+    # The patch lies within the fit radius of the point nearest the centroid, so within that point's distance from
+    # the centroid plus the radius (squared, with a margin for rounding): only those points are measured.
+    reach = (np.sqrt(from_centroid[closest]) + LOCAL_FIT_RADIUS_M) ** 2 * (1.0 + 1e-9) + 1e-18
+    near = np.flatnonzero(from_centroid <= reach)
+    from_nearest = points_sensor[near] - nearest
     squared = np.einsum("ij,ij->i", from_nearest, from_nearest)
-    neighbours = np.flatnonzero(squared <= LOCAL_FIT_RADIUS_M**2)
+    neighbours = near[squared <= LOCAL_FIT_RADIUS_M**2]
     if len(neighbours) < LOCAL_FIT_MIN_POINTS:
-        neighbours = np.argsort(squared)[:LOCAL_FIT_MIN_POINTS]
+        from_nearest = points_sensor - nearest
+        neighbours = np.argsort(np.einsum("ij,ij->i", from_nearest, from_nearest))[:LOCAL_FIT_MIN_POINTS]
     _, _, eigenvectors = covariance_eigh(points_sensor[neighbours])
     normal = eigenvectors[:, 0] if eigenvectors[2, 0] <= 0 else -eigenvectors[:, 0]
     along = offsets @ normal

@@ -24,6 +24,13 @@ from yoto.geometry import cross_into, so3_exp, so3_log
 NORMAL_AGREEMENT = 0.5  # cos 60 deg: a point's expected normal and the surface normal must agree this well
 
 
+class NearestPoints(Protocol):
+    """A nearest-neighbour index over a surface's points (SciPy's `cKDTree`, pykdtree's `KDTree`): distances
+    (inf beyond the bound) and indices of the nearest point."""
+
+    def query(self, x: np.ndarray, /, *, distance_upper_bound: float) -> tuple[np.ndarray, np.ndarray]: ...
+
+
 class SurfaceCloud(Protocol):
     """What registration needs of a surface (an ObjectModel has it)."""
 
@@ -34,7 +41,7 @@ class SurfaceCloud(Protocol):
     def normals_object(self) -> np.ndarray: ...
 
     @property
-    def kdtree(self) -> cKDTree: ...
+    def kdtree(self) -> cKDTree | NearestPoints: ...
 
 
 def one_blas_thread():

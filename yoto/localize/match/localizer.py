@@ -12,6 +12,7 @@ from yoto.geometry import so3_exp
 from yoto.localize.match.anchors import AnchorMaps, anchor_maps
 from yoto.localize.match.config import MatchConfig
 from yoto.localize.match.contact import ContactImage, contact_image, contact_maps
+from yoto.localize.match.lookup import one_openmp_thread, parent_surface
 from yoto.localize.match.rings import contact_rings, ring_distances
 from yoto.localize.match.scores import free_space_penalty, free_space_violation, plane_costs
 from yoto.localize.ranking import rank_registrations
@@ -43,6 +44,7 @@ class MatchLocalizer:
         self.config = config
 
     def prepare_object(self, model: ObjectModel) -> AnchorMaps:
+        parent_surface(model)  # the candidate ICP's k-d tree (tens of milliseconds), built ahead too
         return anchor_maps(model, self.config.anchors)
 
     def image(self, points_sensor: np.ndarray, model: ObjectModel) -> ContactImage:
@@ -150,7 +152,7 @@ class MatchLocalizer:
 
     def localize_image(self, image: ContactImage, model: ObjectModel) -> list[ContactEstimate]:
         """`localize` from the contact's height image (`image`)."""
-        with one_blas_thread():
+        with one_blas_thread(), one_openmp_thread():
             return self.refine(self.hypotheses(image, model), model)
 
     def refine(self, found: FilterHypotheses, model: ObjectModel) -> list[ContactEstimate]:
@@ -161,11 +163,12 @@ class MatchLocalizer:
         """
         config = self.config
         image = found.image
+        surface = parent_surface(model)
         samples = self._samples(image, config.icp_points)
         poses = found.poses
         if config.refine:
             poses = point_to_plane_gauss_newton(
-                model,
+                surface,
                 samples,
                 poses,
                 config.icp,
@@ -179,7 +182,7 @@ class MatchLocalizer:
             best = np.asarray(ranking.indices[: config.polish_candidates], dtype=np.int64)
             samples = self._samples(image, config.polish_points)
             poses[best] = point_to_plane_gauss_newton(
-                model,
+                surface,
                 samples,
                 poses[best],
                 replace(config.icp, iterations=config.polish_iterations),
@@ -228,7 +231,7 @@ class MatchLocalizer:
         """(K,) truncated point-to-plane residual of the samples under each pose, and free-space violation."""
         config = self.config
         residual = truncated_plane_fit(
-            model,
+            parent_surface(model),
             np.matmul(samples, np.transpose(poses[:, :3, :3], (0, 2, 1))) + poses[:, None, :3, 3],
             config.residual_tau_m,
             # search further than tau: a point on the surface can lie a point spacing from the nearest parent point
