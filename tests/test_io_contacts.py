@@ -104,6 +104,22 @@ def test_pair_round_trip(tmp_path, rng):
     assert find_pair_files([tmp_path]) == [path]
 
 
+def test_a_reconstructed_cloud_keeps_its_depth_scale_prior_when_rewritten(tmp_path, rng):
+    """A cloud reconstructed from a GelSight image is known only up to a depth scale: written as a PLY and read back,
+    the pair still says so (before, the prior was lost and the pose stage took the heights as exact)."""
+    pair = _pair(rng)
+    pair.left.depth_scale_sigma = 0.05
+    path = write_contact_pair(tmp_path / "pair_0001.json", pair)
+    payload = json.loads(path.read_text())
+    assert payload["left"]["depth_scale_sigma"] == 0.05 and "depth_scale_sigma" not in payload["right"]
+    read = read_contact_pair(path)
+    assert read.left.depth_scale_sigma == 0.05 and read.right.depth_scale_sigma == 0.0
+    payload["left"]["depth_scale_sigma"] = -0.1
+    path.write_text(json.dumps(payload))
+    with pytest.raises(InputError, match=r"pair_0001.json.*left.depth_scale_sigma must be a number in \[0, 1\)"):
+        read_contact_pair(path)
+
+
 def _write_payload(tmp_path, rng, mutate) -> object:
     path = write_contact_pair(tmp_path / "p.json", _pair(rng))
     payload = json.loads(path.read_text())

@@ -345,7 +345,8 @@ def _read_side(
     if "points" in record and not (from_images and image is not None):
         cloud_path = _side_file(record, "points", side, path)
         points, _ = read_ply_points(cloud_path)
-        return TactileContact(validate_tactile_points(points, cloud_path), T_world_sensor, cloud_path, image)
+        sigma = _read_depth_scale_sigma(record, side, path)
+        return TactileContact(validate_tactile_points(points, cloud_path), T_world_sensor, cloud_path, image, sigma)
     assert image is not None
     if images is None:
         raise InputError(
@@ -359,6 +360,15 @@ def _read_side(
         raise NoContactError(f"{side}: {exc.problem}", exc.path) from exc
     points = validate_tactile_points(points, image.image)
     return TactileContact(points, T_world_sensor, image.image, image, depth_scale_sigma)
+
+
+def _read_depth_scale_sigma(record: dict, side: str, path: Path) -> float:
+    """A side's `depth_scale_sigma`: written beside a cloud reconstructed from a GelSight image, so that the pose
+    stage still estimates the cloud's depth scale when the pair is read back from its PLY (0 when absent)."""
+    value = record.get("depth_scale_sigma", 0.0)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value < 1.0:
+        raise InputError(f"{side}.depth_scale_sigma must be a number in [0, 1), got {value!r}", path)
+    return float(value)
 
 
 def _side_file(record: dict, key: str, side: str, path: Path) -> Path:
@@ -376,7 +386,7 @@ def write_contact_pair(path: str | Path, pair: ContactPair) -> Path:
     """Write a pair file and its two PLY clouds (named after the pair file) atomically.
 
     A side read from (or beside) a GelSight image keeps its `image`, `background` and `calibration` entries, as
-    paths relative to the new pair file.
+    paths relative to the new pair file, and a cloud reconstructed from an image its `depth_scale_sigma`.
     """
     path = Path(path)
     stem = path.stem
@@ -386,6 +396,8 @@ def write_contact_pair(path: str | Path, pair: ContactPair) -> Path:
         cloud_name = f"{stem}_{side}.ply"
         write_ply_points(path.parent / cloud_name, contact.points_sensor)
         payload[side] = {"points": cloud_name, "T_world_sensor": contact.T_world_sensor}
+        if contact.depth_scale_sigma > 0:
+            payload[side]["depth_scale_sigma"] = contact.depth_scale_sigma
         if contact.image is not None:
             for key in ("image", "background", "calibration"):
                 file = getattr(contact.image, key)
