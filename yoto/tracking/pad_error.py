@@ -70,7 +70,7 @@ class PadErrorConfig:
     # magnitude x (node / correlation)^2
     rest_node_m: float = 3e-5  # with the rest map: 1-sigma prior at nodes on its known cells (removed there)
     reach_nodes: int = 3  # the map extends this many nodes beyond those the frames reached, fading to 0
-    frame_points: float = 250.0  # each frame's residuals count as this many independent points of ...
+    frame_points: float = 100.0  # each frame's residuals count as this many independent points of ...
     frame_noise_m: float = 3e-5  # ... this error
     explain_scale: bool = True  # project a depth scale error's shape out of the moving frames as well
 
