@@ -458,7 +458,7 @@ def format_markdown(report: dict[str, Any]) -> str:
         "| registration at the truth: its change over the motion, right touches, mean | "
         + " | ".join(cell(results[n][main]["right_touch"]["registration_at_truth_change"]) for n in names)
         + " |",
-        "| ... with each pad's error learnt at rest removed | "
+        "| ... with each pad's learnt error removed | "
         + " | ".join(cell(results[n][main]["right_touch"]["registration_at_truth_pad_corrected_change"]) for n in names)
         + " |",
         "",
@@ -493,7 +493,7 @@ def format_markdown(report: dict[str, Any]) -> str:
             "sensors' true poses on the object); how much that offset changed from before the motion to after it "
             "is the measurement's own drift (the reconstruction's errors under a contact that slid), which a closed "
             "loop cannot tell from slip; with the pad error removed: the same with each sensor's error learnt "
-            "from its frames before the motion and removed from all, as the closed loop does (`PadError`).",
+            "from its frames as the closed loop learns it (`PadError`, here at the true poses) and removed.",
         ]
         lines.append("")
     lines += ["## Closed loop speed (one instant: a frame of each sensor, registered together)", ""]
