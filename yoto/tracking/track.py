@@ -219,6 +219,7 @@ class TrackResult:
     closed_loop: bool
     corrections: list[Correction] = field(default_factory=list)
     skipped_times: int = 0  # stream timestamps after the touch where neither sensor had a pose (dropouts)
+    pad_errors: dict[str, PadError] = field(default_factory=dict)  # side -> the pad's error the closed loop learnt
 
     def T_world_mesh(self, model: ObjectModel, open_loop: bool = False) -> np.ndarray:
         """The tracked poses in the mesh file's frame."""
@@ -302,6 +303,7 @@ def track(
     if begin < len(closed):
         closed[begin:] = fuse_object_poses(sensors, corrector.grasps, slice(begin, None))[0]
     result.T_world_object = closed
+    result.pad_errors = corrector.pads
     return result
 
 
