@@ -40,6 +40,7 @@ from yoto.registration import (
 )
 
 CONTINUATION_FADE = 0.1  # beyond the known cells, the continued error fades where their smoothed weight is below this
+MIN_SLIDING_POINTS = 12  # a frame with fewer usable points teaches the sliding map nothing (7 shapes are projected out)
 
 
 @dataclass(frozen=True)
@@ -72,7 +73,7 @@ class PadErrorConfig:
     reach_nodes: int = 3  # the map extends this many nodes beyond those the frames reached, fading to 0
     frame_points: float = 100.0  # each frame's residuals count as this many independent points of ...
     frame_noise_m: float = 3e-5  # ... this error
-    explain_scale: bool = True  # project a depth scale error's shape out of the moving frames as well
+    explain_scale: bool = True  # project a depth scale error's shape out of the frames as well
 
 
 class PadError:
@@ -90,7 +91,7 @@ class PadError:
         self.fit_information = np.zeros((6, 6))  # the rest frames' Gauss-Newton information about the fit ...
         self.fit_evidence = np.zeros(6)  # ... and the information-weighted twists each frame fitted
         self.error_m = np.zeros(size)  # the error removed in each cell (0: unknown, far away)
-        self.sliding = _SlidingMap(config) if config.online else None  # the error learnt while moving, on top
+        self.sliding = _SlidingMap(config) if config.online else None  # the error learnt from every frame used
 
     def _cell_index(self, points_sensor: np.ndarray) -> np.ndarray:
         """Flat cell index of each point, -1 off the map."""
@@ -189,7 +190,7 @@ class PadError:
         safe = np.where(use, facing, 1.0)
         residual = distance / safe + self.sliding.value(points_sensor)
         use &= np.abs(residual) <= c.max_residual_m
-        if use.sum() < 12:
+        if use.sum() < MIN_SLIDING_POINTS:
             return
         slope = point_to_plane_jacobian(points_object[use], normals[use]) / safe[use, None]
         if c.explain_scale:  # a depth scale error follows the contact, not the pad: its shape (the depth) goes too
@@ -198,10 +199,9 @@ class PadError:
 
 
 class _SlidingMap:
-    """The pad's error on the cells the contact slides onto, learnt while the sensors move, from what the pose cannot
-    explain.
+    """The pad's error wherever the contact goes, learnt from every frame from what the pose cannot explain.
 
-    A moving frame's depth residuals at its registered pose are the pad's error there plus whatever the pose is off
+    A frame's depth residuals at its registered pose are the pad's error there plus whatever the pose is off
     by. A rigid motion of the contact (slip, the tracker's own error) moves them by the point-to-plane Jacobian
     times a twist, six shapes over the patch (an offset and two tilts on a flat contact, and what the surface's
     curvature adds), and a depth scale error (it follows the contact, not the pad) by the depth itself; the part of

@@ -83,7 +83,7 @@ class CorrectionConfig:
     """How tactile frames during motion correct the tracked pose (closed loop)."""
 
     points_per_contact: int = 250  # tactile points registered per contact, after voxel down-sampling
-    voxel_m: float = 0.0004  # voxel size of that down-sampling
+    voxel_m: float = 0.0004  # side of the square bins over the pad (sensor x, y) whose means are those points
     min_depth_fraction: float = 0.4  # only points pressed at least this share of the frame's deepest point count:
     # the rim, where the gel barely touches and sinks in beside the object, is where reconstructions are off
     sync_tolerance_s: float = 0.02  # a left and a right frame this close in time are registered together
