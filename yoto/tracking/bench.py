@@ -147,38 +147,51 @@ def truth_registrations(
     and the twists (N, 6) (object frame, rotation first) by which the registration moves the object from there.
 
     What they hold is the measurement's own error (the reconstruction's smooth depth errors, the rim), which no
-    filter can tell from slip. `pad_corrected`: each sensor's pad error is learnt from its frames before the
-    `motion` (`PadError`, from the true pose) and removed from every frame, as the closed loop does."""
+    filter can tell from slip. `pad_corrected`: each sensor's pad error is learnt as the closed loop learns it
+    (`PadError`: the rest map from the frames before the `motion`, the sliding map from every instant after it, or
+    from all instants without a rest map), here from the true poses, and removed from every frame."""
     tactile = tactile_streams(trajectory)
     pads: dict[str, PadError] = {}
     if pad_corrected and motion is not None:
-        for side in SIDES:
+        pads = {side: PadError(config.pad_error) for side in SIDES}
+        for side in SIDES if config.pad_error.rest_map else ():
             resting = [f for f in trajectory.tactile[side] if f.timestamp_s < motion[0] and len(f.points_sensor)]
-            if resting:
-                pads[side] = PadError(config.pad_error)
-                for f in resting:
-                    samples = contact_samples(f.points_sensor, config)
-                    pads[side].add_rest_frame(model, samples, f.T_object_sensor_true, pad_rest_solver(config))
-                pads[side].settle(pad_rest_solver(config))
+            for f in resting:
+                samples = contact_samples(f.points_sensor, config)
+                pads[side].add_rest_frame(model, samples, f.T_object_sensor_true, pad_rest_solver(config))
+            pads[side].settle(pad_rest_solver(config))
     instants = [
         frames
         for _, frames in group_frames(tactile, trajectory.touch_time_s, config.sync_tolerance_s)
         if len(frames) == 2
-    ][::every]
+    ]
     solver = registration_solver(config)
     times, offsets = [], []
-    for frames in instants:
+    for number, frames in enumerate(instants):
         chosen = [trajectory.tactile[side][index] for side, index in frames]
+        stamp = max(f.timestamp_s for f in chosen)
+        learning = motion is not None and bool(pads) and (stamp > motion[0] or not config.pad_error.rest_map)
+        if number % every and not learning:
+            continue
+        corrected = {
+            side: _pad_corrected(pads, side, contact_samples(f.points_sensor, config))
+            for (side, _), f in zip(frames, chosen, strict=True)
+        }
         points = np.vstack(
             [
-                transform_points(
-                    f.T_object_sensor_true, _pad_corrected(pads, side, contact_samples(f.points_sensor, config))
-                )
+                transform_points(f.T_object_sensor_true, corrected[side])
                 for (side, _), f in zip(frames, chosen, strict=True)
             ]
         )
-        offsets.append(twist_of_pose(point_to_plane_gauss_newton(model, points, np.eye(4)[None], solver)[0]))
-        times.append(max(f.timestamp_s for f in chosen))
+        correction = point_to_plane_gauss_newton(model, points, np.eye(4)[None], solver)[0]
+        if learning:  # the sliding maps learn from every frame, as the closed loop's do
+            for (side, _), f in zip(frames, chosen, strict=True):
+                pads[side].learn_frame(
+                    model, corrected[side], correction @ f.T_object_sensor_true, config.max_distance_m
+                )
+        if number % every == 0:
+            offsets.append(twist_of_pose(correction))
+            times.append(stamp)
     return np.array(times), np.array(offsets).reshape(-1, 6)
 
 
@@ -445,7 +458,7 @@ def format_markdown(report: dict[str, Any]) -> str:
         "| registration at the truth: its change over the motion, right touches, mean | "
         + " | ".join(cell(results[n][main]["right_touch"]["registration_at_truth_change"]) for n in names)
         + " |",
-        "| ... with each pad's error learnt at rest removed | "
+        "| ... with each pad's learnt error removed | "
         + " | ".join(cell(results[n][main]["right_touch"]["registration_at_truth_pad_corrected_change"]) for n in names)
         + " |",
         "",
@@ -480,7 +493,7 @@ def format_markdown(report: dict[str, Any]) -> str:
             "sensors' true poses on the object); how much that offset changed from before the motion to after it "
             "is the measurement's own drift (the reconstruction's errors under a contact that slid), which a closed "
             "loop cannot tell from slip; with the pad error removed: the same with each sensor's error learnt "
-            "from its frames before the motion and removed from all, as the closed loop does (`PadError`).",
+            "from its frames as the closed loop learns it (`PadError`, here at the true poses) and removed.",
         ]
         lines.append("")
     lines += ["## Closed loop speed (one instant: a frame of each sensor, registered together)", ""]

@@ -90,7 +90,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     bench.add_argument(
         "--no-pad-correction",
         action="store_true",
-        help="the closed loop without removing each pad's error learnt at rest (to compare; use another --out)",
+        help="the closed loop without learning and removing each pad's error (to compare; use another --out)",
     )
     bench.set_defaults(run=run_bench)
 

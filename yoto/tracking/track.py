@@ -21,9 +21,9 @@ applied blindly: a small Kalman filter on the object-frame error weighs it again
   - a slip model: slip grows with the sensors' travel at a rate the filter estimates along the way (the paper
     observes drift growing with motion length), plus a random part for elastic, inertial slip. The rate lets the
     evidence of all frames add up, so even a direction a single frame sees poorly is corrected over the path.
-Before registering, each sensor's own reconstruction error, fixed to its pad and learnt from its frames while the
-object rested after the touch (`pad_error.py`), is subtracted from the frame by pad position: as the contact
-slides over the pad, that error would otherwise move the registrations as slip does.
+Before registering, each sensor's own reconstruction error, fixed to its pad and learnt from its own frames from
+what no rigid motion explains (`pad_error.py`), is subtracted from the frame by pad position: as the contact slides
+over the pad, that error would otherwise move the registrations as slip does.
 Both grasps then take the corrected pose. A frame is unusable, and the prediction (open loop) stands, when it has
 too few points (contact lost), when too few of its points lie on the surface after registration (a bad fit),
 or when it asks for a jump larger than slip can make; when one sensor's frame is unusable, the other's is used
@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
 from yoto.contacts import MIN_TACTILE_POINTS, SIDES, ContactPair
 from yoto.errors import InputError
@@ -54,7 +55,6 @@ from yoto.geometry import (
     twist_of_pose,
 )
 from yoto.objects.model import ObjectModel
-from yoto.pointcloud import voxel_downsample
 from yoto.registration import (
     GaussNewtonConfig,
     plane_distances,
@@ -83,7 +83,7 @@ class CorrectionConfig:
     """How tactile frames during motion correct the tracked pose (closed loop)."""
 
     points_per_contact: int = 250  # tactile points registered per contact, after voxel down-sampling
-    voxel_m: float = 0.0004  # voxel size of that down-sampling
+    voxel_m: float = 0.0004  # side of the square bins over the pad (sensor x, y) whose means are those points
     min_depth_fraction: float = 0.4  # only points pressed at least this share of the frame's deepest point count:
     # the rim, where the gel barely touches and sinks in beside the object, is where reconstructions are off
     sync_tolerance_s: float = 0.02  # a left and a right frame this close in time are registered together
@@ -219,6 +219,7 @@ class TrackResult:
     closed_loop: bool
     corrections: list[Correction] = field(default_factory=list)
     skipped_times: int = 0  # stream timestamps after the touch where neither sensor had a pose (dropouts)
+    pad_errors: dict[str, PadError] = field(default_factory=dict)  # side -> the pad's error the closed loop learnt
 
     def T_world_mesh(self, model: ObjectModel, open_loop: bool = False) -> np.ndarray:
         """The tracked poses in the mesh file's frame."""
@@ -302,6 +303,7 @@ def track(
     if begin < len(closed):
         closed[begin:] = fuse_object_poses(sensors, corrector.grasps, slice(begin, None))[0]
     result.T_world_object = closed
+    result.pad_errors = corrector.pads
     return result
 
 
@@ -368,16 +370,34 @@ def group_frames(
 
 
 def contact_samples(points_sensor: np.ndarray, config: CorrectionConfig) -> np.ndarray:
-    """A fixed, spatially even subset of a tactile cloud's firmly pressed points (`min_depth_fraction`): voxel means,
-    then at most `points_per_contact`."""
-    deepest = float(points_sensor[:, 2].min())
-    pressed = (
-        points_sensor[points_sensor[:, 2] <= config.min_depth_fraction * deepest] if deepest < 0 else points_sensor
+    """A fixed, spatially even subset of a tactile cloud's firmly pressed points: the means of square bins over the
+    pad (`voxel_m`, x and y only), those pressed at least `min_depth_fraction` of the deepest bin's depth, then at
+    most `points_per_contact`.
+
+    Binned and chosen so that a reconstruction's pixel noise leaves no pattern: 3-d voxels would split each column
+    of the gel by its noisy depth (which points a voxel keeps shifts its mean), and choosing single points by their
+    noisy depth keeps, along the chosen patch's edge, those whose noise made them deeper; both are errors fixed on
+    the pad or the contact that move the registrations as the contact slides. Bins are chosen by their depth
+    averaged with their neighbours'."""
+    step = max(1, len(points_sensor) // (40 * config.points_per_contact))  # thin huge clouds before binning
+    thinned = points_sensor[::step]
+    cells = np.floor(thinned[:, :2] / config.voxel_m).astype(np.int64)
+    cells -= cells.min(axis=0)
+    shape = tuple(cells.max(axis=0) + 1)
+    counts = np.zeros(shape)
+    sums = np.zeros(shape + (3,))
+    np.add.at(counts, (cells[:, 0], cells[:, 1]), 1.0)
+    np.add.at(sums, (cells[:, 0], cells[:, 1]), thinned)
+    occupied = counts > 0
+    means = sums[occupied] / counts[occupied, None]
+    depth = ndimage.uniform_filter(sums[..., 2], 3, mode="constant") / np.maximum(
+        ndimage.uniform_filter(counts, 3, mode="constant"), 1e-12
     )
-    if len(pressed) < MIN_TACTILE_POINTS:  # a shallow, noisy frame: keep what there is
-        pressed = points_sensor
-    step = max(1, len(pressed) // (16 * config.points_per_contact))  # thin huge clouds before the voxels
-    (points,) = voxel_downsample(pressed[::step], config.voxel_m)
+    depth = depth[occupied]
+    deepest = float(depth.min())
+    points = means[depth <= config.min_depth_fraction * deepest] if deepest < 0 else means
+    if len(points) < MIN_TACTILE_POINTS:  # a shallow, noisy frame: keep what there is
+        points = means
     if len(points) > config.points_per_contact:
         points = points[np.random.default_rng(0).choice(len(points), config.points_per_contact, replace=False)]
     return points
@@ -533,6 +553,8 @@ class _Corrector:
                 resting.settle(self.rest_solver)
         predicted = fuse_object_poses(sensors, self.grasps)[0]
         points_predicted: dict[str, np.ndarray] = {}
+        points_sensor: dict[str, np.ndarray] = {}  # each side's registered samples (pad error removed), sensor frame
+        T_predicted_sensors: dict[str, np.ndarray] = {}
         pose_noise: dict[str, np.ndarray] = {}
         for row, (side, (_, points)) in enumerate(clouds.items()):
             if not sensors.covered[side][row]:
@@ -541,11 +563,12 @@ class _Corrector:
             T_predicted_sensor = invert_transform(predicted[row]) @ sensors.T_world_sensor[side][row]
             sampled = contact_samples(points, c)
             pad = self.pads.get(side)
-            if pad is not None:  # at rest: its frames teach the pad's error, one by one; once moving: it is removed
-                if not self.moving:
+            if pad is not None:  # the pad's error learnt so far is removed (with the rest map: learnt at rest)
+                if not self.moving and c.pad_error.rest_map:
                     pad.add_rest_frame(self.model, sampled, T_predicted_sensor, self.rest_solver)
                 sampled = pad.correct(sampled)
             points_predicted[side] = transform_points(T_predicted_sensor, sampled)
+            points_sensor[side], T_predicted_sensors[side] = sampled, T_predicted_sensor
             pose_noise[side] = self._pose_noise(side, T_predicted_sensor)
 
         record = Correction(timestamp_s=instant_s, used=(), unusable=unusable)
@@ -569,6 +592,14 @@ class _Corrector:
                     record.used = tuple(points_predicted)
                     record.inlier_fraction = float(np.mean(list(fractions.values())))
                     record.correction_m, record.correction_rad = self.last_correction
+                    if self.pads and (self.moving or not c.pad_error.rest_map):  # what the registered frames leave
+                        for side in record.used:  # unexplained teaches the pads' sliding maps
+                            self.pads[side].learn_frame(
+                                self.model,
+                                points_sensor[side],
+                                correction @ T_predicted_sensors[side],
+                                c.max_distance_m,
+                            )
         slip = invert_transform(self.touch_grasp) @ self.grasps["left"]
         record.slip_m = float(np.linalg.norm(slip[:3, 3]))
         record.slip_rad = rotation_angle_rad(slip, np.eye(4))
