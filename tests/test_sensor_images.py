@@ -193,7 +193,7 @@ def test_a_pressed_plateau_is_not_taken_for_untouched_gel(shading):
     """A face pressed across the pad reaches every edge: the integration is free on all four and its level is set
     by the untouched gel. The face's flat part changes no colour, like untouched gel, but lies 0.5 mm deep; measured
     from the zero-mean solve's zero instead of the untouched gel's level it passed for untouched gel and was pulled
-    up (read 0.00-0.13 mm deep, the whole face bent and x0.81-0.90 shallow). Through the shading sensor and the
+    up (median 0.00-0.03 mm deep, the whole face bent and x0.81-0.90 shallow). Through the shading sensor and the
     fitted model with varied lighting, noise and gel, it keeps most of its depth."""
     sensor, calibration = shading
     truth = bent_face(0.5e-3, 0.08, 0.003, 0.005)

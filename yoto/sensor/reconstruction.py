@@ -74,8 +74,8 @@ BLOCK_PX = 8
 TOUCHED_LEVEL = 3.0
 BOX_MARGIN_PX = 8
 # Untouched gel inside a touched box that reaches the frame's border is brought back to z = 0 (`anchor_untouched`)
-# where it lies at most this fraction of the deepest point deep: a broad contact's flat middle barely changes colour
-# too, but lies deep.
+# where it lies at most this fraction of the contact's depth below the gel's level (`gel_level_blocks`): a broad
+# contact's flat middle barely changes colour too, but lies deep; the drift anchoring removes is 0.02-0.1 mm.
 ANCHOR_RELATIVE_DEPTH = 0.15
 # Refits of the plane that gives the untouched gel's level under drift (`gel_level_blocks`).
 GEL_LEVEL_ITERATIONS = 3
