@@ -489,16 +489,17 @@ def gel_level_blocks(means: np.ndarray, untouched: np.ndarray, deepest_z: float)
         return untouched
     heights = means[rows, cols]
     tolerance = ANCHOR_RELATIVE_DEPTH * (float(heights.max()) - deepest_z)
-    level = np.full(len(rows), heights.max())
     design = np.column_stack([np.ones(len(rows)), rows, cols]).astype(np.float64)
+    at_level = heights >= heights.max() - tolerance
     for _ in range(GEL_LEVEL_ITERATIONS):
-        at_level = heights >= level - tolerance
-        if np.count_nonzero(at_level) < 3:
+        fitted = design[at_level]  # normal equations, least-norm where the blocks lie on a line
+        level = design @ np.linalg.lstsq(fitted.T @ fitted, fitted.T @ heights[at_level], rcond=None)[0]
+        refitted = heights >= level - tolerance
+        if np.array_equal(refitted, at_level):
             break
-        coefficients, *_ = np.linalg.lstsq(design[at_level], heights[at_level], rcond=None)
-        level = design @ coefficients
+        at_level = refitted
     known = np.zeros_like(untouched)
-    known[rows, cols] = heights >= level - tolerance
+    known[rows, cols] = at_level
     return known
 
 
