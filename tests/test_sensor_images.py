@@ -179,6 +179,38 @@ def test_untouched_gel_beside_a_contact_across_the_pad_stays_flat(shading, angle
         assert 0.85 < recon.max_depth_m / -truth.min() < 1.2
 
 
+def bent_face(plateau_m: float, slope: float, edge_y_m: float, edge_radius_m: float) -> np.ndarray:
+    """The gel under a face pressed across the whole pad: flat (a plateau, no colour change) on the right half,
+    bent deeper on the left (slope along x), and curving away over a rounded edge near the top, where a strip of
+    untouched gel is left."""
+    x, y = SPEC.pixel_xy_sensor()
+    object_z = -plateau_m + slope * np.minimum(0.0, x) + np.maximum(0.0, y - edge_y_m) ** 2 / (2 * edge_radius_m)
+    height, _, _ = gel_surface(object_z, GelModel(), SPEC)
+    return height
+
+
+def test_a_pressed_plateau_is_not_taken_for_untouched_gel(shading):
+    """A face pressed across the pad reaches every edge: the integration is free on all four and its level is set
+    by the untouched gel. The face's flat part changes no colour, like untouched gel, but lies 0.5 mm deep; measured
+    from the zero-mean solve's zero instead of the untouched gel's level it passed for untouched gel and was pulled
+    up (median 0.00-0.03 mm deep, the whole face bent and x0.81-0.90 shallow). Through the shading sensor and the
+    fitted model with varied lighting, noise and gel, it keeps most of its depth."""
+    sensor, calibration = shading
+    truth = bent_face(0.5e-3, 0.08, 0.003, 0.005)
+    felt = truth < -0.05e-3
+    plateau = (truth == truth[120, 250]) & felt
+    assert 0.8 < felt.mean() < 0.95 and plateau.mean() > 0.2
+    images = (
+        sensor.render(truth, np.random.default_rng(3)),
+        render_varied(truth, calibration, np.random.default_rng(4), OpticsVariation.of(1.0)),
+    )
+    for image in images:
+        recon = reconstruct(image, calibration)
+        assert recon.box == (0, SPEC.height_px, 0, SPEC.width_px)  # every edge free
+        assert np.median(recon.height_map_m[plateau]) < 0.6 * truth[120, 250]
+        assert 0.85 < recon.max_depth_m / -truth.min() < 1.2
+
+
 @pytest.mark.parametrize("draw", range(3))
 def test_reconstruction_does_not_depend_on_lighting_noise_and_gel(shading, draw):
     """The fitted optical model with its lighting (per channel), noise, blur and gel smoothing varied around the

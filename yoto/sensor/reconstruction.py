@@ -74,9 +74,11 @@ BLOCK_PX = 8
 TOUCHED_LEVEL = 3.0
 BOX_MARGIN_PX = 8
 # Untouched gel inside a touched box that reaches the frame's border is brought back to z = 0 (`anchor_untouched`)
-# where it lies at most this fraction of the deepest point deep: a broad contact's flat middle barely changes colour
-# too, but lies deep.
-ANCHOR_RELATIVE_DEPTH = 0.3
+# where it lies at most this fraction of the contact's depth below the gel's level (`gel_level_blocks`): a broad
+# contact's flat middle barely changes colour too, but lies deep; the drift anchoring removes is 0.02-0.1 mm.
+ANCHOR_RELATIVE_DEPTH = 0.15
+# Refits of the plane that gives the untouched gel's level under drift (`gel_level_blocks`).
+GEL_LEVEL_ITERATIONS = 3
 # A faint contact: a face pressed tilted across the pad changes colour by a few levels over thousands of pixels, no
 # pixel by the mask's colour threshold. Such a frame shows a contact when at least FAINT_MIN_BLOCKS blocks are touched
 # (each mean changed by more than TOUCHED_LEVEL, ten times an 8x8 mean's noise) and a lighting or exposure change does
@@ -450,10 +452,8 @@ def anchor_untouched(height: np.ndarray, blocks: np.ndarray, box: tuple[int, int
     centre_rows = np.arange(grid_rows) * BLOCK_PX + (BLOCK_PX - 1) / 2
     centre_cols = np.arange(grid_cols) * BLOCK_PX + (BLOCK_PX - 1) / 2
     in_box = ((centre_rows >= row0) & (centre_rows < row1))[:, None] & ((centre_cols >= col0) & (centre_cols < col1))
-    # The flat middle of a broad contact barely changes colour either; it lies deep, drift does not.
-    deepest = float(-height.min())
-    shallow = means >= -ANCHOR_RELATIVE_DEPTH * deepest
-    known = (untouched_blocks(blocks) & shallow) | ~in_box
+    untouched = untouched_blocks(blocks) & in_box
+    known = gel_level_blocks(means, untouched, float(height.min())) | ~in_box
     if not (known & in_box).any():
         if in_box.all():
             height -= np.float32(np.percentile(means, 95.0))
@@ -473,6 +473,34 @@ def anchor_untouched(height: np.ndarray, blocks: np.ndarray, box: tuple[int, int
     top = correction[r0][:, c0] * (1 - wc) + correction[r0][:, c0 + 1] * wc
     bottom = correction[r0 + 1][:, c0] * (1 - wc) + correction[r0 + 1][:, c0 + 1] * wc
     height[row0:row1, col0:col1] -= (top * (1 - wr) + bottom * wr).astype(np.float32)
+
+
+def gel_level_blocks(means: np.ndarray, untouched: np.ndarray, deepest_z: float) -> np.ndarray:
+    """The untouched blocks that lie at the gel's level, not on a pressed plateau: (grid_rows, grid_cols) bool.
+
+    The flat middle of a broad contact changes no colour either, but lies deep. The gel's level is the top of the
+    untouched blocks (the gel is pressed only downwards), tilted by the integration's drift: a plane is fitted to
+    the blocks within ANCHOR_RELATIVE_DEPTH of the contact's depth below it, starting from the highest block, and
+    refitted on those it then selects. Measured from the zero-mean solve's zero instead (every edge free), a broad
+    contact's plateau passed for untouched gel and was pulled up to z = 0: the face read bent and shallow.
+    """
+    rows, cols = np.nonzero(untouched)
+    if len(rows) == 0:
+        return untouched
+    heights = means[rows, cols]
+    tolerance = ANCHOR_RELATIVE_DEPTH * (float(heights.max()) - deepest_z)
+    design = np.column_stack([np.ones(len(rows)), rows, cols]).astype(np.float64)
+    at_level = heights >= heights.max() - tolerance
+    for _ in range(GEL_LEVEL_ITERATIONS):
+        fitted = design[at_level]  # normal equations, least-norm where the blocks lie on a line
+        level = design @ np.linalg.lstsq(fitted.T @ fitted, fitted.T @ heights[at_level], rcond=None)[0]
+        refitted = heights >= level - tolerance
+        if np.array_equal(refitted, at_level):
+            break
+        at_level = refitted
+    known = np.zeros_like(untouched)
+    known[rows, cols] = at_level
+    return known
 
 
 def _harmonic_fill(known: np.ndarray, values: np.ndarray) -> np.ndarray:
