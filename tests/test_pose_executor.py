@@ -57,7 +57,8 @@ def test_the_split_pose_stage_gives_one_process_s_estimate_bitwise(builtin_model
     monkeypatch.setattr(pipeline, "SplitExecutor", AlwaysSplit)  # however busy the machine running the test
     prepare_pose_helper(helper, model, COARSE).result()
     localizer = make_localizer("match")
-    config = PoseConfig(search="always", suggest_next_touch=False, field_config=COARSE)
+    # The family step even where the search is decisive: more batches to split.
+    config = PoseConfig(search="always", suggest_next_touch=False, field_config=COARSE, family_if_decisive=True)
     for index in range(2):
         pair = PairSimulator(model).pair(seed=11, index=index).pair
         candidates, world, _ = localize_contacts(pair, model, localizer)
