@@ -10,6 +10,8 @@ itself meanwhile, and joins the two. Each half counts the Gauss-Newton iteration
 reads); when both ran as many the joined batch is what one process computes (each half stopped at the first
 iteration where all of its poses were below the tolerance, and none earlier, so the whole batch stops there too);
 otherwise the caller refines the whole batch again itself, which is rare (see docs/pose.md) and costs only time.
+The joint search's key test (`search.key_matches`) is split the same way, by rows of left locations cut between two
+of its chunks, each chunk tested on its own: the same pairs in the same order.
 
 Small batches stay in the calling process (`SplitConfig`): both halves pay a refinement's fixed cost (~2.5 ms in
 full, ~1.5 ms short: its numpy calls per iteration), and a round trip through the helper's pipe 60-80 us. Without a
