@@ -287,3 +287,42 @@ def test_strict_seed_score_sees_free_space_beside_an_edge():
     assert np.all(np.array(slid) < truth - 10.0)
     blind = evaluate_offsets(field, contacts, seeds, CalibrationPrior(), replace(config, verify_free_points=0))
     assert np.all(np.abs(blind[1:] - blind[0]) < 1.0)  # the clouds alone: a tie
+
+
+def test_the_family_step_runs_only_when_the_search_left_the_first_hypothesis_undecided(builtin_models, monkeypatch):
+    """After the search, poses along the weakest directions of the most likely hypotheses are refined (the family
+    step) unless the first hypothesis already holds `decisive_probability` and fits to `decisive_log_likelihood`;
+    `family_if_decisive` runs it anyway. Where it runs, it adds its poses to the hypotheses' pool."""
+    from yoto.localize import make_localizer
+    from yoto.pose import pipeline
+    from yoto.pose.field import FieldConfig
+    from yoto.simulate.scenarios import PairSimulator
+
+    model = builtin_models["fruit"]
+    pair = PairSimulator(model).pair(seed=11, index=0).pair
+    candidates, world, _ = pipeline.localize_contacts(pair, model, make_localizer("match"))
+    families = []
+    fill = pipeline._fill_family
+
+    def recorded(*arguments, **settings):
+        refined, hypotheses = fill(*arguments, **settings)
+        families.append(len(refined.T_world_object) - len(arguments[2].T_world_object))
+        return refined, hypotheses
+
+    monkeypatch.setattr(pipeline, "_fill_family", recorded)
+    base = PoseConfig(search="always", suggest_next_touch=False, field_config=FieldConfig(cell_m=0.002))
+    decisive = {"decisive_probability": 0.0, "decisive_log_likelihood": -np.inf}
+    runs = {
+        "undecided": replace(base, decisive_probability=1.01),
+        "decisive": replace(base, **decisive),
+        "decisive, family anyway": replace(base, family_if_decisive=True, **decisive),
+    }
+    counts = {}
+    for name, config in runs.items():
+        families.clear()
+        estimate = pipeline.pose_from_candidates(pair, model, candidates, world, config, "match")
+        assert len(estimate.hypotheses) >= 1
+        counts[name] = list(families)
+    assert counts["decisive"] == []
+    assert len(counts["undecided"]) == 1 and counts["undecided"][0] > 0
+    assert counts["decisive, family anyway"] == counts["undecided"]

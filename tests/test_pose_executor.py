@@ -15,6 +15,7 @@ from yoto.pose.executor import SplitConfig, SplitExecutor, _remote_half, prepare
 from yoto.pose.field import FieldConfig, surface_field
 from yoto.pose.pipeline import PoseConfig, _pair_clouds, localize_contacts, pose_from_candidates
 from yoto.pose.refine import evaluate_offsets, refine_hypotheses
+from yoto.pose.search import KeyTest, key_matches, search_poses
 from yoto.registration import one_blas_thread
 from yoto.simulate.scenarios import PairSimulator
 
@@ -56,7 +57,8 @@ def test_the_split_pose_stage_gives_one_process_s_estimate_bitwise(builtin_model
     monkeypatch.setattr(pipeline, "SplitExecutor", AlwaysSplit)  # however busy the machine running the test
     prepare_pose_helper(helper, model, COARSE).result()
     localizer = make_localizer("match")
-    config = PoseConfig(search="always", suggest_next_touch=False, field_config=COARSE)
+    # The family step even where the search is decisive: more batches to split.
+    config = PoseConfig(search="always", suggest_next_touch=False, field_config=COARSE, family_if_decisive=True)
     for index in range(2):
         pair = PairSimulator(model).pair(seed=11, index=index).pair
         candidates, world, _ = localize_contacts(pair, model, localizer)
@@ -65,6 +67,7 @@ def test_the_split_pose_stage_gives_one_process_s_estimate_bitwise(builtin_model
         assert not calls
         two = pose_from_candidates(pair, model, candidates, world, config, "match", helper=helper)
         assert calls.count("_counted_refine") >= 5 and calls.count("evaluate_offsets") >= 1
+        assert calls.count("_remote_key_matches") == 1  # the search's key test, half its rows there
         _bitwise_equal(one.hypotheses, two.hypotheses)
         assert one.T_world_object.tobytes() == two.T_world_object.tobytes()
         assert one.hypothesis_corrections.tobytes() == two.hypothesis_corrections.tobytes()
@@ -119,3 +122,42 @@ def test_without_a_free_core_for_the_helper_the_stage_stays_in_this_process(buil
         for _ in range(3):
             _bitwise_equal(alone, executor.refine(field, contacts, poses, config.calibration, config.refine_config))
     assert executor.split == 2 and executor.slow == 2
+
+
+def test_the_search_s_key_test_split_between_two_processes_finds_the_same_pairs(builtin_models, helper, monkeypatch):
+    """The search's location pairs, their rows cut between two chunks and the second part tested in the helper,
+    are the same pairs in the same order with the same mismatches as all rows tested at once; a test too small to
+    split stays here."""
+    model = builtin_models["fruit"]
+    pair = PairSimulator(model).pair(seed=11, index=1).pair
+    localizer = make_localizer("match")
+    candidates, world, _ = localize_contacts(pair, model, localizer)
+    config = PoseConfig()
+    shapes = pipeline._contact_shapes(pair, world, config)
+    tests: list[KeyTest] = []
+
+    def recorded(test: KeyTest):
+        tests.append(test)
+        return key_matches(test)
+
+    search_poses(model, world, shapes, candidates, config.search_config, matcher=recorded)
+    (test,) = tests
+    assert test.rows > 2 * test.chunk  # several chunks: the cut falls between two of them
+    calls = []
+    call = LocalizerProcess.call
+
+    def counted(self, function, model, *arguments):
+        calls.append(function.__name__)
+        return call(self, function, model, *arguments)
+
+    monkeypatch.setattr(LocalizerProcess, "call", counted)
+    executor = AlwaysSplit(helper, model, COARSE)
+    with one_blas_thread():
+        alone = key_matches(test)
+        split = executor.key_matches(test)
+        assert calls == ["_remote_key_matches"]
+        one_chunk = replace(test, left_rows=test.left_rows[: test.chunk], low_rows=test.low_rows[: test.chunk])
+        assert len(executor.key_matches(one_chunk)[0]) > 0 and calls == ["_remote_key_matches"]  # not split
+    assert len(alone[0]) > 1000
+    for a, b in zip(alone, split):
+        assert a.dtype == b.dtype and a.tobytes() == b.tobytes()

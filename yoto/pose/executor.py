@@ -10,6 +10,8 @@ itself meanwhile, and joins the two. Each half counts the Gauss-Newton iteration
 reads); when both ran as many the joined batch is what one process computes (each half stopped at the first
 iteration where all of its poses were below the tolerance, and none earlier, so the whole batch stops there too);
 otherwise the caller refines the whole batch again itself, which is rare (see docs/pose.md) and costs only time.
+The joint search's key test (`search.key_matches`) is split the same way, by rows of left locations cut between two
+of its chunks, each chunk tested on its own: the same pairs in the same order.
 
 Small batches stay in the calling process (`SplitConfig`): both halves pay a refinement's fixed cost (~2.5 ms in
 full, ~1.5 ms short: its numpy calls per iteration), and a round trip through the helper's pipe 60-80 us. Without a
@@ -33,6 +35,7 @@ from yoto.localize.helper import LocalizerProcess, Pending
 from yoto.objects.model import ObjectModel
 from yoto.pose.field import FieldConfig, SurfaceField, surface_field
 from yoto.pose.refine import CalibrationPrior, ContactPoints, RefineConfig, Refined, evaluate_offsets, refine_hypotheses
+from yoto.pose.search import KeyTest, Matched, key_matches
 from yoto.registration import one_blas_thread
 
 
@@ -41,7 +44,8 @@ class SplitConfig:
     """When the pose stage's batches are split between the calling process and its helper."""
 
     min_poses: int = 16  # refinements of fewer poses stay in the calling process (see docs/pose.md) ...
-    min_scored: int = 1000  # ... and cheap scores (`evaluate_offsets`, ~1 us a pose) of fewer
+    min_scored: int = 1000  # ... and cheap scores (`evaluate_offsets`, ~1 us a pose) of fewer ...
+    min_key_pairs: int = 400_000  # ... and the search's key tests (`search.key_matches`) of fewer location pairs
     helper_share: float = 0.5  # share of a split batch the helper computes
     max_wait_share: float = 0.5  # a split after which this process waited for the helper's half longer than this
     # share of the time its own half took finds no free core for the helper (it ran when this process waited) ...
@@ -72,6 +76,10 @@ class LocalExecutor:
     ) -> Refined:
         """`refine.refine_hypotheses`."""
         return refine_hypotheses(field, contacts, T_world_object, prior, config)
+
+    def key_matches(self, test: KeyTest) -> Matched:
+        """`search.key_matches` on all of the search's location pairs."""
+        return key_matches(test)
 
 
 LOCAL = LocalExecutor()
@@ -114,7 +122,7 @@ class SplitExecutor(LocalExecutor):
         cut = self._cut(len(T_world_object), self.config.min_scored)
         if cut is None:
             return evaluate_offsets(field, contacts, T_world_object, prior, config)
-        here, there = self._halves(evaluate_offsets, cut, field, contacts, T_world_object, prior, config)
+        here, there = self._field_halves(evaluate_offsets, cut, field, contacts, T_world_object, prior, config)
         return np.concatenate([here, there])
 
     def refine(
@@ -128,7 +136,7 @@ class SplitExecutor(LocalExecutor):
         cut = self._cut(len(T_world_object), self.config.min_poses)
         if cut is None:
             return refine_hypotheses(field, contacts, T_world_object, prior, config)
-        (here, iterations), (there, iterations_there) = self._halves(
+        (here, iterations), (there, iterations_there) = self._field_halves(
             _counted_refine, cut, field, contacts, T_world_object, prior, config
         )
         self.split += 1
@@ -137,7 +145,19 @@ class SplitExecutor(LocalExecutor):
             return refine_hypotheses(field, contacts, T_world_object, prior, config)
         return joined(here, there)
 
-    def _halves(
+    def key_matches(self, test: KeyTest) -> Matched:
+        """The left locations' rows cut between two chunks, the first part tested here and the rest in the helper:
+        the same pairs in the same order as all rows at once (each chunk is tested on its own)."""
+        rows, chunk = test.rows, test.chunk
+        cut = int(round(rows * (1.0 - self.config.helper_share) / chunk)) * chunk
+        if self._cut(rows * test.right_columns.shape[1], self.config.min_key_pairs) is None or not 0 < cut < rows:
+            return key_matches(test)
+        (i, j, mismatch), (i_there, j_there, mismatch_there) = self._halves(
+            lambda: key_matches(test, 0, cut), _remote_key_matches, test, cut
+        )
+        return np.concatenate([i, i_there]), np.concatenate([j, j_there]), np.concatenate([mismatch, mismatch_there])
+
+    def _field_halves(
         self,
         local: Callable[..., Any],
         cut: int,
@@ -148,18 +168,30 @@ class SplitExecutor(LocalExecutor):
         config: RefineConfig,
     ) -> tuple[Any, Any]:
         """`local` (a module-level function of the field and these arguments) on the poses before `cut` here, and
-        on the rest in the helper meanwhile; both results. Records the helper's CPU time beyond this process's, and
-        whether this process then waited long for the helper (no free core)."""
-        pending = self.helper.call(
-            _remote_half, self.model, self.field_config, local, contacts, T_world_object[cut:], prior, config
+        on the rest in the helper meanwhile (with the helper's field)."""
+        return self._halves(
+            lambda: local(field, contacts, T_world_object[:cut], prior, config),
+            _remote_half,
+            self.field_config,
+            local,
+            contacts,
+            T_world_object[cut:],
+            prior,
+            config,
         )
+
+    def _halves(self, here: Callable[[], Any], remote: Callable[..., tuple[Any, float]], *arguments: Any) -> Any:
+        """`here()` in this process while the helper runs `remote(model, *arguments)` (which returns its result
+        and its CPU time in ms); both results. Records the helper's CPU time beyond this process's, and whether
+        this process then waited long for the helper (no free core)."""
+        pending = self.helper.call(remote, self.model, *arguments)
         tick, start = time.process_time(), time.perf_counter()
-        here = local(field, contacts, T_world_object[:cut], prior, config)
+        mine = here()
         done = time.perf_counter()
         there, helper_cpu_ms = pending.result()
         self.helper_extra_cpu_ms += max(0.0, helper_cpu_ms - 1000.0 * (time.process_time() - tick))
         self.slow += time.perf_counter() - done > self.config.max_wait_share * (done - start)
-        return here, there
+        return mine, there
 
 
 def joined(first: Refined, second: Refined) -> Refined:
@@ -212,4 +244,12 @@ def _remote_half(
     tick = time.process_time()
     with one_blas_thread():  # as the calling process's pose stage (sums in one order)
         result = local(surface_field(model, field_config), *arguments)
+    return result, 1000.0 * (time.process_time() - tick)
+
+
+def _remote_key_matches(model: ObjectModel, test: KeyTest, first: int) -> tuple[Matched, float]:
+    """The helper's rows of the search's key test (from `first` on), and its CPU time (ms)."""
+    tick = time.process_time()
+    with one_blas_thread():  # as the calling process's pose stage (the shell's matrix products)
+        result = key_matches(test, first)
     return result, 1000.0 * (time.process_time() - tick)

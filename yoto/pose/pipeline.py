@@ -97,6 +97,8 @@ class PoseConfig:
     # prior on the starting pose holds a single pass short of the best fit)
     neighbours_if_decisive: bool = True  # refine them even when the most likely hypothesis is decisive by itself
     # (decisive_probability and decisive_log_likelihood; False saves ~10 ms there, see docs/pose.md)
+    family_if_decisive: bool = False  # run the family step even when, after the search, the most likely hypothesis
+    # is decisive (decisive_probability and decisive_log_likelihood; skipping it saves ~35 ms there, docs/pose.md)
     seed_distinct_m: float = 0.005  # seeds in one cell of this size (object centroid) ...
     seed_distinct_rad: float = float(np.radians(5.0))  # ... and of this (rotation vector) are screened as one
     search_config: SearchConfig = SearchConfig()
@@ -227,11 +229,12 @@ def _seeds(
     candidates: dict[str, list[ContactEstimate]],
     config: PoseConfig,
     search: bool,
+    run: LocalExecutor = LOCAL,
 ) -> np.ndarray:
     """(K, 4, 4) closed-form poses of the candidate pairs whose key fits (and, with `search`, of the search's
     matches); the localizers' top pair is always among them, fitting or not, so there is a pose to verify. Of the
-    matches in one pose cell only the one whose key fits best is kept."""
-    matches = search_poses(model, world, shapes, candidates, config.search_config, samples=search)
+    matches in one pose cell only the one whose key fits best is kept. `run` tests the search's location pairs."""
+    matches = search_poses(model, world, shapes, candidates, config.search_config, search, run.key_matches)
     best = _best_per_cell(matches.translations, matches.rotation_vectors, -matches.mismatch, config)
     matches_T = matches.subset(best).T_world_object
     left, right = candidates["left"][0], candidates["right"][0]
@@ -416,7 +419,7 @@ def _pose_from_candidates(
     # The candidates' pass, unless "auto" searches whatever it finds: `_decisive` needs `decisive_featured` contacts
     # with features of their own, and without them the pass would be thrown away.
     if config.search != "auto" or _featured(shapes) >= config.decisive_featured:
-        seeds = _seeds(model, world, shapes, candidates, config, search=searched)
+        seeds = _seeds(model, world, shapes, candidates, config, searched, run)
         if len(seeds):
             screened, kept = (
                 (config.screened, config.seeds_refined)
@@ -427,13 +430,19 @@ def _pose_from_candidates(
     hypotheses = None if refined is None else group_hypotheses(refined, model.symmetry, config.hypotheses)
     if config.search == "auto" and not _decisive(hypotheses, shapes, config):
         searched = True
-        seeds = _seeds(model, world, shapes, candidates, config, search=True)
+        seeds = _seeds(model, world, shapes, candidates, config, True, run)
         if len(seeds):
             refined = _verify_and_refine(
                 field, contacts, seeds, model.symmetry, config, config.screened, config.seeds_refined, True, run
             )
             hypotheses = group_hypotheses(refined, model.symmetry, config.hypotheses)
-    if searched and refined is not None and hypotheses is not None and len(hypotheses) > 1:
+    if (
+        searched
+        and refined is not None
+        and hypotheses is not None
+        and len(hypotheses) > 1
+        and (config.family_if_decisive or not _clear_first(hypotheses, config))
+    ):
         refined, hypotheses = _fill_family(field, contacts, refined, hypotheses, model.symmetry, config, run)
     if refined is None or hypotheses is None or not len(hypotheses):
         return _closed_form_estimate(pair, model, candidates, world, config, method, tick)

@@ -29,6 +29,7 @@ per-query pair sets small instead.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -273,6 +274,105 @@ class PairMatches:
         return PairMatches(self.mismatch[index], self.quaternions_xyzw[index], self.translations[index])
 
 
+Matched = tuple[np.ndarray, np.ndarray, np.ndarray]  # left and right location indices of the pairs that fit, and
+# each pair's key mismatch (in tolerances)
+
+
+@dataclass
+class KeyTest:
+    """What the search tests every left x right location pair with: the measured key, and each location's terms of
+    it (rows: left locations, columns: right locations; object frame)."""
+
+    separation: float  # measured |pR - pL| (m)
+    angles: np.ndarray  # (3,) measured angles (d, nL), (d, nR), (nL, nR)
+    distance_tolerance_m: float  # separation tolerance besides the locations' blur
+    angle_variance: float  # squared angle tolerance besides the locations' normal blur
+    left_rows: np.ndarray  # (L, 4) [pL, 1]
+    right_columns: np.ndarray  # (4, R) [-2 pR, |pR|^2]
+    low_rows: np.ndarray  # (L,) the widest shell's squared inner bound less |pL|^2 ...
+    high_rows: np.ndarray  # (L,) ... and its outer bound
+    squared_left: np.ndarray  # (L,) |pL|^2
+    own_left: np.ndarray  # (L,) pL . nL
+    own_right: np.ndarray  # (R,) pR . nR
+    p_left_columns: np.ndarray  # (3, L) coordinates as contiguous rows (`_dot`)
+    p_right_columns: np.ndarray  # (3, R)
+    n_left_columns: np.ndarray  # (3, L)
+    n_right_columns: np.ndarray  # (3, R)
+    left_blur_m: np.ndarray  # (L,) Locations.blur_m
+    right_blur_m: np.ndarray  # (R,)
+    left_variance: np.ndarray  # (L,) angle variance plus the left location's normal blur squared
+    right_turn2: np.ndarray  # (R,) the right location's normal blur squared
+
+    @property
+    def rows(self) -> int:
+        return len(self.left_rows)
+
+    @property
+    def chunk(self) -> int:
+        """Left locations tested per matrix product (~400k pairs); a split of the rows falls between chunks."""
+        return max(1, 400_000 // max(self.right_columns.shape[1], 1))
+
+
+def key_matches(test: KeyTest, first: int = 0, stop: int | None = None) -> Matched:
+    """The pairs of left locations `first` to `stop` (`first` a multiple of `test.chunk`) with every right location
+    whose key fits, in row order: rows tested in two parts and joined give the same arrays as all at once.
+
+    The shell of the widest separation tolerance over all left x right pairs, by one matrix product per chunk:
+    [pL, 1] . [-2 pR, |pR|^2] = |pR - pL|^2 - |pL|^2, compared with the shell's bounds less |pL|^2 (one pass fewer
+    over the chunk than forming the squared distances). On what falls in the shell, each part of the key is tested
+    in turn on the pairs the parts before it kept, the most selective first: the angle (nL, nR), then the separation
+    with its own tolerance, then the angles (d, nL), (d, nR) from dot products (offset . n = pR . n - pL . n, each
+    location's own term computed once).
+    """
+    t = test
+    stop = t.rows if stop is None else stop
+    columns, chunk = t.right_columns.shape[1], t.chunk
+    found = []
+    # Work buffers reused by every chunk (fresh multi-megabyte arrays cost page faults each time).
+    partial_buffer = np.empty((min(chunk, max(stop - first, 0)), columns))
+    low_buffer = np.empty(partial_buffer.shape, dtype=bool)
+    high_buffer = np.empty_like(low_buffer)
+    for start in range(first, stop, chunk):
+        rows = slice(start, min(start + chunk, stop))
+        count = rows.stop - start
+        partial = np.matmul(t.left_rows[rows], t.right_columns, out=partial_buffer[:count])
+        shell = np.greater_equal(partial, t.low_rows[rows, None], out=low_buffer[:count])
+        shell &= np.less_equal(partial, t.high_rows[rows, None], out=high_buffer[:count])
+        flat = np.flatnonzero(shell)  # far faster than a 2-D nonzero; the same pairs in the same order
+        if not len(flat):
+            continue
+        i = flat // columns
+        j = flat - i * columns
+        i += start
+        # (nL, nR)
+        key = np.arccos(np.clip(_dot(t.n_left_columns, i, t.n_right_columns, j), -1.0, 1.0))
+        mismatch = np.abs(key - t.angles[2]) / np.sqrt(t.left_variance[i] + t.right_turn2[j])
+        keep = np.flatnonzero(mismatch <= 1.0)
+        i, j, flat, mismatch = i[keep], j[keep], flat[keep], mismatch[keep]
+        # separation
+        distance = np.sqrt(np.maximum(partial.reshape(-1)[flat] + t.squared_left[i], 0.0))
+        blur = t.left_blur_m[i] + t.right_blur_m[j]
+        part = np.abs(distance - t.separation) / np.hypot(t.distance_tolerance_m, blur)
+        keep = np.flatnonzero((part <= 1.0) & (distance >= MIN_CONTACT_SEPARATION_M))
+        i, j, distance, blur = i[keep], j[keep], distance[keep], blur[keep]
+        mismatch = np.maximum(mismatch[keep], part[keep])
+        turn2 = (blur / max(t.separation, 1e-3)) ** 2  # the direction d turns as the locations move within their blur
+        # (d, nL) and (d, nR), d = (pR - pL) / distance
+        length = np.maximum(distance, 1e-12)
+        cosine = (_dot(t.p_right_columns, j, t.n_left_columns, i) - t.own_left[i]) / length
+        key = np.arccos(np.clip(cosine, -1.0, 1.0))
+        part = np.abs(key - t.angles[0]) / np.sqrt(t.left_variance[i] + turn2)
+        cosine = (t.own_right[j] - _dot(t.p_left_columns, i, t.n_right_columns, j)) / length
+        key = np.arccos(np.clip(cosine, -1.0, 1.0))
+        part = np.maximum(part, np.abs(key - t.angles[1]) / np.sqrt(t.angle_variance + t.right_turn2[j] + turn2))
+        keep = part <= 1.0
+        found.append((i[keep], j[keep], np.maximum(mismatch[keep], part[keep])))
+    if not found:
+        return np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0)
+    a, b, mismatch = (np.concatenate(parts) for parts in zip(*found))
+    return a, b, mismatch
+
+
 def search_poses(
     model: ObjectModel,
     world: dict[str, WorldContact],
@@ -280,9 +380,11 @@ def search_poses(
     candidates: dict[str, list[ContactEstimate]],
     config: SearchConfig = SearchConfig(),
     samples: bool = True,
+    matcher: Callable[[KeyTest], Matched] | None = None,
 ) -> PairMatches:
     """Every pair of locations (localizers' candidates and, with `samples`, matching surface samples) whose key fits
-    the measured pair, with its closed-form pose; at most `max_matches`, the best fitting keys first."""
+    the measured pair, with its closed-form pose; at most `max_matches`, the best fitting keys first. `matcher`
+    tests the location pairs (`key_matches` on all rows; `executor.SplitExecutor.key_matches` on two cores)."""
     surface = surface_samples(model, config.samples)
     left, right = (contact_locations(surface, shapes[side], candidates[side], config, samples) for side in SIDES)
     spacing = surface.spacing_m
@@ -296,72 +398,32 @@ def search_poses(
     offset = world["right"].p_world - world["left"].p_world
     separation = float(np.linalg.norm(offset))
     angles = direction_angles(offset, world["left"].n_world, world["right"].n_world)
-    # The shell of the widest separation tolerance over all left x right pairs, by one matrix product per chunk:
-    # [pL, 1] . [-2 pR, |pR|^2] = |pR - pL|^2 - |pL|^2, compared with the shell's bounds less |pL|^2 (one pass
-    # fewer over the chunk than forming the squared distances). On what falls in the shell, each part of the key
-    # is tested in turn on the pairs the parts before it kept, the most selective first: the angle (nL, nR), then
-    # the separation with its own tolerance, then the angles (d, nL), (d, nR) from dot products (offset . n =
-    # pR . n - pL . n, each location's own term computed once).
     n_left, n_right = normalize(left.n_object), normalize(right.n_object)
     widest = float(np.hypot(config.distance_tolerance_m, left.blur_m.max(initial=0) + right.blur_m.max(initial=0)))
-    low2, high2 = max(separation - widest, 0.0) ** 2, (separation + widest) ** 2
     squared_left = np.sum(left.p_object**2, axis=1)
-    left_rows = np.column_stack([left.p_object, np.ones(len(left.p_object))])
-    right_columns = np.vstack([-2.0 * right.p_object.T, np.sum(right.p_object**2, axis=1)])
-    low_rows, high_rows = low2 - squared_left, high2 - squared_left
-    own_left = np.sum(left.p_object * n_left, axis=1)  # pL . nL
-    own_right = np.sum(right.p_object * n_right, axis=1)  # pR . nR
-    # Coordinates as contiguous (3, L) rows, for the per-pair dot products (`_dot`).
-    p_left_columns, p_right_columns = np.ascontiguousarray(left.p_object.T), np.ascontiguousarray(right.p_object.T)
-    n_left_columns, n_right_columns = np.ascontiguousarray(n_left.T), np.ascontiguousarray(n_right.T)
     angle_variance = config.angle_tolerance_rad**2
-    left_variance, right_turn2 = angle_variance + left_turn**2, right_turn**2
-    found = []
-    columns = len(right.p_object)
-    chunk = max(1, 400_000 // max(columns, 1))
-    # Work buffers reused by every chunk (fresh multi-megabyte arrays cost page faults each time).
-    partial_buffer = np.empty((min(chunk, len(left.p_object)), columns))
-    low_buffer = np.empty(partial_buffer.shape, dtype=bool)
-    high_buffer = np.empty_like(low_buffer)
-    for first in range(0, len(left.p_object), chunk):
-        rows = slice(first, first + chunk)
-        count = min(chunk, len(left.p_object) - first)
-        partial = np.matmul(left_rows[rows], right_columns, out=partial_buffer[:count])
-        shell = np.greater_equal(partial, low_rows[rows, None], out=low_buffer[:count])
-        shell &= np.less_equal(partial, high_rows[rows, None], out=high_buffer[:count])
-        flat = np.flatnonzero(shell)  # far faster than a 2-D nonzero; the same pairs in the same order
-        if not len(flat):
-            continue
-        i = flat // columns
-        j = flat - i * columns
-        i += first
-        # (nL, nR)
-        key = np.arccos(np.clip(_dot(n_left_columns, i, n_right_columns, j), -1.0, 1.0))
-        mismatch = np.abs(key - angles[2]) / np.sqrt(left_variance[i] + right_turn2[j])
-        keep = np.flatnonzero(mismatch <= 1.0)
-        i, j, flat, mismatch = i[keep], j[keep], flat[keep], mismatch[keep]
-        # separation
-        distance = np.sqrt(np.maximum(partial.reshape(-1)[flat] + squared_left[i], 0.0))
-        blur = left.blur_m[i] + right.blur_m[j]
-        part = np.abs(distance - separation) / np.hypot(config.distance_tolerance_m, blur)
-        keep = np.flatnonzero((part <= 1.0) & (distance >= MIN_CONTACT_SEPARATION_M))
-        i, j, distance, blur = i[keep], j[keep], distance[keep], blur[keep]
-        mismatch = np.maximum(mismatch[keep], part[keep])
-        turn2 = (blur / max(separation, 1e-3)) ** 2  # the direction d turns as the locations move within their blur
-        # (d, nL) and (d, nR), d = (pR - pL) / distance
-        length = np.maximum(distance, 1e-12)
-        cosine = (_dot(p_right_columns, j, n_left_columns, i) - own_left[i]) / length
-        key = np.arccos(np.clip(cosine, -1.0, 1.0))
-        part = np.abs(key - angles[0]) / np.sqrt(left_variance[i] + turn2)
-        cosine = (own_right[j] - _dot(p_left_columns, i, n_right_columns, j)) / length
-        key = np.arccos(np.clip(cosine, -1.0, 1.0))
-        part = np.maximum(part, np.abs(key - angles[1]) / np.sqrt(angle_variance + right_turn2[j] + turn2))
-        keep = part <= 1.0
-        found.append((i[keep], j[keep], np.maximum(mismatch[keep], part[keep])))
-    if found:
-        a, b, mismatch = (np.concatenate(parts) for parts in zip(*found))
-    else:
-        a, b, mismatch = np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0)
+    test = KeyTest(
+        separation=separation,
+        angles=angles,
+        distance_tolerance_m=config.distance_tolerance_m,
+        angle_variance=angle_variance,
+        left_rows=np.column_stack([left.p_object, np.ones(len(left.p_object))]),
+        right_columns=np.vstack([-2.0 * right.p_object.T, np.sum(right.p_object**2, axis=1)]),
+        low_rows=max(separation - widest, 0.0) ** 2 - squared_left,
+        high_rows=(separation + widest) ** 2 - squared_left,
+        squared_left=squared_left,
+        own_left=np.sum(left.p_object * n_left, axis=1),
+        own_right=np.sum(right.p_object * n_right, axis=1),
+        p_left_columns=np.ascontiguousarray(left.p_object.T),
+        p_right_columns=np.ascontiguousarray(right.p_object.T),
+        n_left_columns=np.ascontiguousarray(n_left.T),
+        n_right_columns=np.ascontiguousarray(n_right.T),
+        left_blur_m=left.blur_m,
+        right_blur_m=right.blur_m,
+        left_variance=angle_variance + left_turn**2,
+        right_turn2=right_turn**2,
+    )
+    a, b, mismatch = (key_matches if matcher is None else matcher)(test)
     if len(mismatch) > config.max_matches:
         best = np.argpartition(mismatch, config.max_matches - 1)[: config.max_matches]
         a, b, mismatch = a[best], b[best], mismatch[best]
