@@ -65,30 +65,3 @@ def test_grouping_matches_its_definition(symmetry, rng):
     np.testing.assert_array_equal(grouped.member, members)
     np.testing.assert_array_equal(grouped.support, support)
     assert grouped.support.sum() == count
-
-
-def test_heavy_tailed_likelihood():
-    # Two contacts: one fits at the right pose's noise, one disagrees with the mesh by 5x it (a press the mesh
-    # does not model); corrections at Mahalanobis square 30. Gaussian: every square counts in full; Student-t
-    # tails of 2 (fit) and 12 (corrections) degrees of freedom: about the same near 0, logarithmic far out.
-    config = HypothesisConfig()
-    noise = config.fit_noise_m
-    refined = Refined(
-        np.tile(np.eye(4), (2, 1, 1)),
-        np.zeros((2, 2, 6)),
-        np.array([[noise, 5 * noise], [0.1 * noise, 0.1 * noise]]),
-        np.ones((2, 2)),
-        np.zeros((2, 2)),
-        np.array([30.0, 0.0]),
-        np.zeros((2, 6)),
-    )
-    gaussian = log_likelihoods(refined, config)
-    np.testing.assert_allclose(gaussian, [-0.5 * (4 * (1 + 25) + 30), -0.5 * 4 * 0.02])
-    tails = HypothesisConfig(fit_tail_dof=2.0, correction_tail_dof=12.0)
-    heavy = [-0.5 * (4 * 2 * (np.log(1.5) + np.log(13.5)) + 12 * np.log(3.5)), -0.5 * 4 * 2 * 2 * np.log(1.005)]
-    np.testing.assert_allclose(log_likelihoods(refined, tails), heavy)
-    assert heavy[0] > gaussian[0] + 30  # the disagreeing contact and corrections cost far less
-    # Tails only where the pose stage screens: the probabilities stay Gaussian.
-    screen_only = HypothesisConfig(fit_tail_dof=2.0, correction_tail_dof=12.0, tails_in_probabilities=False)
-    np.testing.assert_allclose(log_likelihoods(refined, screen_only), gaussian)
-    np.testing.assert_allclose(log_likelihoods(refined, screen_only, screening=True), heavy)

@@ -43,12 +43,6 @@ class HypothesisConfig:
     distinct_rotation_rad: float = float(np.radians(5.0))  # ... or this (modulo symmetry) are distinct hypotheses
     fit_noise_m: float = 3e-5  # residual RMS of a right pose (sensor noise, mesh error)
     effective_points: float = 4.0  # effectively independent points per contact (scales the fit's evidence)
-    fit_tail_dof: float = 0.0  # each contact's fit read with Student-t tails of this many degrees of freedom
-    # (0: Gaussian): a contact that disagrees with the mesh by several fit_noise_m costs ~log, not ~square
-    correction_tail_dof: float = 0.0  # the same for the corrections' Mahalanobis square (0: Gaussian)
-    tails_in_probabilities: bool = True  # the tails also in the probabilities (False: only where the pose stage
-    # chooses which poses to refine in full, `screening`) ...
-    tail_screened: int = 0  # ... where this many more distinct poses, the most likely by the tails, are refined
     temperature: float = 2.5  # probabilities from log-likelihood / temperature: the value at which the truth's
     # probability is best predicted (its mean -log p least) on simulated pairs under 1 mm / 1 deg calibration error
     free_noise_m: float = 1e-4  # free space: RMS depth of the object inside the gel or housing that costs as much
@@ -79,22 +73,11 @@ class Hypotheses:
         return len(self.probability)
 
 
-def log_likelihoods(refined: Refined, config: HypothesisConfig, screening: bool = False) -> np.ndarray:
-    """(K,) log-likelihood of each refined pose (see the module docstring); `screening`: as the pose stage chooses
-    which poses to refine in full (`HypothesisConfig.tails_in_probabilities`)."""
-    tails = screening or config.tails_in_probabilities
-    fit_dof, correction_dof = (config.fit_tail_dof, config.correction_tail_dof) if tails else (0.0, 0.0)
-    fit = config.effective_points * np.sum(
-        _heavy_tailed((refined.fit_rms_m / config.fit_noise_m) ** 2, fit_dof), axis=1
-    )
+def log_likelihoods(refined: Refined, config: HypothesisConfig) -> np.ndarray:
+    """(K,) log-likelihood of each refined pose (see the module docstring)."""
+    fit = config.effective_points * np.sum((refined.fit_rms_m / config.fit_noise_m) ** 2, axis=1)
     free = config.free_effective_points * np.sum((refined.free_rms_m / config.free_noise_m) ** 2, axis=1)
-    return -0.5 * (fit + free + _heavy_tailed(refined.correction_cost, correction_dof))
-
-
-def _heavy_tailed(square: np.ndarray, dof: float) -> np.ndarray:
-    """A squared normalised error as a Gaussian counts it (dof 0), or as a Student-t of `dof` degrees of freedom
-    does (dof log(1 + square / dof): the same near 0, logarithmic far out)."""
-    return square if dof <= 0 else dof * np.log1p(square / dof)
+    return -0.5 * (fit + free + refined.correction_cost)
 
 
 def pose_distances(T_a: np.ndarray, T_b: np.ndarray, symmetry: Symmetry) -> tuple[np.ndarray, np.ndarray]:
@@ -104,12 +87,9 @@ def pose_distances(T_a: np.ndarray, T_b: np.ndarray, symmetry: Symmetry) -> tupl
     return np.linalg.norm(T_a[:, :3, 3] - T_b[:, :3, 3], axis=1), symmetry.rotation_errors_rad(T_a, T_b)
 
 
-def group_hypotheses(
-    refined: Refined, symmetry: Symmetry, config: HypothesisConfig, screening: bool = False
-) -> Hypotheses:
-    """Group refined poses into distinct hypotheses (best first) with probabilities (`screening`: as
-    `log_likelihoods`)."""
-    score = log_likelihoods(refined, config, screening)
+def group_hypotheses(refined: Refined, symmetry: Symmetry, config: HypothesisConfig) -> Hypotheses:
+    """Group refined poses into distinct hypotheses (best first) with probabilities."""
+    score = log_likelihoods(refined, config)
     order = np.argsort(-score, kind="stable")
     poses = refined.T_world_object
     position = poses[:, :3, 3]

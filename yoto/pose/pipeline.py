@@ -332,31 +332,17 @@ def _fill_family(
 
 
 def _best_distinct(refined: Refined, symmetry: Symmetry, config: HypothesisConfig, count: int) -> np.ndarray:
-    """Indices of the best pose of each of the `count` most likely distinct hypotheses (`group_hypotheses`), and of
-    up to `config.tail_screened` more: the most likely distinct ones by the heavy-tailed likelihood
-    (`log_likelihoods(..., screening=True)`) not among them (a pose whose clouds disagree with the mesh in one
-    place, e.g. a press the mesh does not model, still gets its full refinement)."""
-    members = _founders(refined, symmetry, config, count, screening=False)
-    if not config.tail_screened:
-        return members
-    more = _founders(refined, symmetry, config, count, screening=True)
-    return np.concatenate([members, more[~np.isin(more, members)][: config.tail_screened]])
-
-
-def _founders(
-    refined: Refined, symmetry: Symmetry, config: HypothesisConfig, count: int, screening: bool
-) -> np.ndarray:
     """Indices of the best pose of each of the `count` most likely distinct hypotheses (`group_hypotheses`).
 
     Grouping visits the poses from the most likely down, and whether a pose founds a hypothesis depends only on
     the poses before it: the first `count` founders among the most likely few poses are the first `count` of all.
     So the grouping runs on the most likely 4 x `count` poses first, and on all only when they hold fewer.
     """
-    order = np.argsort(-log_likelihoods(refined, config, screening), kind="stable")
+    order = np.argsort(-log_likelihoods(refined, config), kind="stable")
     subset = order[: 4 * count]
-    members = subset[group_hypotheses(refined.subset(subset), symmetry, config, screening).member[:count]]
+    members = subset[group_hypotheses(refined.subset(subset), symmetry, config).member[:count]]
     if len(members) < count and len(subset) < len(order):
-        members = group_hypotheses(refined, symmetry, config, screening).member[:count]
+        members = group_hypotheses(refined, symmetry, config).member[:count]
     return members
 
 
