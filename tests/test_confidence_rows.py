@@ -33,11 +33,13 @@ def test_hypothesis_rows_measure_each_hypothesis_from_the_first_and_the_truth():
     assert rows[:, 4].tolist() == [1.0, 0.0, 0.0]  # 2 mm / 3 deg right; 20 deg and 12 mm wrong
 
 
-def test_rows_key_changes_with_the_localizer_and_pose_settings():
-    """Cached rows are reused only by the same localizer and pose-stage settings: a changed default (fewer ICP
-    candidates kept) or pose config gives a new key; the same settings in a new instance give the same key."""
+def test_rows_key_changes_with_the_localizer_and_pose_settings(monkeypatch):
+    """Cached rows are reused only by the same localizer and pose-stage settings and the same code: a changed default
+    (fewer ICP candidates kept), pose config or commit gives a new key; the same settings in a new instance give the
+    same key."""
     from dataclasses import replace
 
+    import yoto.evaluation.calibrate as calibrate
     from yoto.evaluation.calibrate import CalibrationConfig, rows_key
     from yoto.localize.match.config import MatchConfig
     from yoto.localize.scaled_match import ScaledMatchLocalizer
@@ -54,3 +56,5 @@ def test_rows_key_changes_with_the_localizer_and_pose_settings():
         rows_key(replace(config, seed=12), "abc", ScaledMatchLocalizer(), pose),
     }
     assert key not in others and len(others) == 4
+    monkeypatch.setattr(calibrate, "git_commit", lambda: "0123abc")  # another commit of the same version
+    assert rows_key(config, "abc", ScaledMatchLocalizer(), pose) != key

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from yoto import __version__
 from yoto.errors import YotoError
 from yoto.evaluation.bench import (
     RIGHT_DEG,
@@ -41,7 +42,7 @@ from yoto.objects.model import ObjectModel
 from yoto.pose.confidence import FEATURES, ConfidenceModel, fit_logistic
 from yoto.pose.hypotheses import pose_distances
 from yoto.pose.pipeline import PoseConfig, PoseEstimate, localize_contacts, pose_from_candidates
-from yoto.provenance import run_info
+from yoto.provenance import git_commit, run_info
 
 log = logging.getLogger("yoto")
 
@@ -74,9 +75,11 @@ class Rows:
 def rows_key(config: CalibrationConfig, fingerprint: str, localizer: object, pose_config: PoseConfig) -> str:
     """The cache key of an object's rows. Rows describe the localizer and the pose stage that made them: their
     settings (the localizer's dataclass configs, the pose stage's config) are part of the key, so a changed default
-    (a cut in the localizer, say) never reuses rows made by the old one."""
+    (a cut in the localizer, say) never reuses rows made by the old one. So are YOTO's version and commit, as for
+    `yoto bench`'s cache: a mended bug behind unchanged settings computes the rows again."""
     localizer_settings = [repr(value) for value in vars(localizer).values() if is_dataclass(value)]
-    settings = [asdict(config), fingerprint, FEATURES, localizer_settings, repr(pose_config)]
+    code = [__version__, git_commit()]
+    settings = [asdict(config), fingerprint, FEATURES, localizer_settings, repr(pose_config), code]
     return hashlib.sha256(json.dumps(settings).encode()).hexdigest()[:12]
 
 
