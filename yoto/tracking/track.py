@@ -514,12 +514,19 @@ class _Corrector:
         normal = jacobian.T @ jacobian
         return normal / c.pixel_noise_m**2, normal * (c.bias_points / len(jacobian)) / c.bias_noise_m**2
 
-    def _register(self, points: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, float]]:
+    def _register(
+        self, points: dict[str, np.ndarray], sensors: dict[str, np.ndarray]
+    ) -> tuple[np.ndarray, dict[str, float]]:
         """The correction T_object_predicted bringing the sides' points (predicted object frame) onto the surface,
-        and each side's inlier fraction after it."""
+        and each side's inlier fraction after it. `sensors`: each side's T_predicted_sensor; its points match only
+        surface facing that sensor (the other face of a thin wall, 1 mm behind the contact on a mug, is not theirs)."""
         c = self.config.correction
         stacked = np.vstack(list(points.values()))
-        correction = point_to_plane_gauss_newton(self.model, stacked, np.eye(4)[None], self.solver)[0]
+        # The surface's outward normal at a contact is against the sensor's z (which points into the object).
+        facing = np.vstack([np.broadcast_to(-sensors[side][:3, 2], (len(p), 3)) for side, p in points.items()])
+        correction = point_to_plane_gauss_newton(
+            self.model, stacked, np.eye(4)[None], self.solver, facing_source=facing
+        )[0]
         fractions = {}
         for side, side_points in points.items():
             fit = truncated_plane_fit(
@@ -578,13 +585,13 @@ class _Corrector:
 
         record = Correction(timestamp_s=instant_s, used=(), unusable=unusable)
         if points_predicted:
-            correction, fractions = self._register(points_predicted)
+            correction, fractions = self._register(points_predicted, T_predicted_sensors)
             bad = {side for side, fraction in fractions.items() if fraction < c.min_inlier_fraction}
             if bad and len(bad) < len(points_predicted):  # one side fits badly: try the other alone
                 for side in bad:
                     unusable[side] = f"bad fit ({fractions[side]:.0%} of points on the surface)"
                     del points_predicted[side]
-                correction, fractions = self._register(points_predicted)
+                correction, fractions = self._register(points_predicted, T_predicted_sensors)
                 bad = {side for side, fraction in fractions.items() if fraction < c.min_inlier_fraction}
             if bad:
                 for side in points_predicted:
