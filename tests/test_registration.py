@@ -126,3 +126,25 @@ def test_batched_refinement_agrees_with_one_candidate_at_a_time(rng, pivot, tole
     for start, T in zip(starts, batched, strict=True):
         single = point_to_plane_gauss_newton(surface, points_sensor, start[None], config, pivot_source, facing)
         assert np.abs(single[0] - T).max() < TOL["float"]
+
+
+def test_points_of_two_contacts_keep_to_their_own_side_of_a_thin_wall():
+    """A box's two opposite walls, 1 mm thick: the contacts' points, given 0.6 mm off along the walls' normal,
+    lie nearer the inner face of one wall. With each point's expected outward normal (its contact's) they match
+    only the outer faces and the fit removes the offset; without it one contact pulls towards the inner face."""
+    axis = np.arange(-0.01, 0.01 + 1e-12, 4e-4)
+    y, z = [a.ravel() for a in np.meshgrid(axis, axis)]
+    faces = [(-0.020, -1.0), (-0.019, 1.0), (0.019, -1.0), (0.020, 1.0)]  # (x, normal's x): outer, inner, inner, outer
+    surface = Surface(
+        np.vstack([np.stack([np.full_like(y, x), y, z], axis=1) for x, _ in faces]),
+        np.vstack([np.tile([sign, 0.0, 0.0], (len(y), 1)) for _, sign in faces]),
+    )
+    near = y**2 + z**2 < 0.005**2
+    left, right = (np.stack([np.full(near.sum(), x), y[near], z[near]], axis=1) for x in (-0.020, 0.020))
+    points = np.vstack([left, right]) + [6e-4, 0.0, 0.0]
+    facing = np.vstack([np.tile([-1.0, 0.0, 0.0], (len(left), 1)), np.tile([1.0, 0.0, 0.0], (len(right), 1))])
+    config = GaussNewtonConfig()
+    fit = point_to_plane_gauss_newton(surface, points, np.eye(4)[None], config, facing_source=facing)[0]
+    assert fit[0, 3] == pytest.approx(-6e-4, abs=1e-6)
+    blind = point_to_plane_gauss_newton(surface, points, np.eye(4)[None], config)[0]
+    assert abs(blind[0, 3] + 6e-4) > 2e-4  # the left contact's points matched to its wall's inner face

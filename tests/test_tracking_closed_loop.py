@@ -433,3 +433,31 @@ def test_the_sliding_map_learns_the_pads_error_and_never_the_slip(builtin_models
     error = ripple(last) - (last[:, 2] - rippled.correct(last)[:, 2])
     left = error - flat @ np.linalg.lstsq(flat, error, rcond=None)[0]
     assert np.sqrt(np.mean(left**2)) < 0.6 * np.sqrt(np.mean(shape**2))  # measured 7.7 of 15.4 um RMS
+
+
+def test_the_closed_loop_runs_blas_on_one_thread(builtin_models, fruit_trajectory, monkeypatch):
+    """The sliding map's products and solves are small: on a busy 2-core machine two BLAS threads waiting for
+    each other made the closed loop 10-40x slower (a 100 mm trajectory took 48 s of CPU instead of 1.2 s)."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from yoto.tracking.pad_error import _SlidingMap
+
+    def blas_threads() -> int:
+        return max(library["num_threads"] for library in threadpool_info() if library["user_api"] == "blas")
+
+    seen = []
+    solve = _SlidingMap._solve
+
+    def spying_solve(self) -> None:
+        seen.append(blas_threads())
+        solve(self)
+
+    monkeypatch.setattr(_SlidingMap, "_solve", spying_solve)
+    trajectory, model = fruit_trajectory, builtin_models["fruit"]
+    touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
+    with threadpool_limits(limits=2, user_api="blas"):
+        if blas_threads() != 2:
+            pytest.skip("BLAS cannot run on two threads here")
+        track(touch, trajectory.streams, model, tactile_streams(trajectory))
+        assert blas_threads() == 2  # the caller's setting is given back
+    assert len(seen) > 20 and set(seen) == {1}

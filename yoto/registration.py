@@ -172,13 +172,14 @@ def point_to_plane_gauss_newton(
     plane, spinning on a sphere) stay where they started.
 
     The correction rotates about a pivot: the source point `pivot_source` as it moves with the pose (a contact's
-    centre: rotation and translation then decouple), or, when None, the surface frame's origin. The prior is on
-    the rotation and on the pivot's displacement since the start. `facing_source` (3,): the points' expected
-    outward normal in the source frame; correspondences whose surface normal disagrees are dropped. The first
-    `translation_only_iterations` move translation only: while a translation error dominates the residuals,
-    noise in the normals would otherwise leak it into rotations the surface cannot observe. `keep_best`: after
-    the first iteration only this many poses, those whose points then lie best on the surface (truncated at
-    `max_distance_m`), iterate further; the others keep their one-step pose (None: all iterate).
+    centre: rotation and translation then decouple), or, when None, the surface frame's origin. The prior is on the
+    rotation and on the pivot's displacement since the start. `facing_source` (3,): the points' expected outward
+    normal in the source frame, or (M, 3) one per point (contacts of two sensors); correspondences whose surface
+    normal disagrees are dropped. The first `translation_only_iterations` move translation only: while a translation
+    error dominates the residuals, noise in the normals would otherwise leak it into rotations the surface cannot
+    observe. `keep_best`: after the first iteration only this many poses, those whose points then lie best on the
+    surface (truncated at `max_distance_m`), iterate further; the others keep their one-step pose (None: all
+    iterate).
     """
     poses = np.array(T_surface_source, dtype=np.float64).reshape(-1, 4, 4)
     start = poses.copy()
@@ -195,7 +196,11 @@ def point_to_plane_gauss_newton(
         rotation, translation = poses[active, :3, :3], poses[active, :3, 3]
         source = points_source if np.ndim(points_source) == 2 else points_source[active]
         p = transform_batch(poses[active], source)
-        facing = None if facing_source is None else (rotation @ facing_source)[:, None, :]
+        facing = None
+        if facing_source is not None and np.ndim(facing_source) == 1:  # one normal for all points
+            facing = (rotation @ facing_source)[:, None, :]
+        elif facing_source is not None:  # one per point
+            facing = np.einsum("kij,mj->kmi", rotation, facing_source)
         r, use, _, n = plane_distances(surface, p, config.max_distance_m, facing)
         if iteration == 1 and keep_best is not None and count > keep_best:
             truncated = np.where(use, np.minimum(np.abs(r), config.max_distance_m), config.max_distance_m)

@@ -57,6 +57,7 @@ from yoto.geometry import (
 from yoto.objects.model import ObjectModel
 from yoto.registration import (
     GaussNewtonConfig,
+    one_blas_thread,
     plane_distances,
     point_to_plane_gauss_newton,
     point_to_plane_jacobian,
@@ -295,11 +296,15 @@ def track(
     starts = np.searchsorted(sensors.timestamps_s, [instant_time for instant_time, _ in instants], side="left")
     closed = np.empty_like(open_loop)
     begin = 0
-    for (instant_time, frames), start in zip(instants, starts, strict=True):
-        if start > begin:  # the outputs before this instant follow the grasps as they were
-            closed[begin:start] = fuse_object_poses(sensors, corrector.grasps, slice(begin, start))[0]
-            begin = start
-        result.corrections.append(corrector.correct(instant_time, {side: (tactile[side], i) for side, i in frames}))
+    # Each instant's products are small (a few hundred points, the sliding map's few hundred nodes): on a busy
+    # 2-core machine two BLAS threads waiting for each other made the closed loop 10-40x slower.
+    with one_blas_thread():
+        for (instant_time, frames), start in zip(instants, starts, strict=True):
+            if start > begin:  # the outputs before this instant follow the grasps as they were
+                closed[begin:start] = fuse_object_poses(sensors, corrector.grasps, slice(begin, start))[0]
+                begin = start
+            instant_frames = {side: (tactile[side], i) for side, i in frames}
+            result.corrections.append(corrector.correct(instant_time, instant_frames))
     if begin < len(closed):
         closed[begin:] = fuse_object_poses(sensors, corrector.grasps, slice(begin, None))[0]
     result.T_world_object = closed
@@ -509,12 +514,19 @@ class _Corrector:
         normal = jacobian.T @ jacobian
         return normal / c.pixel_noise_m**2, normal * (c.bias_points / len(jacobian)) / c.bias_noise_m**2
 
-    def _register(self, points: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, float]]:
+    def _register(
+        self, points: dict[str, np.ndarray], sensors: dict[str, np.ndarray]
+    ) -> tuple[np.ndarray, dict[str, float]]:
         """The correction T_object_predicted bringing the sides' points (predicted object frame) onto the surface,
-        and each side's inlier fraction after it."""
+        and each side's inlier fraction after it. `sensors`: each side's T_predicted_sensor; its points match only
+        surface facing that sensor (the other face of a thin wall, 1 mm behind the contact on a mug, is not theirs)."""
         c = self.config.correction
         stacked = np.vstack(list(points.values()))
-        correction = point_to_plane_gauss_newton(self.model, stacked, np.eye(4)[None], self.solver)[0]
+        # The surface's outward normal at a contact is against the sensor's z (which points into the object).
+        facing = np.vstack([np.broadcast_to(-sensors[side][:3, 2], (len(p), 3)) for side, p in points.items()])
+        correction = point_to_plane_gauss_newton(
+            self.model, stacked, np.eye(4)[None], self.solver, facing_source=facing
+        )[0]
         fractions = {}
         for side, side_points in points.items():
             fit = truncated_plane_fit(
@@ -573,13 +585,13 @@ class _Corrector:
 
         record = Correction(timestamp_s=instant_s, used=(), unusable=unusable)
         if points_predicted:
-            correction, fractions = self._register(points_predicted)
+            correction, fractions = self._register(points_predicted, T_predicted_sensors)
             bad = {side for side, fraction in fractions.items() if fraction < c.min_inlier_fraction}
             if bad and len(bad) < len(points_predicted):  # one side fits badly: try the other alone
                 for side in bad:
                     unusable[side] = f"bad fit ({fractions[side]:.0%} of points on the surface)"
                     del points_predicted[side]
-                correction, fractions = self._register(points_predicted)
+                correction, fractions = self._register(points_predicted, T_predicted_sensors)
                 bad = {side for side, fraction in fractions.items() if fraction < c.min_inlier_fraction}
             if bad:
                 for side in points_predicted:
