@@ -241,15 +241,18 @@ def _remote_half(
 ) -> tuple[Any, float]:
     """The helper's half of a batch: `local` (`evaluate_offsets`, `_counted_refine`) with the helper's field, and
     its CPU time (ms)."""
-    tick = time.process_time()
-    with one_blas_thread():  # as the calling process's pose stage (sums in one order)
-        result = local(surface_field(model, field_config), *arguments)
-    return result, 1000.0 * (time.process_time() - tick)
+    return _timed(lambda: local(surface_field(model, field_config), *arguments))
 
 
 def _remote_key_matches(model: ObjectModel, test: KeyTest, first: int) -> tuple[Matched, float]:
     """The helper's rows of the search's key test (from `first` on), and its CPU time (ms)."""
+    return _timed(lambda: key_matches(test, first))
+
+
+def _timed(work: Callable[[], Any]) -> tuple[Any, float]:
+    """`work()` in the helper with BLAS on one thread, as the calling process's pose stage runs (sums in one order,
+    so the halves join bitwise), and its CPU time (ms)."""
     tick = time.process_time()
-    with one_blas_thread():  # as the calling process's pose stage (the shell's matrix products)
-        result = key_matches(test, first)
+    with one_blas_thread():
+        result = work()
     return result, 1000.0 * (time.process_time() - tick)
