@@ -113,6 +113,16 @@ def tilted_face(slope_x: float, slope_y: float, depth_m: float) -> np.ndarray:
     return height
 
 
+def two_optics(truth: np.ndarray, shading) -> tuple[np.ndarray, np.ndarray]:
+    """The gel `truth` through the shading sensor and through the fitted model with varied lighting, noise and gel
+    (one seeded draw each)."""
+    sensor, calibration = shading
+    return (
+        sensor.render(truth, np.random.default_rng(3)),
+        render_varied(truth, calibration, np.random.default_rng(4), OpticsVariation.of(1.0)),
+    )
+
+
 @pytest.mark.parametrize("slope_x, slope_y, depth_m", [(0.04, 0.0, 0.1e-3), (-0.015, 0.035, 0.15e-3)])
 def test_a_faint_tilted_face_reads_as_tilted_and_a_flat_press_is_no_contact(shading, slope_x, slope_y, depth_m):
     """A flat face pressed with a slight tilt changes the colour by a few levels over half the pad, no pixel by the
@@ -129,10 +139,7 @@ def test_a_faint_tilted_face_reads_as_tilted_and_a_flat_press_is_no_contact(shad
         design = np.stack([np.ones(int(mask.sum())), x[mask], y[mask]], axis=1)
         return np.linalg.lstsq(design, height_m[mask].astype(np.float64), rcond=None)[0][1:]
 
-    images = (
-        sensor.render(truth, np.random.default_rng(3)),
-        render_varied(truth, calibration, np.random.default_rng(4), OpticsVariation.of(1.0)),
-    )
+    images = two_optics(truth, shading)
     for image in images:
         assert np.abs(image.astype(int) - calibration.background).max() < 20  # a faint change
         recon = reconstruct(image, calibration)
@@ -161,15 +168,12 @@ def test_untouched_gel_beside_a_contact_across_the_pad_stays_flat(shading, angle
     either side of it drifted 0.02-0.06 mm (99th percentile) with the gradients' errors integrated across the
     contact, and the localization mask grew into it. Anchored to z = 0, it stays within 0.01 mm, through the shading
     sensor and through the fitted model with varied lighting, noise and gel."""
-    sensor, calibration = shading
+    _, calibration = shading
     truth = cylinder_band(angle_deg, offset_m)
     far = ~ndimage.binary_dilation(truth < -1e-5, iterations=16)  # a millimetre from where the gel sinks in
     felt = truth < -0.05e-3
     assert 0.3 < felt.mean() < 0.7 and far.mean() > 0.2
-    images = (
-        sensor.render(truth, np.random.default_rng(3)),
-        render_varied(truth, calibration, np.random.default_rng(4), OpticsVariation.of(1.0)),
-    )
+    images = two_optics(truth, shading)
     for image in images:
         recon = reconstruct(image, calibration)
         assert recon.contact and recon.touches_border
@@ -195,15 +199,12 @@ def test_a_pressed_plateau_is_not_taken_for_untouched_gel(shading):
     from the zero-mean solve's zero instead of the untouched gel's level it passed for untouched gel and was pulled
     up (median 0.00-0.03 mm deep, the whole face bent and x0.81-0.90 shallow). Through the shading sensor and the
     fitted model with varied lighting, noise and gel, it keeps most of its depth."""
-    sensor, calibration = shading
+    _, calibration = shading
     truth = bent_face(0.5e-3, 0.08, 0.003, 0.005)
     felt = truth < -0.05e-3
     plateau = (truth == truth[120, 250]) & felt
     assert 0.8 < felt.mean() < 0.95 and plateau.mean() > 0.2
-    images = (
-        sensor.render(truth, np.random.default_rng(3)),
-        render_varied(truth, calibration, np.random.default_rng(4), OpticsVariation.of(1.0)),
-    )
+    images = two_optics(truth, shading)
     for image in images:
         recon = reconstruct(image, calibration)
         assert recon.box == (0, SPEC.height_px, 0, SPEC.width_px)  # every edge free
