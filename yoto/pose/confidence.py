@@ -25,7 +25,7 @@ from yoto.contacts import SIDES, ContactEstimate
 from yoto.errors import InputError
 from yoto.io import write_json_atomic
 from yoto.objects.symmetry import Symmetry
-from yoto.pose.hypotheses import Hypotheses, pose_distances, spread
+from yoto.pose.hypotheses import Hypotheses, spread
 from yoto.pose.refine import Refined
 from yoto.pose.search import LocalShape
 from yoto.pose.solver import PoseSolution
@@ -46,7 +46,6 @@ FEATURES = (
     "belief",  # log10 of the product of the localizers' beliefs at the chosen contacts (floored at 1e-4)
     "searched",  # whether the joint search ran (the localizers did not settle it)
     "spread",  # log(1 + probability-weighted distance of the hypotheses from the first, in 5 mm / 5 deg, capped at 4)
-    "near_mass",  # log odds of the probability within one unit (5 mm / 5 deg) of the first hypothesis (clipped +-12)
     "rotation_std",  # log of the first pose's rotation standard deviation (largest axis) over 5 deg, from the
     # refinement's information there (the corrections marginalised)
     "translation_std",  # log of its translation standard deviation (largest axis) over 5 mm
@@ -75,10 +74,10 @@ def confidence_features(
     pose covariance (`refine.pose_covariance`)."""
     best = int(hypotheses.member[0])
     first = float(np.clip(hypotheses.probability[0], 1e-12, 1.0))
-    translation, rotation = pose_distances(hypotheses.T_world_object, hypotheses.T_world_object[0], symmetry)
-    near = (translation <= SPREAD_SCALE_M) & (rotation <= SPREAD_SCALE_RAD)
-    near_mass = float(np.clip(np.sum(hypotheses.probability[near]) / np.sum(hypotheses.probability), 1e-12, 1 - 1e-12))
-    rotation_std, translation_std = (float(np.sqrt(np.linalg.eigvalsh(block)[-1])) for block in _blocks(covariance))
+    # the largest standard deviation of the rotation (its first three rows) and of the translation (the last three)
+    rotation_std, translation_std = (
+        float(np.sqrt(np.linalg.eigvalsh(covariance[k : k + 3, k : k + 3])[-1])) for k in (0, 3)
+    )
     margin = (
         30.0 if len(hypotheses) < 2 else min(30.0, float(hypotheses.log_likelihood[0] - hypotheses.log_likelihood[1]))
     )
@@ -94,15 +93,9 @@ def confidence_features(
         "belief": float(np.log10(belief)),
         "searched": float(searched),
         "spread": float(np.log1p(spread(hypotheses, symmetry, SPREAD_SCALE_M, SPREAD_SCALE_RAD, SPREAD_CAP))),
-        "near_mass": float(np.clip(np.log(near_mass) - np.log1p(-near_mass), -12.0, 12.0)),
         "rotation_std": float(np.log(rotation_std / SPREAD_SCALE_RAD)),
         "translation_std": float(np.log(translation_std / SPREAD_SCALE_M)),
     }
-
-
-def _blocks(covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The rotation and translation blocks of a (6, 6) twist covariance."""
-    return covariance[:3, :3], covariance[3:, 3:]
 
 
 @dataclass
