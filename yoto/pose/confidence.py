@@ -3,8 +3,9 @@
 The pose stage describes its result by a few numbers (`confidence_features`): how much of the probability the
 first hypothesis holds and by what margin, how far the others lie from it (near neighbours along a family of
 poses, or poses elsewhere; modulo the object's symmetries), how well the clouds fit under it and how large the
-sensor corrections had to be, how well the two contacts' directions condition the rotation, whether the contacts
-have features of their own, what the localizers believed. A logistic model maps them to the probability of being
+sensor corrections had to be, how well the two contacts' directions condition the rotation, how far the clouds
+leave the first pose free (its standard deviations), whether the contacts have features of their own, what the
+localizers believed. A logistic model maps them to the probability of being
 right. It is fitted on simulated contacts of many objects under realistic calibration error (`yoto
 calibrate-confidence`, see docs/pose.md), held-out objects check it, and its parameters ship with YOTO
 (`confidence.json`), so a threshold means the same on every object. A reliability diagram in the benchmark shows
