@@ -58,3 +58,23 @@ def test_rows_key_changes_with_the_localizer_and_pose_settings(monkeypatch):
     assert key not in others and len(others) == 4
     monkeypatch.setattr(calibrate, "git_commit", lambda: "0123abc")  # another commit of the same version
     assert rows_key(config, "abc", ScaledMatchLocalizer(), pose) != key
+
+
+def test_fit_only_settings_reuse_rows_and_the_fit_reads_its_features_by_name():
+    """The ridge penalty and the features a model uses do not change the rows (all features are kept): the same key;
+    a fit on some of them reads their columns by name, in the model's order."""
+    from dataclasses import replace
+
+    from yoto.evaluation.calibrate import CalibrationConfig, Rows, feature_matrix, rows_key
+    from yoto.localize.scaled_match import ScaledMatchLocalizer
+    from yoto.pose.confidence import FEATURES
+    from yoto.pose.pipeline import PoseConfig
+
+    config = CalibrationConfig()
+    key = rows_key(config, "abc", ScaledMatchLocalizer(), PoseConfig())
+    fit_only = replace(config, l2=0.5, features=("spread", "belief"))
+    assert rows_key(fit_only, "abc", ScaledMatchLocalizer(), PoseConfig()) == key
+    values = np.arange(2 * len(FEATURES), dtype=float).reshape(2, len(FEATURES))
+    rows = [Rows("a", values[:1].tolist(), [True], [0.5]), Rows("b", values[1:].tolist(), [False], [0.5])]
+    picked = feature_matrix(rows, ("spread", "belief"))
+    assert picked.tolist() == [[values[r, FEATURES.index(n)] for n in ("spread", "belief")] for r in range(2)]

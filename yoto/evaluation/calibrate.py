@@ -56,7 +56,12 @@ class CalibrationConfig:
     sensor_noise_mm: float = 1.0  # the standard condition: calibration error of each sensor, position ...
     sensor_noise_deg: float = 1.0  # ... and orientation
     method: str = "match"  # the localizer
-    l2: float = 0.01  # ridge penalty of the logistic regression (per pair, on standardised features)
+    l2: float = 0.001  # ridge penalty of the logistic regression (per pair, on standardised features; chosen by
+    # leaving one object out at a time, docs/pose.md)
+    features: tuple[str, ...] = FEATURES  # the features the model uses (rows keep them all)
+
+
+FIT_ONLY = ("l2", "features")  # settings of the fit alone: rows do not depend on them
 
 
 @dataclass
@@ -79,7 +84,8 @@ def rows_key(config: CalibrationConfig, fingerprint: str, localizer: object, pos
     `yoto bench`'s cache: a mended bug behind unchanged settings computes the rows again."""
     localizer_settings = [repr(value) for value in vars(localizer).values() if is_dataclass(value)]
     code = [__version__, git_commit()]
-    settings = [asdict(config), fingerprint, FEATURES, localizer_settings, repr(pose_config), code]
+    simulated = {key: value for key, value in asdict(config).items() if key not in FIT_ONLY}
+    settings = [simulated, fingerprint, FEATURES, localizer_settings, repr(pose_config), code]
     return hashlib.sha256(json.dumps(settings).encode()).hexdigest()[:12]
 
 
@@ -139,6 +145,13 @@ def hypothesis_rows(model: ObjectModel, estimate: PoseEstimate, T_world_mesh_tru
     ).tolist()
 
 
+def feature_matrix(rows: list[Rows], features: tuple[str, ...]) -> np.ndarray:
+    """(N, F) the rows' values of `features` (rows keep FEATURES, in that order)."""
+    columns = [FEATURES.index(name) for name in features]
+    matrix = np.array([f for r in rows for f in r.features], dtype=np.float64).reshape(-1, len(FEATURES))
+    return matrix[:, columns]
+
+
 def roc_auc(score: np.ndarray, positive: np.ndarray) -> float:
     """Area under the ROC curve (the probability that a right pose scores above a wrong one; ties count half)."""
     score, positive = np.asarray(score, dtype=np.float64), np.asarray(positive, dtype=bool)
@@ -157,9 +170,8 @@ def roc_auc(score: np.ndarray, positive: np.ndarray) -> float:
 def summary(model: ConfidenceModel, rows: list[Rows], threshold: float | None = None) -> dict[str, Any]:
     """How the model does on a set of objects: ECE, AUC, and the share confident at `threshold` (default: the
     99%-right threshold chosen on these rows themselves)."""
-    features = np.array([f for r in rows for f in r.features], dtype=np.float64).reshape(-1, len(FEATURES))
     right = np.array([v for r in rows for v in r.right], dtype=bool)
-    confidence = model.predict_many(features)
+    confidence = model.predict_many(feature_matrix(rows, model.features))
     trusted = trusted_threshold(confidence, right)
     chosen = trusted["threshold"] if threshold is None else threshold
     confident = confidence >= chosen
@@ -175,7 +187,9 @@ def summary(model: ConfidenceModel, rows: list[Rows], threshold: float | None = 
             r.object_name: {
                 "pairs": len(r.right),
                 "right": float(np.mean(r.right)) if r.right else float("nan"),
-                "confident": float(np.mean(model.predict_many(np.array(r.features)) >= chosen)) if r.right else 0.0,
+                "confident": float(np.mean(model.predict_many(feature_matrix([r], model.features)) >= chosen))
+                if r.right
+                else 0.0,
             }
             for r in rows
         },
@@ -195,7 +209,7 @@ def calibrate_confidence(
     cache_dir = Path(work_dir) / "rows"
     fit_rows = [collect_rows(spec, config, cache_dir, workspace) for spec in fit_objects]
     held_rows = [collect_rows(spec, config, cache_dir, workspace) for spec in held_out]
-    features = np.array([f for r in fit_rows for f in r.features], dtype=np.float64).reshape(-1, len(FEATURES))
+    features = feature_matrix(fit_rows, config.features)
     right = np.array([v for r in fit_rows for v in r.right], dtype=bool)
     info = {
         "fitted_on": [r.object_name for r in fit_rows],
@@ -205,12 +219,12 @@ def calibrate_confidence(
         "config": asdict(config),
         **{key: value for key, value in run_info().items() if key in ("commit", "yoto", "device")},
     }
-    model = fit_logistic(features, right, l2=config.l2, info=info)
+    model = fit_logistic(features, right, l2=config.l2, info=info, features=config.features)
     fit_summary = summary(model, fit_rows)
     report = {
         "fit": fit_summary,
         "held_out": summary(model, held_rows, fit_summary["threshold"]) if held_rows else None,
-        "weights": dict(zip(FEATURES, model.weights.tolist())),
+        "weights": dict(zip(model.features, model.weights.tolist())),
         "wall_time_s": time.perf_counter() - started,
     }
     model.info["report"] = {key: report[key] for key in ("fit", "held_out")}

@@ -3,8 +3,9 @@
 The pose stage describes its result by a few numbers (`confidence_features`): how much of the probability the
 first hypothesis holds and by what margin, how far the others lie from it (near neighbours along a family of
 poses, or poses elsewhere; modulo the object's symmetries), how well the clouds fit under it and how large the
-sensor corrections had to be, how well the two contacts' directions condition the rotation, whether the contacts
-have features of their own, what the localizers believed. A logistic model maps them to the probability of being
+sensor corrections had to be, how well the two contacts' directions condition the rotation, how far the clouds
+leave the first pose free (its standard deviations), whether the contacts have features of their own, what the
+localizers believed. A logistic model maps them to the probability of being
 right. It is fitted on simulated contacts of many objects under realistic calibration error (`yoto
 calibrate-confidence`, see docs/pose.md), held-out objects check it, and its parameters ship with YOTO
 (`confidence.json`), so a threshold means the same on every object. A reliability diagram in the benchmark shows
@@ -46,6 +47,9 @@ FEATURES = (
     "belief",  # log10 of the product of the localizers' beliefs at the chosen contacts (floored at 1e-4)
     "searched",  # whether the joint search ran (the localizers did not settle it)
     "spread",  # log(1 + probability-weighted distance of the hypotheses from the first, in 5 mm / 5 deg, capped at 4)
+    "rotation_std",  # log of the first pose's rotation standard deviation (largest axis) over 5 deg, from the
+    # refinement's information there (the corrections marginalised)
+    "translation_std",  # log of its translation standard deviation (largest axis) over 5 mm
 )
 SPREAD_SCALE_M, SPREAD_SCALE_RAD = 0.005, float(np.radians(5.0))  # the unit of `spread`: what "right" allows ...
 SPREAD_CAP = 4.0  # ... and the distance at which a hypothesis counts as elsewhere
@@ -65,10 +69,16 @@ def confidence_features(
     shapes: dict[str, LocalShape],
     searched: bool,
     symmetry: Symmetry,
+    covariance: np.ndarray,
 ) -> dict[str, float]:
-    """The numbers the confidence is computed from (see FEATURES)."""
+    """The numbers the confidence is computed from (see FEATURES); `covariance` (6, 6) is the first hypothesis's
+    pose covariance (`refine.pose_covariance`)."""
     best = int(hypotheses.member[0])
     first = float(np.clip(hypotheses.probability[0], 1e-12, 1.0))
+    # the largest standard deviation of the rotation (its first three rows) and of the translation (the last three)
+    rotation_std, translation_std = (
+        float(np.sqrt(np.linalg.eigvalsh(covariance[k : k + 3, k : k + 3])[-1])) for k in (0, 3)
+    )
     margin = (
         30.0 if len(hypotheses) < 2 else min(30.0, float(hypotheses.log_likelihood[0] - hypotheses.log_likelihood[1]))
     )
@@ -84,6 +94,8 @@ def confidence_features(
         "belief": float(np.log10(belief)),
         "searched": float(searched),
         "spread": float(np.log1p(spread(hypotheses, symmetry, SPREAD_SCALE_M, SPREAD_SCALE_RAD, SPREAD_CAP))),
+        "rotation_std": float(np.log(rotation_std / SPREAD_SCALE_RAD)),
+        "translation_std": float(np.log(translation_std / SPREAD_SCALE_M)),
     }
 
 
@@ -123,9 +135,15 @@ class ConfidenceModel:
 
 
 def fit_logistic(
-    matrix: np.ndarray, right: np.ndarray, l2: float = 1e-2, iterations: int = 50, info: dict | None = None
+    matrix: np.ndarray,
+    right: np.ndarray,
+    l2: float = 1e-2,
+    iterations: int = 50,
+    info: dict | None = None,
+    features: tuple[str, ...] = FEATURES,
 ) -> ConfidenceModel:
-    """Fit P(right | features) by L2-regularised logistic regression (Newton's method on standardised features)."""
+    """Fit P(right | features) by L2-regularised logistic regression (Newton's method on standardised features);
+    `matrix` (N, F) has a column per name in `features`."""
     x = np.asarray(matrix, dtype=np.float64)
     y = np.asarray(right, dtype=np.float64)
     mean, scale = x.mean(axis=0), x.std(axis=0)
@@ -141,7 +159,7 @@ def fit_logistic(
         theta -= step
         if np.abs(step).max() < 1e-8:
             break
-    return ConfidenceModel(mean, scale, theta[1:], float(theta[0]), FEATURES, info or {})
+    return ConfidenceModel(mean, scale, theta[1:], float(theta[0]), tuple(features), info or {})
 
 
 def read_confidence_model(path: str | Path) -> ConfidenceModel:

@@ -63,6 +63,7 @@ from yoto.pose.refine import (
     RefineConfig,
     Refined,
     contact_points,
+    pose_covariance,
     refine_hypotheses,
     thinned,
 )
@@ -446,7 +447,9 @@ def _pose_from_candidates(
         refined, hypotheses = _fill_family(field, contacts, refined, hypotheses, model.symmetry, config, run)
     if refined is None or hypotheses is None or not len(hypotheses):
         return _closed_form_estimate(pair, model, candidates, world, config, method, tick)
-    estimate = _estimate(pair, model, candidates, world, shapes, refined, hypotheses, searched, config, method)
+    estimate = _estimate(
+        pair, model, candidates, world, shapes, refined, hypotheses, searched, config, method, field, contacts
+    )
     estimate.confidence = (confidence_model or load_confidence_model(config.confidence_model)).predict(
         estimate.features
     )
@@ -502,6 +505,8 @@ def _estimate(
     searched: bool,
     config: PoseConfig,
     method: str,
+    field: SurfaceField,
+    contacts: list[ContactPoints],
 ) -> PoseEstimate:
     """The estimate of the most probable hypothesis (its confidence still to be set)."""
     best = int(hypotheses.member[0])
@@ -527,7 +532,16 @@ def _estimate(
         hypotheses=shown,
         ambiguous=is_ambiguous(hypotheses, config.hypotheses),
         confidence=float("nan"),
-        features=confidence_features(hypotheses, refined, solution, chosen, shapes, searched, model.symmetry),
+        features=confidence_features(
+            hypotheses,
+            refined,
+            solution,
+            chosen,
+            shapes,
+            searched,
+            model.symmetry,
+            pose_covariance(field, contacts, refined, best, config.calibration, config.refine_config),
+        ),
         fit_rms_m=(float(refined.fit_rms_m[best, 0]), float(refined.fit_rms_m[best, 1])),
         depth_scale=(float(refined.depth_scale[best, 0]), float(refined.depth_scale[best, 1])),
         corrections=corrections,
@@ -587,7 +601,18 @@ def fuse_next_touch(
     hypotheses = group_hypotheses(refined, model.symmetry, config.hypotheses)
     shapes = _contact_shapes(pair, estimate.world, config)
     fused = _estimate(
-        pair, model, estimate.candidates, estimate.world, shapes, refined, hypotheses, True, config, estimate.method
+        pair,
+        model,
+        estimate.candidates,
+        estimate.world,
+        shapes,
+        refined,
+        hypotheses,
+        True,
+        config,
+        estimate.method,
+        field,
+        contacts,
     )
     fused.confidence = (confidence_model or load_confidence_model(config.confidence_model)).predict(fused.features)
     fused.latency_ms = {"fuse": 1000.0 * (time.perf_counter() - tick)}

@@ -295,13 +295,9 @@ def refine_hypotheses(
     scaled = [c for c, contact in enumerate(contacts) if contact.depth_scale_sigma > 0]
     size = 18 + len(scaled)
     corrections = np.tile(np.eye(4), (count, 2, 1, 1))  # E per side
-    information = np.zeros((size, size))
-    information[:6, :6] = np.diag([1.0 / config.prior_rotation_rad**2] * 3 + [1.0 / config.prior_translation_m**2] * 3)
+    information = _prior_information(contacts, prior, config)
     calibration = prior.information()
-    information[6:12, 6:12] = np.diag(calibration)
-    information[12:18, 12:18] = np.diag(calibration)
-    scale_information = np.array([1.0 / contacts[c].depth_scale_sigma ** 2 for c in scaled])
-    information[18:, 18:] = np.diag(scale_information)
+    scale_information = np.diag(information)[18:]
     log_scale = np.zeros((count, len(contacts)))
     deviation = np.zeros((count, size))  # twists from the start and of the corrections, accumulated to first order
     if corrections_start is not None:
@@ -327,6 +323,44 @@ def refine_hypotheses(
     if scaled:
         correction_cost = correction_cost + log_scale[:, scaled] ** 2 @ scale_information
     return Refined(poses, twists, rms, inliers, free, correction_cost, se3_log(start_inverse @ poses), depth_scale)
+
+
+def _prior_information(contacts: list[ContactPoints], prior: CalibrationPrior, config: RefineConfig) -> np.ndarray:
+    """(18 + S, 18 + S) the refinement's prior information: the starting pose (weak), each sensor's correction
+    (the calibration prior), the log depth scale of each of the S contacts with `depth_scale_sigma` > 0."""
+    scaled = [contact.depth_scale_sigma for contact in contacts if contact.depth_scale_sigma > 0]
+    calibration = prior.information()
+    pose = [1.0 / config.prior_rotation_rad**2] * 3 + [1.0 / config.prior_translation_m**2] * 3
+    return np.diag(np.concatenate([pose, calibration, calibration, 1.0 / np.square(scaled)]))
+
+
+def pose_covariance(
+    field: SurfaceField,
+    contacts: list[ContactPoints],
+    refined: Refined,
+    index: int,
+    prior: CalibrationPrior,
+    config: RefineConfig,
+) -> np.ndarray:
+    """(6, 6) covariance of refined pose `index`'s twist (rotation vector, translation; object frame): the inverse
+    of the refinement's Gauss-Newton information there, the sensor corrections and depth scales marginalised. Large
+    along what the clouds leave free (a cylinder's axis, a flat face's plane), held there only by the weak prior on
+    the starting pose."""
+    information = _prior_information(contacts, prior, config)
+    hessian = information[None].copy()
+    gradient = np.zeros((1, len(information)))
+    corrections = se3_exp(refined.corrections[index][None])
+    _add_normal_equations(
+        field,
+        contacts,
+        refined.T_world_object[index][None],
+        corrections,
+        config,
+        hessian,
+        gradient,
+        refined.depth_scale[index][None] if len(information) > 18 else None,
+    )
+    return np.linalg.inv(hessian[0])[:6, :6]
 
 
 def _scaled_heights(points_sensor: np.ndarray, depth_scale: np.ndarray) -> np.ndarray:
