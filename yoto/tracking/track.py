@@ -475,6 +475,8 @@ class _Corrector:
         self.moving = False  # a sensor has left its pose at the touch: the pads' errors are set
         self.travel_m = 0.0  # the sensors' travel since the touch (rotation counted at `turn_radius_m`)
         self.guard_wait = 0  # instants until the divergence guard may check again
+        self.unpinned: np.ndarray | None = None  # (K, 6) orthonormal directions (observable units) the guard found
+        # the frames leave free: the departures it undid; the prediction stands along them from then on
 
     def _initial_covariance(self) -> np.ndarray:
         """The filter's covariance at the touch: its pose's uncertainty and the slip rate's prior (the bias's is set
@@ -542,8 +544,17 @@ class _Corrector:
         worse_inliers = min(open_fractions.values()) < min(fractions.values()) - 0.05
         if worse_inliers or fit_open.rms_m[0] > c.guard_fit_margin * fit_closed.rms_m[0]:
             return False
-        undo = invert_transform(anchor)
+        # The departure undone (observable units) is a direction the frames leave free: from now on the prediction
+        # stands along it, and the anchor keeps the open loop's pose there (the fit from open loop wandered along it
+        # only as far as its prior let it).
+        unit = np.array([c.observable_rotation_rad] * 3 + [c.observable_translation_m] * 3)
+        shift = twist_of_pose(anchor) / unit
+        departure = twist_of_pose(invert_transform(self.open_grasps["left"]) @ self.grasps["left"]) / unit + shift
+        departure /= max(float(np.linalg.norm(departure)), 1e-12)
+        undo = invert_transform(pose_from_twist((shift - (shift @ departure) * departure) * unit))
         self.grasps = {side: grasp @ undo for side, grasp in self.open_grasps.items()}
+        directions = departure[None] if self.unpinned is None else np.vstack([self.unpinned, departure])
+        self.unpinned = np.linalg.qr(directions.T)[0].T[: min(len(directions), 5)]
         self.rate = np.zeros(6)
         self.covariance = self._initial_covariance()
         return True
@@ -722,16 +733,19 @@ class _Corrector:
             [[var_r * np.eye(3), var_r * lever.T], [var_r * lever, var_t * np.eye(3) + var_r * lever @ lever.T]]
         )
 
-    def _observed(self, shared: np.ndarray) -> np.ndarray:
-        """The projection (6, 6) of an object-frame twist onto the directions an instant's contacts pin: the
-        eigen-directions of their shared-error information, in units of `observable_rotation_rad` and
-        `observable_translation_m`, along which that error moves the fit by less than one unit (oblique in rad and m,
-        orthogonal in those units)."""
+    def _observed(self, shared: np.ndarray, lone: bool) -> np.ndarray:
+        """The projection (6, 6) of an object-frame twist onto the directions an instant's contacts pin (oblique in
+        rad and m, orthogonal in units of `observable_rotation_rad` and `observable_translation_m`): all but those
+        the divergence guard found free (`unpinned`), and for a `lone` contact only the eigen-directions of its
+        shared-error information along which that error moves the fit by less than one unit."""
         c = self.config.correction
         unit = np.array([c.observable_rotation_rad] * 3 + [c.observable_translation_m] * 3)
-        values, vectors = np.linalg.eigh(shared * np.outer(unit, unit))
-        pinned = vectors[:, values > 1.0]
-        return (pinned @ pinned.T) * np.outer(unit, 1.0 / unit)
+        free = np.eye(6) if self.unpinned is None else np.eye(6) - self.unpinned.T @ self.unpinned
+        if lone:
+            values, vectors = np.linalg.eigh(free @ (shared * np.outer(unit, unit)) @ free)
+            pinned = vectors[:, values > 1.0]
+            free = pinned @ pinned.T
+        return free * np.outer(unit, 1.0 / unit)
 
     def _update(
         self, points_predicted: dict[str, np.ndarray], pose_noise: dict[str, np.ndarray], correction: np.ndarray
@@ -747,7 +761,8 @@ class _Corrector:
             per_frame, bias = self._information(transform_points(correction, side_points))
             white += per_frame @ np.linalg.inv(np.eye(6) + pose_noise[side] @ per_frame)
             shared += bias
-        observed = self._observed(shared) if len(points_predicted) <= c.observable_max_contacts else None
+        lone = len(points_predicted) <= c.observable_max_contacts
+        observed = self._observed(shared, lone) if lone or self.unpinned is not None else None
         if observed is not None:
             white = observed.T @ white @ observed  # the information of the correction's observed part alone
         covariance = self.covariance.copy()
