@@ -24,6 +24,10 @@ applied blindly: a small Kalman filter on the object-frame error weighs it again
 Before registering, each sensor's own reconstruction error, fixed to its pad and learnt from its own frames from
 what no rigid motion explains (`pad_error.py`), is subtracted from the frame by pad position: as the contact slides
 over the pad, that error would otherwise move the registrations as slip does.
+A divergence guard watches the result: where the tracked slip leaves what the slip model allows over the travel so
+far, the instant's frames are registered from the open-loop pose too; if they fit there as well, they never asked
+for the departure (a direction the contacts barely pin, followed by the slip rate: a mug spun about its axis), so
+the loop re-anchors on that fit and from then on lets the prediction stand along the departure's direction.
 Both grasps then take the corrected pose. A frame is unusable, and the prediction (open loop) stands, when it has
 too few points (contact lost), when too few of its points lie on the surface after registration (a bad fit),
 or when it asks for a jump larger than slip can make; when one sensor's frame is unusable, the other's is used
@@ -129,6 +133,8 @@ class CorrectionConfig:
     # instant's frames are registered from the open-loop pose as well ...
     guard_fit_margin: float = 1.1  # ... and where they fit there within this factor of the closed loop's RMS (and
     # its inlier share), the frames never asked for the departure: the loop re-anchors on that fit
+    guard_support_fraction: float = 0.5  # ... unless that fit from open loop travels at least this share of the way
+    # back to the closed loop's pose (observable units): then the frames themselves see the departure (a real pivot)
     guard_every: int = 5  # instants between two such checks while the slip stays beyond the bound
 
 
@@ -211,7 +217,8 @@ class Correction:
     slip_rad: float = 0.0
     inlier_fraction: float = 0.0  # share of the registered points on the surface after registration
     latency_ms: float = 0.0  # loading, registering and updating, this instant
-    reanchored: bool = False  # the divergence guard moved the loop back onto the frames' fit from open loop
+    guard: str = ""  # the divergence guard's check this instant: "" (none), "kept" (the frames see the departure),
+    # "re-anchored" (they fit as well from open loop: the loop moved back onto that fit)
 
 
 @dataclass
@@ -248,7 +255,8 @@ class TrackResult:
             "instants": len(self.corrections),
             "frames": frames,
             "frames_used": sum(len(c.used) for c in self.corrections),
-            "reanchored": sum(c.reanchored for c in self.corrections),
+            "guard_checks": sum(bool(c.guard) for c in self.corrections),
+            "reanchored": sum(c.guard == "re-anchored" for c in self.corrections),
             "unusable": reasons,
             "latency_median_ms": median,
             "latency_p90_ms": float(np.percentile(latency, 90)),
@@ -515,18 +523,19 @@ class _Corrector:
         points_sensor: dict[str, np.ndarray],
         correction: np.ndarray,
         fractions: dict[str, float],
-    ) -> bool:
+    ) -> str:
         """The divergence guard, after an applied update: where the tracked slip has left what the slip model allows,
         register the instant's frames from the open-loop pose as well; if they fit there about as well as at the
         closed loop's registration, the evidence never asked for the departure (a direction the contacts barely
         pin, followed by the slip rate): re-anchor the loop on that fit, the slip rate back to its prior. A real
-        pivot the frames see fits worse from open loop and is kept. Returns whether it re-anchored."""
+        pivot the frames see fits worse from open loop, or its fit travels back to the closed loop's pose, and is kept.
+        Returns "" (no check), "kept" or "re-anchored"."""
         c = self.config.correction
         if self.guard_wait > 0:
             self.guard_wait -= 1
-            return False
+            return ""
         if not self._slip_beyond_model():
-            return False
+            return ""
         self.guard_wait = c.guard_every
         predicted = fuse_object_poses(sensors, self.grasps)[0]  # after this instant's update
         open_loop = fuse_object_poses(sensors, self.open_grasps)[0]
@@ -543,13 +552,18 @@ class _Corrector:
         fit_closed = truncated_plane_fit(self.model, np.vstack(closed)[None], c.max_distance_m)
         worse_inliers = min(open_fractions.values()) < min(fractions.values()) - 0.05
         if worse_inliers or fit_open.rms_m[0] > c.guard_fit_margin * fit_closed.rms_m[0]:
-            return False
-        # The departure undone (observable units) is a direction the frames leave free: from now on the prediction
-        # stands along it, and the anchor keeps the open loop's pose there (the fit from open loop wandered along it
-        # only as far as its prior let it).
+            return "kept"
+        # Observable units: the departure (closed loop from open loop) and the fit's shift from open loop, which
+        # moves the pose by -shift: back along the departure where the frames see it (a real pivot).
         unit = np.array([c.observable_rotation_rad] * 3 + [c.observable_translation_m] * 3)
         shift = twist_of_pose(anchor) / unit
-        departure = twist_of_pose(invert_transform(self.open_grasps["left"]) @ self.grasps["left"]) / unit + shift
+        slip = twist_of_pose(invert_transform(self.open_grasps["left"]) @ self.grasps["left"]) / unit
+        if -float(shift @ slip) >= c.guard_support_fraction * float(slip @ slip):
+            return "kept"
+        # The departure undone is a direction the frames leave free: from now on the prediction stands along it,
+        # and the anchor keeps the open loop's pose there (the fit from open loop wandered along it only as far as
+        # its prior let it).
+        departure = slip + shift
         departure /= max(float(np.linalg.norm(departure)), 1e-12)
         undo = invert_transform(pose_from_twist((shift - (shift @ departure) * departure) * unit))
         self.grasps = {side: grasp @ undo for side, grasp in self.open_grasps.items()}
@@ -557,7 +571,7 @@ class _Corrector:
         self.unpinned = np.linalg.qr(directions.T)[0].T[: min(len(directions), 5)]
         self.rate = np.zeros(6)
         self.covariance = self._initial_covariance()
-        return True
+        return "re-anchored"
 
     def _apply(self, twist: np.ndarray) -> None:
         """Move the object by `twist` (object frame) in both grasps: T_world_object <- T_world_object @ exp^-1."""
@@ -694,7 +708,7 @@ class _Corrector:
                     record.used = tuple(points_predicted)
                     record.inlier_fraction = float(np.mean(list(fractions.values())))
                     record.correction_m, record.correction_rad = self.last_correction
-                    record.reanchored = self._guard(
+                    record.guard = self._guard(
                         sensors, rows, {side: points_sensor[side] for side in record.used}, correction, fractions
                     )
                     if self.pads and (self.moving or not c.pad_error.rest_map):  # what the registered frames leave
