@@ -133,8 +133,8 @@ class CorrectionConfig:
     # instant's frames are registered from the open-loop pose as well ...
     guard_fit_margin: float = 1.1  # ... and where they fit there within this factor of the closed loop's RMS (and
     # its inlier share), the frames never asked for the departure: the loop re-anchors on that fit
-    guard_support_fraction: float = 0.5  # ... unless that fit from open loop travels at least this share of the way
-    # back to the closed loop's pose (observable units): then the frames themselves see the departure (a real pivot)
+    guard_support_fraction: float = 0.5  # ... and stay there: the fit moves the pose less than this share of the
+    # departure (observable units); frames that see a real pivot lead it away from the open loop
     guard_every: int = 5  # instants between two such checks while the slip stays beyond the bound
 
 
@@ -526,9 +526,9 @@ class _Corrector:
     ) -> str:
         """The divergence guard, after an applied update: where the tracked slip has left what the slip model allows,
         register the instant's frames from the open-loop pose as well; if they fit there about as well as at the
-        closed loop's registration, the evidence never asked for the departure (a direction the contacts barely
+        closed loop's registration and stay near it, the evidence never asked for the departure (a direction the contacts barely
         pin, followed by the slip rate): re-anchor the loop on that fit, the slip rate back to its prior. A real
-        pivot the frames see fits worse from open loop, or its fit travels back to the closed loop's pose, and is kept.
+        pivot the frames see fits worse from open loop, or leads that fit away from it, and is kept.
         Returns "" (no check), "kept" or "re-anchored"."""
         c = self.config.correction
         if self.guard_wait > 0:
@@ -553,12 +553,12 @@ class _Corrector:
         worse_inliers = min(open_fractions.values()) < min(fractions.values()) - 0.05
         if worse_inliers or fit_open.rms_m[0] > c.guard_fit_margin * fit_closed.rms_m[0]:
             return "kept"
-        # Observable units: the departure (closed loop from open loop) and the fit's shift from open loop, which
-        # moves the pose by -shift: back along the departure where the frames see it (a real pivot).
+        # Observable units: the departure (closed loop from open loop) and the fit's shift from open loop. Frames
+        # that see a real pivot lead the fit away from open loop (back to the pivot, or anywhere but there).
         unit = np.array([c.observable_rotation_rad] * 3 + [c.observable_translation_m] * 3)
         shift = twist_of_pose(anchor) / unit
         slip = twist_of_pose(invert_transform(self.open_grasps["left"]) @ self.grasps["left"]) / unit
-        if -float(shift @ slip) >= c.guard_support_fraction * float(slip @ slip):
+        if np.linalg.norm(shift) >= c.guard_support_fraction * np.linalg.norm(slip):
             return "kept"
         # The departure undone is a direction the frames leave free: from now on the prediction stands along it,
         # and the anchor keeps the open loop's pose there (the fit from open loop wandered along it only as far as
