@@ -526,9 +526,9 @@ class _Corrector:
     ) -> str:
         """The divergence guard, after an applied update: where the tracked slip has left what the slip model allows,
         register the instant's frames from the open-loop pose as well; if they fit there about as well as at the
-        closed loop's registration and stay near it, the evidence never asked for the departure (a direction the contacts barely
-        pin, followed by the slip rate): re-anchor the loop on that fit, the slip rate back to its prior. A real
-        pivot the frames see fits worse from open loop, or leads that fit away from it, and is kept.
+        closed loop's registration and stay near it, the evidence never asked for the departure (a direction the
+        contacts barely pin, followed by the slip rate): re-anchor the loop on that fit, the slip rate back to its
+        prior. A real pivot the frames see fits worse from open loop, or leads that fit away from it, and is kept.
         Returns "" (no check), "kept" or "re-anchored"."""
         c = self.config.correction
         if self.guard_wait > 0:
