@@ -468,7 +468,8 @@ class _Corrector:
         c = config.correction
         self.grasps = dict(touch.T_sensor_object)
         self.open_grasps = dict(touch.T_sensor_object)  # the open loop's grasps (the divergence guard's anchor)
-        self.touch_grasp = touch.T_sensor_object["left"]
+        # one observable unit of each twist component (rad, m): where rotation and translation meet
+        self.unit = np.array([c.observable_rotation_rad] * 3 + [c.observable_translation_m] * 3)
         self.rate = np.zeros(6)  # slip per metre of travel (rad/m, m/m), object frame
         self.bias = np.zeros(6)  # the registrations' bias (rad, m)
         self.bias_covariance: np.ndarray | None = None  # its size, from the first registered contact's shape
@@ -555,9 +556,8 @@ class _Corrector:
             return "kept"
         # Observable units: the departure (closed loop from open loop) and the fit's shift from open loop. Frames
         # that see a real pivot lead the fit away from open loop (back to the pivot, or anywhere but there).
-        unit = np.array([c.observable_rotation_rad] * 3 + [c.observable_translation_m] * 3)
-        shift = twist_of_pose(anchor) / unit
-        slip = twist_of_pose(invert_transform(self.open_grasps["left"]) @ self.grasps["left"]) / unit
+        shift = twist_of_pose(anchor) / self.unit
+        slip = twist_of_pose(invert_transform(self.open_grasps["left"]) @ self.grasps["left"]) / self.unit
         if np.linalg.norm(shift) >= c.guard_support_fraction * np.linalg.norm(slip):
             return "kept"
         # The departure undone is a direction the frames leave free: from now on the prediction stands along it,
@@ -565,7 +565,7 @@ class _Corrector:
         # its prior let it).
         departure = slip + shift
         departure /= max(float(np.linalg.norm(departure)), 1e-12)
-        undo = invert_transform(pose_from_twist((shift - (shift @ departure) * departure) * unit))
+        undo = invert_transform(pose_from_twist((shift - (shift @ departure) * departure) * self.unit))
         self.grasps = {side: grasp @ undo for side, grasp in self.open_grasps.items()}
         directions = departure[None] if self.unpinned is None else np.vstack([self.unpinned, departure])
         self.unpinned = np.linalg.qr(directions.T)[0].T[: min(len(directions), 5)]
@@ -719,7 +719,7 @@ class _Corrector:
                                 correction @ T_predicted_sensors[side],
                                 c.max_distance_m,
                             )
-        slip = invert_transform(self.touch_grasp) @ self.grasps["left"]
+        slip = invert_transform(self.open_grasps["left"]) @ self.grasps["left"]
         record.slip_m = float(np.linalg.norm(slip[:3, 3]))
         record.slip_rad = rotation_angle_rad(slip, np.eye(4))
         record.latency_ms = 1000.0 * (time.perf_counter() - started)
@@ -752,14 +752,12 @@ class _Corrector:
         rad and m, orthogonal in units of `observable_rotation_rad` and `observable_translation_m`): all but those
         the divergence guard found free (`unpinned`), and for a `lone` contact only the eigen-directions of its
         shared-error information along which that error moves the fit by less than one unit."""
-        c = self.config.correction
-        unit = np.array([c.observable_rotation_rad] * 3 + [c.observable_translation_m] * 3)
         free = np.eye(6) if self.unpinned is None else np.eye(6) - self.unpinned.T @ self.unpinned
         if lone:
-            values, vectors = np.linalg.eigh(free @ (shared * np.outer(unit, unit)) @ free)
+            values, vectors = np.linalg.eigh(free @ (shared * np.outer(self.unit, self.unit)) @ free)
             pinned = vectors[:, values > 1.0]
             free = pinned @ pinned.T
-        return free * np.outer(unit, 1.0 / unit)
+        return free * np.outer(self.unit, 1.0 / self.unit)
 
     def _update(
         self, points_predicted: dict[str, np.ndarray], pose_noise: dict[str, np.ndarray], correction: np.ndarray
