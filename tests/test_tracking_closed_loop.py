@@ -14,6 +14,7 @@ from yoto.contacts import SIDES, read_contact_pair
 from yoto.geometry import invert_transform, rotation_angle_rad, transform_points
 from yoto.io import write_ply_points
 from yoto.simulate.trajectory import TrajectoryConfig, TrajectorySimulator, write_trajectories, write_trajectory
+from yoto.tracking import track as track_module
 from yoto.tracking.bench import registration_at_truth, tactile_streams
 from yoto.tracking.evaluate import motion_interval, summarize_errors, tracking_errors
 from yoto.tracking.pad_error import PadErrorConfig
@@ -461,3 +462,53 @@ def test_the_closed_loop_runs_blas_on_one_thread(builtin_models, fruit_trajector
         track(touch, trajectory.streams, model, tactile_streams(trajectory))
         assert blas_threads() == 2  # the caller's setting is given back
     assert len(seen) > 20 and set(seen) == {1}
+
+
+def test_a_closed_loop_led_astray_is_re_anchored_on_what_the_frames_say(builtin_models, fruit_trajectory, monkeypatch):
+    """The divergence guard: a closed loop that turns where the frames never asked it to (here every prediction adds a
+    spurious 3 deg turn, as a slip rate run away along a direction the contacts barely pin would) is brought back
+    onto the frames' fit from the open-loop pose; a consistent track is never touched."""
+    trajectory, model = fruit_trajectory, builtin_models["fruit"]
+    touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
+    unguarded = TrackConfig(correction=CorrectionConfig(guard_bound=float("inf")))
+    plain = track(touch, trajectory.streams, model, tactile_streams(trajectory))
+    assert plain.correction_summary()["reanchored"] == 0
+    assert np.array_equal(
+        plain.T_world_object,
+        track(touch, trajectory.streams, model, tactile_streams(trajectory), unguarded).T_world_object,
+    )
+    predict = track_module._Corrector._predict
+
+    def astray(self, sensors, now_s):
+        predict(self, sensors, now_s)
+        self._apply(np.array([0.0, 0.0, np.radians(3.0), 0.0, 0.0, 0.0]))
+
+    monkeypatch.setattr(track_module._Corrector, "_predict", astray)
+    lost = track(touch, trajectory.streams, model, tactile_streams(trajectory), unguarded)
+    guarded = track(touch, trajectory.streams, model, tactile_streams(trajectory))
+    lost_deg = settled(trajectory, lost, lost.T_world_object)["settled"]["deg"]
+    guarded_deg = settled(trajectory, guarded, guarded.T_world_object)["settled"]["deg"]
+    assert lost_deg > 30.0  # without the guard the loop follows the spurious turn
+    assert guarded.correction_summary()["reanchored"] >= 1
+    assert guarded_deg < 10.0 and guarded_deg < lost_deg / 4
+    summary = guarded.correction_summary()
+    assert summary["frames_used"] >= 0.9 * summary["frames"]
+
+
+@pytest.mark.parametrize("pivot_deg", [15.0, 30.0])
+def test_a_real_pivot_the_frames_see_is_kept_by_the_divergence_guard(builtin_models, pivot_deg):
+    """A grasp that really pivots (15 or 30 deg over the 50 mm path, far beyond the slip model's prior) leaves what
+    the slip model allows and triggers the guard's check, but the frames registered from the open-loop pose do not
+    stay there: the departure is the frames' own, and the track is the unguarded one."""
+    model = builtin_models["fruit"]
+    pivoting = dataclasses.replace(SHORT, slip_rotation_per_m=float(np.radians(pivot_deg / 0.05)))
+    trajectory = TrajectorySimulator(model, pivoting).trajectory(3, 1)
+    touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
+    guarded = track(touch, trajectory.streams, model, tactile_streams(trajectory))
+    unguarded = TrackConfig(correction=CorrectionConfig(guard_bound=float("inf")))
+    plain = track(touch, trajectory.streams, model, tactile_streams(trajectory), unguarded)
+    assert guarded.correction_summary()["guard_checks"] >= 1 and guarded.correction_summary()["reanchored"] == 0
+    assert np.array_equal(guarded.T_world_object, plain.T_world_object)
+    closed = settled(trajectory, guarded, guarded.T_world_object)["settled"]["deg"]
+    open_loop = settled(trajectory, guarded, guarded.T_world_object_open_loop)["settled"]["deg"]
+    assert open_loop > pivot_deg - 1.0 and closed < 4.0

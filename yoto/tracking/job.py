@@ -229,6 +229,7 @@ def report_payload(job: TrackJob, model: ObjectModel, outcome: TrackOutcome) -> 
                 "correction_deg": float(np.degrees(c.correction_rad)),
                 "slip_mm": 1e3 * c.slip_m,
                 "slip_deg": float(np.degrees(c.slip_rad)),
+                "guard": c.guard,
                 "latency_ms": c.latency_ms,
             }
             for c in result.corrections

@@ -24,6 +24,10 @@ applied blindly: a small Kalman filter on the object-frame error weighs it again
 Before registering, each sensor's own reconstruction error, fixed to its pad and learnt from its own frames from
 what no rigid motion explains (`pad_error.py`), is subtracted from the frame by pad position: as the contact slides
 over the pad, that error would otherwise move the registrations as slip does.
+A divergence guard watches the result: where the tracked slip leaves what the slip model allows over the travel so
+far, the instant's frames are registered from the open-loop pose too; if they fit there as well, they never asked
+for the departure (a direction the contacts barely pin, followed by the slip rate: a mug spun about its axis), so
+the loop re-anchors on that fit and from then on lets the prediction stand along the departure's direction.
 Both grasps then take the corrected pose. A frame is unusable, and the prediction (open loop) stands, when it has
 too few points (contact lost), when too few of its points lie on the surface after registration (a bad fit),
 or when it asks for a jump larger than slip can make; when one sensor's frame is unusable, the other's is used
@@ -124,6 +128,14 @@ class CorrectionConfig:
     creep_translation_m: float = 1e-5  # 1-sigma slip per second at rest (per square root of a second) ...
     creep_rotation_rad: float = float(np.radians(0.01))  # ... and its rotation
     pad_error: PadErrorConfig = PadErrorConfig()  # each pad's fixed reconstruction error, learnt at rest, removed
+    guard_bound: float = 22.46  # divergence guard: when the tracked slip leaves what the slip model allows over the
+    # travel so far (its squared Mahalanobis distance above this: chi-square, 6 degrees of freedom, 99.9%), the
+    # instant's frames are registered from the open-loop pose as well ...
+    guard_fit_margin: float = 1.1  # ... and where they fit there within this factor of the closed loop's RMS (and
+    # its inlier share), the frames never asked for the departure: the loop re-anchors on that fit
+    guard_support_fraction: float = 0.5  # ... and stay there: the fit moves the pose less than this share of the
+    # departure (observable units); frames that see a real pivot lead it away from the open loop
+    guard_every: int = 5  # instants between two such checks while the slip stays beyond the bound
 
 
 @dataclass(frozen=True)
@@ -205,6 +217,8 @@ class Correction:
     slip_rad: float = 0.0
     inlier_fraction: float = 0.0  # share of the registered points on the surface after registration
     latency_ms: float = 0.0  # loading, registering and updating, this instant
+    guard: str = ""  # the divergence guard's check this instant: "" (none), "kept" (the frames see the departure),
+    # "re-anchored" (they fit as well from open loop: the loop moved back onto that fit)
 
 
 @dataclass
@@ -241,6 +255,8 @@ class TrackResult:
             "instants": len(self.corrections),
             "frames": frames,
             "frames_used": sum(len(c.used) for c in self.corrections),
+            "guard_checks": sum(bool(c.guard) for c in self.corrections),
+            "reanchored": sum(c.guard == "re-anchored" for c in self.corrections),
             "unusable": reasons,
             "latency_median_ms": median,
             "latency_p90_ms": float(np.percentile(latency, 90)),
@@ -451,17 +467,13 @@ class _Corrector:
         _ = model.kdtree  # built now, before the first frame, so that no live frame waits for it
         c = config.correction
         self.grasps = dict(touch.T_sensor_object)
-        self.touch_grasp = touch.T_sensor_object["left"]
+        self.open_grasps = dict(touch.T_sensor_object)  # the open loop's grasps (the divergence guard's anchor)
+        # one observable unit of each twist component (rad, m): where rotation and translation meet
+        self.unit = np.array([c.observable_rotation_rad] * 3 + [c.observable_translation_m] * 3)
         self.rate = np.zeros(6)  # slip per metre of travel (rad/m, m/m), object frame
         self.bias = np.zeros(6)  # the registrations' bias (rad, m)
         self.bias_covariance: np.ndarray | None = None  # its size, from the first registered contact's shape
-        self.covariance = np.diag(
-            [c.touch_rotation_rad**2] * 3
-            + [c.touch_translation_m**2] * 3
-            + [c.slip_rate_rotation**2] * 3
-            + [c.slip_rate_translation**2] * 3
-            + [0.0] * 6
-        )
+        self.covariance = self._initial_covariance()
         self.solver = registration_solver(c)
         self.rest_solver = pad_rest_solver(c)
         self.last_correction = (0.0, 0.0)  # (metres, radians) of the latest applied correction
@@ -470,6 +482,96 @@ class _Corrector:
         self.touch_sensors = self.last_sensors
         self.pads = {side: PadError(c.pad_error) for side in SIDES} if c.pad_error.enabled else {}
         self.moving = False  # a sensor has left its pose at the touch: the pads' errors are set
+        self.travel_m = 0.0  # the sensors' travel since the touch (rotation counted at `turn_radius_m`)
+        self.guard_wait = 0  # instants until the divergence guard may check again
+        self.unpinned: np.ndarray | None = None  # (K, 6) orthonormal directions (observable units) the guard found
+        # the frames leave free: the departures it undid; the prediction stands along them from then on
+
+    def _initial_covariance(self) -> np.ndarray:
+        """The filter's covariance at the touch: its pose's uncertainty and the slip rate's prior (the bias's is set
+        by the first registered contact)."""
+        c = self.config.correction
+        covariance = np.diag(
+            [c.touch_rotation_rad**2] * 3
+            + [c.touch_translation_m**2] * 3
+            + [c.slip_rate_rotation**2] * 3
+            + [c.slip_rate_translation**2] * 3
+            + [0.0] * 6
+        )
+        if self.bias_covariance is not None:
+            covariance[12:, 12:] = self.bias_covariance
+        return covariance
+
+    def _slip_beyond_model(self) -> bool:
+        """Whether the tracked slip since the touch (closed loop against open loop, object frame) lies beyond what
+        the slip model allows over the travel so far: a rate drawn from its prior and wandering as it may, the
+        elastic wander, and the touch's own uncertainty."""
+        c = self.config.correction
+        slip = twist_of_pose(invert_transform(self.open_grasps["left"]) @ self.grasps["left"])
+        travel, share = self.travel_m, self.travel_m / c.slip_travel_m
+        spread = travel**2 + travel**3 / (3.0 * c.slip_travel_m)  # a constant rate and its random walk
+        variance = np.array(
+            [c.slip_rate_rotation**2 * spread + c.slip_wander_rotation_rad**2 * share + c.touch_rotation_rad**2] * 3
+            + [c.slip_rate_translation**2 * spread + c.slip_wander_translation_m**2 * share + c.touch_translation_m**2]
+            * 3
+        )
+        return float(np.sum(slip**2 / variance)) > c.guard_bound
+
+    def _guard(
+        self,
+        sensors: SensorPoses,
+        rows: dict[str, int],
+        points_sensor: dict[str, np.ndarray],
+        correction: np.ndarray,
+        fractions: dict[str, float],
+    ) -> str:
+        """The divergence guard, after an applied update: where the tracked slip has left what the slip model allows,
+        register the instant's frames from the open-loop pose as well; if they fit there about as well as at the
+        closed loop's registration and stay near it, the evidence never asked for the departure (a direction the
+        contacts barely pin, followed by the slip rate): re-anchor the loop on that fit, the slip rate back to its
+        prior. A real pivot the frames see fits worse from open loop, or leads that fit away from it, and is kept.
+        Returns "" (no check), "kept" or "re-anchored"."""
+        c = self.config.correction
+        if self.guard_wait > 0:
+            self.guard_wait -= 1
+            return ""
+        if not self._slip_beyond_model():
+            return ""
+        self.guard_wait = c.guard_every
+        predicted = fuse_object_poses(sensors, self.grasps)[0]  # after this instant's update
+        open_loop = fuse_object_poses(sensors, self.open_grasps)[0]
+        closed, opened, facing = [], [], {}
+        for side, points in points_sensor.items():
+            row = rows[side]
+            T_world_sensor = sensors.T_world_sensor[side][row]
+            closed.append(transform_points(invert_transform(predicted[row]) @ T_world_sensor, points))
+            T_open_sensor = invert_transform(open_loop[row]) @ T_world_sensor
+            opened.append(transform_points(T_open_sensor, points))
+            facing[side] = T_open_sensor
+        anchor, open_fractions = self._register(dict(zip(points_sensor, opened, strict=True)), facing)
+        fit_open = truncated_plane_fit(self.model, transform_points(anchor, np.vstack(opened))[None], c.max_distance_m)
+        fit_closed = truncated_plane_fit(self.model, np.vstack(closed)[None], c.max_distance_m)
+        worse_inliers = min(open_fractions.values()) < min(fractions.values()) - 0.05
+        if worse_inliers or fit_open.rms_m[0] > c.guard_fit_margin * fit_closed.rms_m[0]:
+            return "kept"
+        # Observable units: the departure (closed loop from open loop) and the fit's shift from open loop. Frames
+        # that see a real pivot lead the fit away from open loop (back to the pivot, or anywhere but there).
+        shift = twist_of_pose(anchor) / self.unit
+        slip = twist_of_pose(invert_transform(self.open_grasps["left"]) @ self.grasps["left"]) / self.unit
+        if np.linalg.norm(shift) >= c.guard_support_fraction * np.linalg.norm(slip):
+            return "kept"
+        # The departure undone is a direction the frames leave free: from now on the prediction stands along it,
+        # and the anchor keeps the open loop's pose there (the fit from open loop wandered along it only as far as
+        # its prior let it).
+        departure = slip + shift
+        departure /= max(float(np.linalg.norm(departure)), 1e-12)
+        undo = invert_transform(pose_from_twist((shift - (shift @ departure) * departure) * self.unit))
+        self.grasps = {side: grasp @ undo for side, grasp in self.open_grasps.items()}
+        directions = departure[None] if self.unpinned is None else np.vstack([self.unpinned, departure])
+        self.unpinned = np.linalg.qr(directions.T)[0].T[: min(len(directions), 5)]
+        self.rate = np.zeros(6)
+        self.covariance = self._initial_covariance()
+        return "re-anchored"
 
     def _apply(self, twist: np.ndarray) -> None:
         """Move the object by `twist` (object frame) in both grasps: T_world_object <- T_world_object @ exp^-1."""
@@ -486,6 +588,7 @@ class _Corrector:
             turned.append(rotation_angle_rad(before, now))
         travel = float(np.mean(travelled)) + c.turn_radius_m * float(np.mean(turned))
         elapsed = max(now_s - self.last_time, 0.0)
+        self.travel_m += travel
         self._apply(self.rate * travel)
         transition = np.eye(18)
         transition[:6, 6:12] = travel * np.eye(6)
@@ -568,6 +671,7 @@ class _Corrector:
         points_sensor: dict[str, np.ndarray] = {}  # each side's registered samples (pad error removed), sensor frame
         T_predicted_sensors: dict[str, np.ndarray] = {}
         pose_noise: dict[str, np.ndarray] = {}
+        rows = {side: row for row, side in enumerate(clouds)}
         for row, (side, (_, points)) in enumerate(clouds.items()):
             if not sensors.covered[side][row]:
                 unusable[side] = "no sensor pose at the frame's time"
@@ -604,6 +708,9 @@ class _Corrector:
                     record.used = tuple(points_predicted)
                     record.inlier_fraction = float(np.mean(list(fractions.values())))
                     record.correction_m, record.correction_rad = self.last_correction
+                    record.guard = self._guard(
+                        sensors, rows, {side: points_sensor[side] for side in record.used}, correction, fractions
+                    )
                     if self.pads and (self.moving or not c.pad_error.rest_map):  # what the registered frames leave
                         for side in record.used:  # unexplained teaches the pads' sliding maps
                             self.pads[side].learn_frame(
@@ -612,7 +719,7 @@ class _Corrector:
                                 correction @ T_predicted_sensors[side],
                                 c.max_distance_m,
                             )
-        slip = invert_transform(self.touch_grasp) @ self.grasps["left"]
+        slip = invert_transform(self.open_grasps["left"]) @ self.grasps["left"]
         record.slip_m = float(np.linalg.norm(slip[:3, 3]))
         record.slip_rad = rotation_angle_rad(slip, np.eye(4))
         record.latency_ms = 1000.0 * (time.perf_counter() - started)
@@ -640,16 +747,17 @@ class _Corrector:
             [[var_r * np.eye(3), var_r * lever.T], [var_r * lever, var_t * np.eye(3) + var_r * lever @ lever.T]]
         )
 
-    def _observed(self, shared: np.ndarray) -> np.ndarray:
-        """The projection (6, 6) of an object-frame twist onto the directions an instant's contacts pin: the
-        eigen-directions of their shared-error information, in units of `observable_rotation_rad` and
-        `observable_translation_m`, along which that error moves the fit by less than one unit (oblique in rad and m,
-        orthogonal in those units)."""
-        c = self.config.correction
-        unit = np.array([c.observable_rotation_rad] * 3 + [c.observable_translation_m] * 3)
-        values, vectors = np.linalg.eigh(shared * np.outer(unit, unit))
-        pinned = vectors[:, values > 1.0]
-        return (pinned @ pinned.T) * np.outer(unit, 1.0 / unit)
+    def _observed(self, shared: np.ndarray, lone: bool) -> np.ndarray:
+        """The projection (6, 6) of an object-frame twist onto the directions an instant's contacts pin (oblique in
+        rad and m, orthogonal in units of `observable_rotation_rad` and `observable_translation_m`): all but those
+        the divergence guard found free (`unpinned`), and for a `lone` contact only the eigen-directions of its
+        shared-error information along which that error moves the fit by less than one unit."""
+        free = np.eye(6) if self.unpinned is None else np.eye(6) - self.unpinned.T @ self.unpinned
+        if lone:
+            values, vectors = np.linalg.eigh(free @ (shared * np.outer(self.unit, self.unit)) @ free)
+            pinned = vectors[:, values > 1.0]
+            free = pinned @ pinned.T
+        return free * np.outer(self.unit, 1.0 / self.unit)
 
     def _update(
         self, points_predicted: dict[str, np.ndarray], pose_noise: dict[str, np.ndarray], correction: np.ndarray
@@ -665,7 +773,8 @@ class _Corrector:
             per_frame, bias = self._information(transform_points(correction, side_points))
             white += per_frame @ np.linalg.inv(np.eye(6) + pose_noise[side] @ per_frame)
             shared += bias
-        observed = self._observed(shared) if len(points_predicted) <= c.observable_max_contacts else None
+        lone = len(points_predicted) <= c.observable_max_contacts
+        observed = self._observed(shared, lone) if lone or self.unpinned is not None else None
         if observed is not None:
             white = observed.T @ white @ observed  # the information of the correction's observed part alone
         covariance = self.covariance.copy()
