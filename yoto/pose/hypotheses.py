@@ -92,26 +92,55 @@ def group_hypotheses(refined: Refined, symmetry: Symmetry, config: HypothesisCon
     score = log_likelihoods(refined, config)
     order = np.argsort(-score, kind="stable")
     poses = refined.T_world_object
-    position = poses[:, :3, 3]
+    close = _close_pairs(poses, symmetry, config)
     unassigned = np.ones(len(order), dtype=bool)
     members, support = [], []
     for k in order:
         if not unassigned[k]:
             continue
-        # The rotation (the costly part, modulo symmetry) only of the unassigned poses close enough in translation.
-        close = np.flatnonzero(unassigned)
-        close = close[np.linalg.norm(position[close] - position[k], axis=1) <= config.distinct_translation_m]
-        if len(close) > 1:
-            rotation = symmetry.rotation_errors_rad(poses[close], np.broadcast_to(poses[k], (len(close), 4, 4)))
-            close = close[rotation <= config.distinct_rotation_rad]
-        unassigned[close] = False  # k among them (at distance 0)
+        joining = unassigned & close[k]  # k among them
+        unassigned &= ~joining
         members.append(k)
-        support.append(len(close))
+        support.append(int(np.count_nonzero(joining)))
     best = np.array(members, dtype=np.int64)
     log_l = score[best]
     weights = np.exp((log_l - log_l.max()) / config.temperature) if len(best) else np.empty(0)
     probability = weights / weights.sum() if len(best) else weights
     return Hypotheses(poses[best], probability, log_l, best, np.array(support, dtype=np.int64))
+
+
+def _close_pairs(poses: np.ndarray, symmetry: Symmetry, config: HypothesisConfig) -> np.ndarray:
+    """(K, K) whether each two of K poses (K, 4, 4) are one hypothesis: within `distinct_translation_m` (the
+    centroid's distance) and `distinct_rotation_rad` modulo the symmetries (`Symmetry.rotation_errors_rad`'s angle,
+    compared through its cosine: every pair at once by one small matrix product, instead of a loop over founders)."""
+    position = poses[:, :3, 3]
+    gap = position[:, None, :] - position[None, :, :]
+    close = np.sqrt(np.add.reduce(gap * gap, axis=2)) <= config.distinct_translation_m
+    if symmetry.spherical:
+        return close
+    rotation = np.ascontiguousarray(poses[:, :3, :3])
+    least = np.cos(config.distinct_rotation_rad)
+    if symmetry.axis_object is None:
+        # trace(R_a^T R_b S) = <R_a, R_b S> (entrywise): the cosine is (that - 1) / 2, at its largest over S
+        moved = np.einsum("kij,gjl->gkil", rotation, symmetry.rotations).reshape(-1, 9)  # R_b S, (G K, 9)
+        inner = (rotation.reshape(-1, 9) @ moved.T).reshape(len(poses), len(symmetry.rotations), len(poses))
+        cosine = (inner.max(axis=1) - 1.0) / 2.0
+    else:
+        # Any twist about the axis u is free: the swing's cosine is (R_a u) . (R_b S u)
+        u = symmetry.axis_object
+        moved = np.einsum("kij,gj->gki", rotation, symmetry.rotations @ u).reshape(-1, 3)  # R_b S u, (G K, 3)
+        inner = ((rotation @ u) @ moved.T).reshape(len(poses), len(symmetry.rotations), len(poses))
+        cosine = inner.max(axis=1)
+    # Pairs within rounding of the limit (poses a family step placed exactly one unit apart, which the refinement
+    # left where they were) get `rotation_errors_rad`'s own angle, so the grouping is the one pose by pose.
+    near = np.argwhere(close & (np.abs(cosine - least) <= 1e-9))
+    close &= cosine >= least
+    if len(near):
+        founder, other = near.T
+        angle = symmetry.rotation_errors_rad(poses[other], poses[founder])
+        close[founder, other] = angle <= config.distinct_rotation_rad
+    np.fill_diagonal(close, True)
+    return close
 
 
 def neighbour_poses(T_world_object: np.ndarray, config: HypothesisConfig) -> np.ndarray:
