@@ -20,6 +20,7 @@ import hashlib
 import json
 import logging
 import time
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,10 +34,12 @@ from yoto.errors import InputError, YotoError
 from yoto.evaluation.shapes import is_procedural, procedural_mesh
 from yoto.geometry import transform_points
 from yoto.io import read_json, write_bytes_atomic, write_json_atomic, write_text_atomic
+from yoto.localize.helper import LocalizerProcess
 from yoto.metrics import pose_errors, summarize
 from yoto.objects.build import build_object, load_object_model
 from yoto.objects.mesh import MESH_SUFFIXES
 from yoto.objects.model import ObjectModel, build_object_model
+from yoto.pose.executor import prepare_pose_helper
 from yoto.pose.hypotheses import pose_distances
 from yoto.pose.pipeline import (
     PAPER,
@@ -88,6 +91,9 @@ class BenchConfig:
     pose_stages: tuple[str, ...] = ("full", "paper")  # pose stages to report for every method (same localizations)
     image_calibration: str | None = None  # rows "via images": a calibration file or "shading[:SEED]" (image_route)
     image_variation: float = 0.0  # how much each rendered image's lighting, noise and gel stray from the sensor's
+    both_cores: bool = False  # localize each pair's right contact in a helper process while this one localizes
+    # the left, and compute half of the pose stage's batches there (the same poses, bitwise): a pose's latency is
+    # then both contacts at once plus the pose stage, as a robot with two free cores waits for it
 
     def pose_config(self, stage: str) -> PoseConfig:
         if stage == "paper":
@@ -118,7 +124,8 @@ class MethodResult:
     right_after_retouch: list[bool] = field(default_factory=list)  # the pose right after the re-touch (or without)
     right_after_two: list[bool] = field(default_factory=list)  # ... after a second re-touch where still ambiguous
     contact_latency_ms: list[float] = field(default_factory=list)  # per contact, warm-up excluded
-    pose_latency_ms: list[float] = field(default_factory=list)  # per pair: both localizations + the pose stage
+    pose_latency_ms: list[float] = field(default_factory=list)  # per pair: both localizations (at once with
+    # `both_cores`) + the pose stage
     pose_stage_ms: list[float] = field(default_factory=list)  # per pair: the pose stage alone (no next_touch)
     next_touch_ms: list[float] = field(default_factory=list)  # per ambiguous pair
     failures: int = 0
@@ -182,58 +189,69 @@ def evaluate_method(
     results = {
         stage: MethodResult(label=row_label(spec.label, stage), object_name=model.name) for stage in config.pose_stages
     }
-    for number, simulated in enumerate(tqdm(simulated_pairs, desc=f"{model.name}: {spec.label}", unit="pair")):
-        pair = simulated.pair
-        for stage, result in results.items():
-            pose_config = config.pose_config(stage)
-            try:
-                if stage == config.pose_stages[0]:
-                    candidates, world, latency = localize_contacts(pair, localize_model, localizer)
-                estimate = pose_from_candidates(pair, localize_model, candidates, world, pose_config, spec.method)
-            except YotoError as exc:
-                log.warning("%s pair %d: %s failed: %s", model.name, simulated.index, result.label, exc)
-                result.failures += 1
-                continue
-            # Localization error in the mesh file's frame, which every object model of this object shares.
-            for side in SIDES:
-                truth_mesh = pair.p_mesh_true[side]
-                for store, estimate_contact in (
-                    (result.localization_top1_mm, estimate.candidates[side][0]),
-                    (result.localization_chosen_mm, estimate.contacts[side]),
-                ):
-                    p_mesh = transform_points(localize_model.T_mesh_object, estimate_contact.p_object)
-                    store.append(1000.0 * float(np.linalg.norm(p_mesh - truth_mesh)))
-            errors = symmetric_errors(model, estimate.T_world_mesh, pair.T_world_mesh_true)
-            for key in ("translation_mm", "rotation_deg", "add_s_mm", "mssd_mm"):
-                getattr(result, key).append(errors[key])
-            right = errors["translation_mm"] < RIGHT_MM and errors["rotation_deg"] < RIGHT_DEG
-            result.confidence.append(float(estimate.confidence))
-            result.ambiguous.append(bool(estimate.ambiguous))
-            result.hypotheses.append(len(estimate.hypotheses))
-            T_true = pair.T_world_mesh_true @ model.T_mesh_object
-            T_hypotheses = estimate.hypotheses_mesh(localize_model) @ model.T_mesh_object
-            translation, rotation = pose_distances(T_hypotheses, T_true, model.symmetry)
-            result.truth_in_hypotheses.append(
-                bool(np.any((translation < RIGHT_MM / 1000.0) & (rotation < np.radians(RIGHT_DEG))))
-            )
-            if pose_config.verify and not result.truth_in_hypotheses[-1]:
-                T_true_localize = pair.T_world_mesh_true @ localize_model.T_mesh_object
-                truth = refined_log_likelihood(pair, localize_model, T_true_localize, pose_config)
-                result.missed_truth_better.append(truth > float(estimate.hypotheses.log_likelihood[0]))
-            status, after = "-", [right, right]
-            if estimate.next_touch is not None and simulator is not None:
-                status, after = _retouch(simulator, simulated, estimate, localize_model, model, pose_config, localizer)
-            result.retouch.append(status)
-            result.right_after_retouch.append(bool(after[0]))
-            result.right_after_two.append(bool(after[1]))
-            if number >= config.warmup_pairs:
-                result.contact_latency_ms += [latency["localize_left"], latency["localize_right"]]
-                result.pose_stage_ms.append(estimate.latency_ms["pose"])
-                result.pose_latency_ms.append(
-                    latency["localize_left"] + latency["localize_right"] + result.pose_stage_ms[-1]
+    with LocalizerProcess(localizer) if config.both_cores else nullcontext() as helper:
+        if helper is not None:  # the helper's per-model data and surface field, before the first pair
+            helper.prepare_object(localize_model)
+            prepare_pose_helper(helper, localize_model, config.pose_config("full").field_config).result()
+        for number, simulated in enumerate(tqdm(simulated_pairs, desc=f"{model.name}: {spec.label}", unit="pair")):
+            pair = simulated.pair
+            for stage, result in results.items():
+                pose_config = config.pose_config(stage)
+                try:
+                    if stage == config.pose_stages[0]:
+                        candidates, world, latency = localize_contacts(pair, localize_model, localizer, helper)
+                    estimate = pose_from_candidates(
+                        pair, localize_model, candidates, world, pose_config, spec.method, helper=helper
+                    )
+                except YotoError as exc:
+                    log.warning("%s pair %d: %s failed: %s", model.name, simulated.index, result.label, exc)
+                    result.failures += 1
+                    continue
+                # Localization error in the mesh file's frame, which every object model of this object shares.
+                for side in SIDES:
+                    truth_mesh = pair.p_mesh_true[side]
+                    for store, estimate_contact in (
+                        (result.localization_top1_mm, estimate.candidates[side][0]),
+                        (result.localization_chosen_mm, estimate.contacts[side]),
+                    ):
+                        p_mesh = transform_points(localize_model.T_mesh_object, estimate_contact.p_object)
+                        store.append(1000.0 * float(np.linalg.norm(p_mesh - truth_mesh)))
+                errors = symmetric_errors(model, estimate.T_world_mesh, pair.T_world_mesh_true)
+                for key in ("translation_mm", "rotation_deg", "add_s_mm", "mssd_mm"):
+                    getattr(result, key).append(errors[key])
+                right = errors["translation_mm"] < RIGHT_MM and errors["rotation_deg"] < RIGHT_DEG
+                result.confidence.append(float(estimate.confidence))
+                result.ambiguous.append(bool(estimate.ambiguous))
+                result.hypotheses.append(len(estimate.hypotheses))
+                T_true = pair.T_world_mesh_true @ model.T_mesh_object
+                T_hypotheses = estimate.hypotheses_mesh(localize_model) @ model.T_mesh_object
+                translation, rotation = pose_distances(T_hypotheses, T_true, model.symmetry)
+                result.truth_in_hypotheses.append(
+                    bool(np.any((translation < RIGHT_MM / 1000.0) & (rotation < np.radians(RIGHT_DEG))))
                 )
-                if "next_touch" in estimate.latency_ms:
-                    result.next_touch_ms.append(estimate.latency_ms["next_touch"])
+                if pose_config.verify and not result.truth_in_hypotheses[-1]:
+                    T_true_localize = pair.T_world_mesh_true @ localize_model.T_mesh_object
+                    truth = refined_log_likelihood(pair, localize_model, T_true_localize, pose_config)
+                    result.missed_truth_better.append(truth > float(estimate.hypotheses.log_likelihood[0]))
+                status, after = "-", [right, right]
+                if estimate.next_touch is not None and simulator is not None:
+                    status, after = _retouch(
+                        simulator, simulated, estimate, localize_model, model, pose_config, localizer
+                    )
+                result.retouch.append(status)
+                result.right_after_retouch.append(bool(after[0]))
+                result.right_after_two.append(bool(after[1]))
+                if number >= config.warmup_pairs:
+                    result.contact_latency_ms += [latency["localize_left"], latency["localize_right"]]
+                    result.pose_stage_ms.append(estimate.latency_ms["pose"])
+                    localized = (
+                        latency["localize_pair"]
+                        if helper is not None
+                        else latency["localize_left"] + latency["localize_right"]
+                    )
+                    result.pose_latency_ms.append(localized + result.pose_stage_ms[-1])
+                    if "next_touch" in estimate.latency_ms:
+                        result.next_touch_ms.append(estimate.latency_ms["next_touch"])
     return results
 
 
@@ -642,7 +660,12 @@ def format_markdown(report: dict[str, Any]) -> str:
     lines += ["", "Reliability diagram: `reliability.png`.", ""]
     lines += [
         "## Latency (ms, warm-up excluded): per contact median / p90; pose stage alone median / p90; "
-        "per pose median; next_touch median",
+        "per pose median; next_touch median"
+        + (
+            " (both cores: both contacts at once, half of the pose stage's batches in a helper process)"
+            if run["config"].get("both_cores")
+            else ""
+        ),
         "",
         header,
         rule,
