@@ -60,11 +60,6 @@ def _blas_libraries() -> ThreadpoolController:
 def transform_batch(T_surface_source: np.ndarray, points_source: np.ndarray) -> np.ndarray:
     """(K, M, 3) points under each of K poses; `points_source` is (M, 3) shared or (K, M, 3)."""
     rotation, translation = T_surface_source[:, :3, :3], T_surface_source[:, :3, 3]
-    if points_source.ndim == 2:  # one (M, 3) x (3, 3 K) product instead of K small ones (the same sums)
-        count = len(rotation)
-        rotations_t = np.transpose(rotation, (2, 0, 1)).reshape(3, 3 * count)  # [j, 3 k + i] = R_k[i, j]
-        rotated = (points_source @ rotations_t).reshape(len(points_source), count, 3)
-        return np.transpose(rotated, (1, 0, 2)) + translation[:, None, :]
     return np.matmul(points_source, np.transpose(rotation, (0, 2, 1))) + translation[:, None, :]
 
 
