@@ -73,6 +73,10 @@ class Hypotheses:
         return len(self.probability)
 
 
+GROUPING_PRODUCT_SIZE = 2_000_000  # grouping compares founders' rotations in products of at most this many entries
+# (a large symmetry group's stay small)
+
+
 def log_likelihoods(refined: Refined, config: HypothesisConfig) -> np.ndarray:
     """(K,) log-likelihood of each refined pose (see the module docstring)."""
     fit = config.effective_points * np.sum((refined.fit_rms_m / config.fit_noise_m) ** 2, axis=1)
@@ -110,27 +114,33 @@ def group_hypotheses(refined: Refined, symmetry: Symmetry, config: HypothesisCon
 
 
 def _close_pairs(poses: np.ndarray, symmetry: Symmetry, config: HypothesisConfig) -> np.ndarray:
-    """(K, K) whether each two of K poses (K, 4, 4) are one hypothesis: within `distinct_translation_m` (the
-    centroid's distance) and `distinct_rotation_rad` modulo the symmetries (`Symmetry.rotation_errors_rad`'s angle,
-    compared through its cosine: every pair at once by one small matrix product, instead of a loop over founders)."""
+    """(K, K) whether each pose (row, a founder) and each other (column) of K poses (K, 4, 4) are one hypothesis:
+    within `distinct_translation_m` (the centroid's distance) and `distinct_rotation_rad` modulo the symmetries
+    (`Symmetry.rotation_errors_rad(other, founder)`'s angle, compared through its cosine: every pair at once by small
+    matrix products, instead of a loop over founders)."""
     position = poses[:, :3, 3]
     gap = position[:, None, :] - position[None, :, :]
     close = np.sqrt(np.add.reduce(gap * gap, axis=2)) <= config.distinct_translation_m
     if symmetry.spherical:
         return close
     rotation = np.ascontiguousarray(poses[:, :3, :3])
-    least = np.cos(config.distinct_rotation_rad)
+    count, group = len(poses), len(symmetry.rotations)
     if symmetry.axis_object is None:
-        # trace(R_a^T R_b S) = <R_a, R_b S> (entrywise): the cosine is (that - 1) / 2, at its largest over S
-        moved = np.einsum("kij,gjl->gkil", rotation, symmetry.rotations).reshape(-1, 9)  # R_b S, (G K, 9)
-        inner = (rotation.reshape(-1, 9) @ moved.T).reshape(len(poses), len(symmetry.rotations), len(poses))
-        cosine = (inner.max(axis=1) - 1.0) / 2.0
+        # trace(R_other^T R_founder S) = <R_founder S, R_other> (entrywise); the cosine is (that - 1) / 2
+        moved = np.einsum("kij,gjl->kgil", rotation, symmetry.rotations).reshape(count * group, 9)
+        others = rotation.reshape(count, 9)
     else:
-        # Any twist about the axis u is free: the swing's cosine is (R_a u) . (R_b S u)
+        # Any twist about the axis u is free: the swing's cosine is (R_founder S u) . (R_other u)
         u = symmetry.axis_object
-        moved = np.einsum("kij,gj->gki", rotation, symmetry.rotations @ u).reshape(-1, 3)  # R_b S u, (G K, 3)
-        inner = ((rotation @ u) @ moved.T).reshape(len(poses), len(symmetry.rotations), len(poses))
-        cosine = inner.max(axis=1)
+        moved = np.einsum("kij,gj->kgi", rotation, symmetry.rotations @ u).reshape(count * group, 3)
+        others = rotation @ u
+    best = np.empty((count, count))
+    rows = max(1, GROUPING_PRODUCT_SIZE // (group * count))  # founders at a time
+    for first in range(0, count, rows):
+        inner = moved[first * group : (first + rows) * group] @ others.T
+        best[first : first + rows] = inner.reshape(-1, group, count).max(axis=1)
+    cosine = (best - 1.0) / 2.0 if symmetry.axis_object is None else best
+    least = np.cos(config.distinct_rotation_rad)
     # Pairs within rounding of the limit (poses a family step placed exactly one unit apart, which the refinement
     # left where they were) get `rotation_errors_rad`'s own angle, so the grouping is the one pose by pose.
     near = np.argwhere(close & (np.abs(cosine - least) <= 1e-9))
