@@ -183,75 +183,86 @@ def symmetric_errors(model: ObjectModel, T_world_mesh_estimate: np.ndarray, T_wo
 def evaluate_method(
     spec: MethodSpec, model: ObjectModel, simulated_pairs: list, simulator, config: BenchConfig, workspace
 ) -> dict[str, MethodResult]:
-    """Run one method over the simulated pairs of one object: localize once, then each pose stage."""
+    """Run one method over the simulated pairs of one object: localize once, then each pose stage (with
+    `config.both_cores`, in this process and a helper)."""
     localizer = _make_localizer(spec)
     localize_model = load_object_model(model.name + spec.model_suffix, workspace) if spec.model_suffix else model
-    results = {
-        stage: MethodResult(label=row_label(spec.label, stage), object_name=model.name) for stage in config.pose_stages
-    }
     with LocalizerProcess(localizer) if config.both_cores else nullcontext() as helper:
         if helper is not None:  # the helper's per-model data and surface field, before the first pair
             helper.prepare_object(localize_model)
             prepare_pose_helper(helper, localize_model, config.pose_config("full").field_config).result()
-        for number, simulated in enumerate(tqdm(simulated_pairs, desc=f"{model.name}: {spec.label}", unit="pair")):
-            pair = simulated.pair
-            for stage, result in results.items():
-                pose_config = config.pose_config(stage)
-                try:
-                    if stage == config.pose_stages[0]:
-                        candidates, world, latency = localize_contacts(pair, localize_model, localizer, helper)
-                    estimate = pose_from_candidates(
-                        pair, localize_model, candidates, world, pose_config, spec.method, helper=helper
-                    )
-                except YotoError as exc:
-                    log.warning("%s pair %d: %s failed: %s", model.name, simulated.index, result.label, exc)
-                    result.failures += 1
-                    continue
-                # Localization error in the mesh file's frame, which every object model of this object shares.
-                for side in SIDES:
-                    truth_mesh = pair.p_mesh_true[side]
-                    for store, estimate_contact in (
-                        (result.localization_top1_mm, estimate.candidates[side][0]),
-                        (result.localization_chosen_mm, estimate.contacts[side]),
-                    ):
-                        p_mesh = transform_points(localize_model.T_mesh_object, estimate_contact.p_object)
-                        store.append(1000.0 * float(np.linalg.norm(p_mesh - truth_mesh)))
-                errors = symmetric_errors(model, estimate.T_world_mesh, pair.T_world_mesh_true)
-                for key in ("translation_mm", "rotation_deg", "add_s_mm", "mssd_mm"):
-                    getattr(result, key).append(errors[key])
-                right = errors["translation_mm"] < RIGHT_MM and errors["rotation_deg"] < RIGHT_DEG
-                result.confidence.append(float(estimate.confidence))
-                result.ambiguous.append(bool(estimate.ambiguous))
-                result.hypotheses.append(len(estimate.hypotheses))
-                T_true = pair.T_world_mesh_true @ model.T_mesh_object
-                T_hypotheses = estimate.hypotheses_mesh(localize_model) @ model.T_mesh_object
-                translation, rotation = pose_distances(T_hypotheses, T_true, model.symmetry)
-                result.truth_in_hypotheses.append(
-                    bool(np.any((translation < RIGHT_MM / 1000.0) & (rotation < np.radians(RIGHT_DEG))))
+        return _evaluate_pairs(spec, model, localize_model, localizer, simulated_pairs, simulator, config, helper)
+
+
+def _evaluate_pairs(
+    spec: MethodSpec,
+    model: ObjectModel,
+    localize_model: ObjectModel,
+    localizer,
+    simulated_pairs: list,
+    simulator,
+    config: BenchConfig,
+    helper: LocalizerProcess | None,
+) -> dict[str, MethodResult]:
+    """`evaluate_method`'s pairs, with its localizer and its helper (or none)."""
+    results = {
+        stage: MethodResult(label=row_label(spec.label, stage), object_name=model.name) for stage in config.pose_stages
+    }
+    for number, simulated in enumerate(tqdm(simulated_pairs, desc=f"{model.name}: {spec.label}", unit="pair")):
+        pair = simulated.pair
+        for stage, result in results.items():
+            pose_config = config.pose_config(stage)
+            try:
+                if stage == config.pose_stages[0]:
+                    candidates, world, latency = localize_contacts(pair, localize_model, localizer, helper)
+                estimate = pose_from_candidates(
+                    pair, localize_model, candidates, world, pose_config, spec.method, helper=helper
                 )
-                if pose_config.verify and not result.truth_in_hypotheses[-1]:
-                    T_true_localize = pair.T_world_mesh_true @ localize_model.T_mesh_object
-                    truth = refined_log_likelihood(pair, localize_model, T_true_localize, pose_config)
-                    result.missed_truth_better.append(truth > float(estimate.hypotheses.log_likelihood[0]))
-                status, after = "-", [right, right]
-                if estimate.next_touch is not None and simulator is not None:
-                    status, after = _retouch(
-                        simulator, simulated, estimate, localize_model, model, pose_config, localizer
-                    )
-                result.retouch.append(status)
-                result.right_after_retouch.append(bool(after[0]))
-                result.right_after_two.append(bool(after[1]))
-                if number >= config.warmup_pairs:
-                    result.contact_latency_ms += [latency["localize_left"], latency["localize_right"]]
-                    result.pose_stage_ms.append(estimate.latency_ms["pose"])
-                    localized = (
-                        latency["localize_pair"]
-                        if helper is not None
-                        else latency["localize_left"] + latency["localize_right"]
-                    )
-                    result.pose_latency_ms.append(localized + result.pose_stage_ms[-1])
-                    if "next_touch" in estimate.latency_ms:
-                        result.next_touch_ms.append(estimate.latency_ms["next_touch"])
+            except YotoError as exc:
+                log.warning("%s pair %d: %s failed: %s", model.name, simulated.index, result.label, exc)
+                result.failures += 1
+                continue
+            # Localization error in the mesh file's frame, which every object model of this object shares.
+            for side in SIDES:
+                truth_mesh = pair.p_mesh_true[side]
+                for store, estimate_contact in (
+                    (result.localization_top1_mm, estimate.candidates[side][0]),
+                    (result.localization_chosen_mm, estimate.contacts[side]),
+                ):
+                    p_mesh = transform_points(localize_model.T_mesh_object, estimate_contact.p_object)
+                    store.append(1000.0 * float(np.linalg.norm(p_mesh - truth_mesh)))
+            errors = symmetric_errors(model, estimate.T_world_mesh, pair.T_world_mesh_true)
+            for key in ("translation_mm", "rotation_deg", "add_s_mm", "mssd_mm"):
+                getattr(result, key).append(errors[key])
+            right = errors["translation_mm"] < RIGHT_MM and errors["rotation_deg"] < RIGHT_DEG
+            result.confidence.append(float(estimate.confidence))
+            result.ambiguous.append(bool(estimate.ambiguous))
+            result.hypotheses.append(len(estimate.hypotheses))
+            T_true = pair.T_world_mesh_true @ model.T_mesh_object
+            T_hypotheses = estimate.hypotheses_mesh(localize_model) @ model.T_mesh_object
+            translation, rotation = pose_distances(T_hypotheses, T_true, model.symmetry)
+            result.truth_in_hypotheses.append(
+                bool(np.any((translation < RIGHT_MM / 1000.0) & (rotation < np.radians(RIGHT_DEG))))
+            )
+            if pose_config.verify and not result.truth_in_hypotheses[-1]:
+                T_true_localize = pair.T_world_mesh_true @ localize_model.T_mesh_object
+                truth = refined_log_likelihood(pair, localize_model, T_true_localize, pose_config)
+                result.missed_truth_better.append(truth > float(estimate.hypotheses.log_likelihood[0]))
+            status, after = "-", [right, right]
+            if estimate.next_touch is not None and simulator is not None:
+                status, after = _retouch(simulator, simulated, estimate, localize_model, model, pose_config, localizer)
+            result.retouch.append(status)
+            result.right_after_retouch.append(bool(after[0]))
+            result.right_after_two.append(bool(after[1]))
+            if number >= config.warmup_pairs:
+                result.contact_latency_ms += [latency["localize_left"], latency["localize_right"]]
+                result.pose_stage_ms.append(estimate.latency_ms["pose"])
+                both = (
+                    latency["localize_left"] + latency["localize_right"] if helper is None else latency["localize_pair"]
+                )
+                result.pose_latency_ms.append(both + result.pose_stage_ms[-1])
+                if "next_touch" in estimate.latency_ms:
+                    result.next_touch_ms.append(estimate.latency_ms["next_touch"])
     return results
 
 
