@@ -73,8 +73,8 @@ class Hypotheses:
         return len(self.probability)
 
 
-GROUPING_PRODUCT_SIZE = 2_000_000  # grouping compares founders' rotations in products of at most this many entries
-# (a large symmetry group's stay small)
+GROUPING_PRODUCT_SIZE = 2_000_000  # grouping compares founders with every pose in parts of at most this many
+# entries per symmetry (many poses, or a large symmetry group, stay small in memory)
 
 
 def log_likelihoods(refined: Refined, config: HypothesisConfig) -> np.ndarray:
@@ -118,13 +118,9 @@ def _close_pairs(poses: np.ndarray, symmetry: Symmetry, config: HypothesisConfig
     within `distinct_translation_m` (the centroid's distance) and `distinct_rotation_rad` modulo the symmetries
     (`Symmetry.rotation_errors_rad(other, founder)`'s angle, compared through its cosine: every pair at once by small
     matrix products, instead of a loop over founders)."""
-    position = poses[:, :3, 3]
-    gap = position[:, None, :] - position[None, :, :]
-    close = np.sqrt(np.add.reduce(gap * gap, axis=2)) <= config.distinct_translation_m
-    if symmetry.spherical:
-        return close
-    rotation = np.ascontiguousarray(poses[:, :3, :3])
     count, group = len(poses), len(symmetry.rotations)
+    position = poses[:, :3, 3]
+    rotation = np.ascontiguousarray(poses[:, :3, :3])
     if symmetry.axis_object is None:
         # trace(R_other^T R_founder S) = <R_founder S, R_other> (entrywise); the cosine is (that - 1) / 2
         moved = np.einsum("kij,gjl->kgil", rotation, symmetry.rotations).reshape(count * group, 9)
@@ -134,11 +130,16 @@ def _close_pairs(poses: np.ndarray, symmetry: Symmetry, config: HypothesisConfig
         u = symmetry.axis_object
         moved = np.einsum("kij,gj->kgi", rotation, symmetry.rotations @ u).reshape(count * group, 3)
         others = rotation @ u
+    close = np.empty((count, count), dtype=bool)
     best = np.empty((count, count))
     rows = max(1, GROUPING_PRODUCT_SIZE // (group * count))  # founders at a time
     for first in range(0, count, rows):
+        gap = position[first : first + rows, None, :] - position[None, :, :]
+        close[first : first + rows] = np.sqrt(np.add.reduce(gap * gap, axis=2)) <= config.distinct_translation_m
         inner = moved[first * group : (first + rows) * group] @ others.T
         best[first : first + rows] = inner.reshape(-1, group, count).max(axis=1)
+    if symmetry.spherical:
+        return close
     cosine = (best - 1.0) / 2.0 if symmetry.axis_object is None else best
     least = np.cos(config.distinct_rotation_rad)
     # Pairs within rounding of the limit (poses a family step placed exactly one unit apart, which the refinement
