@@ -1,15 +1,28 @@
-"""Grouping refined poses into hypotheses: the fast grouping (rotations only of the poses close in translation)
-against its definition, every founder absorbing every unassigned pose within both distances of it."""
+"""Grouping refined poses into hypotheses: the fast grouping (every pair's closeness at once, rotations compared by
+their cosines) against its definition, every founder absorbing every unassigned pose within both distances of it."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from yoto.geometry import make_transform, random_rotations, rotation_about_axis
+from yoto.geometry import make_transform, random_rotations, rotation_about_axis, se3_exp
 from yoto.objects.symmetry import Symmetry
-from yoto.pose.hypotheses import HypothesisConfig, group_hypotheses, log_likelihoods, pose_distances
+from yoto.pose import hypotheses
+from yoto.pose.hypotheses import HypothesisConfig, _close_pairs, group_hypotheses, log_likelihoods, pose_distances
 from yoto.pose.refine import Refined
+
+SYMMETRIES = [
+    Symmetry(),
+    Symmetry(rotations=np.array([np.eye(3), rotation_about_axis(np.array([1.0, 0, 0]), np.pi)])),
+    Symmetry(axis_object=np.array([0, 0, 1.0])),
+    Symmetry(  # a can: turns about z, and turned over
+        axis_object=np.array([0, 0, 1.0]),
+        rotations=np.array([np.eye(3), rotation_about_axis(np.array([1.0, 0, 0]), np.pi)]),
+    ),
+    Symmetry(rotations=np.array([rotation_about_axis(np.array([0, 0, 1.0]), a) for a in np.arange(6) * np.pi / 3])),
+]
+IDS = ["none", "flip", "continuous", "can", "six-fold"]
 
 
 def _grouped_by_definition(refined: Refined, symmetry: Symmetry, config: HypothesisConfig):
@@ -29,15 +42,7 @@ def _grouped_by_definition(refined: Refined, symmetry: Symmetry, config: Hypothe
     return np.array(members), np.array(support)
 
 
-@pytest.mark.parametrize(
-    "symmetry",
-    [
-        Symmetry(),
-        Symmetry(rotations=np.array([np.eye(3), rotation_about_axis(np.array([1.0, 0, 0]), np.pi)])),
-        Symmetry(axis_object=np.array([0, 0, 1.0])),
-    ],
-    ids=["none", "flip", "continuous"],
-)
+@pytest.mark.parametrize("symmetry", SYMMETRIES, ids=IDS)
 def test_grouping_matches_its_definition(symmetry, rng):
     # Clusters of poses a few millimetres and degrees around a few centres: many lie within the distinct
     # distances of one another in translation but not in rotation, and the other way round.
@@ -65,3 +70,27 @@ def test_grouping_matches_its_definition(symmetry, rng):
     np.testing.assert_array_equal(grouped.member, members)
     np.testing.assert_array_equal(grouped.support, support)
     assert grouped.support.sum() == count
+
+
+@pytest.mark.parametrize("symmetry", SYMMETRIES, ids=IDS)
+@pytest.mark.parametrize("product_size", [2_000_000, 1000], ids=["whole", "in parts"])
+def test_close_pairs_on_the_limit(symmetry, product_size, rng, monkeypatch):
+    monkeypatch.setattr(hypotheses, "GROUPING_PRODUCT_SIZE", product_size)
+    # Poses one distinct rotation apart along lines, as the family step places them: every pair on the limit within
+    # rounding, where the angle's own rounding decides (the cosines alone decide 32 of 4500 such pairs otherwise).
+    config = HypothesisConfig()
+    poses = []
+    for centre in random_rotations(rng, 6):
+        twists = np.zeros((15, 6))
+        axis = rng.normal(size=3)
+        twists[:, :3] = np.outer(np.arange(-7, 8) * config.distinct_rotation_rad, axis / np.linalg.norm(axis))
+        poses.extend(make_transform(centre, rng.normal(scale=0.003, size=3)) @ se3_exp(twists))
+    poses = np.array(poses)
+    expected = np.array(
+        [
+            (translation <= config.distinct_translation_m) & (rotation <= config.distinct_rotation_rad)
+            for translation, rotation in (pose_distances(poses, pose, symmetry) for pose in poses)
+        ]
+    )
+    np.fill_diagonal(expected, True)
+    np.testing.assert_array_equal(_close_pairs(poses, symmetry, config), expected)

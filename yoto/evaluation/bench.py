@@ -20,6 +20,7 @@ import hashlib
 import json
 import logging
 import time
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,10 +34,12 @@ from yoto.errors import InputError, YotoError
 from yoto.evaluation.shapes import is_procedural, procedural_mesh
 from yoto.geometry import transform_points
 from yoto.io import read_json, write_bytes_atomic, write_json_atomic, write_text_atomic
+from yoto.localize.helper import LocalizerProcess
 from yoto.metrics import pose_errors, summarize
 from yoto.objects.build import build_object, load_object_model
 from yoto.objects.mesh import MESH_SUFFIXES
 from yoto.objects.model import ObjectModel, build_object_model
+from yoto.pose.executor import prepare_pose_helper
 from yoto.pose.hypotheses import pose_distances
 from yoto.pose.pipeline import (
     PAPER,
@@ -88,6 +91,9 @@ class BenchConfig:
     pose_stages: tuple[str, ...] = ("full", "paper")  # pose stages to report for every method (same localizations)
     image_calibration: str | None = None  # rows "via images": a calibration file or "shading[:SEED]" (image_route)
     image_variation: float = 0.0  # how much each rendered image's lighting, noise and gel stray from the sensor's
+    both_cores: bool = False  # localize each pair's right contact in a helper process while this one localizes
+    # the left, and compute half of the pose stage's batches there (the same poses, bitwise): a pose's latency is
+    # then both contacts at once plus the pose stage, as a robot with two free cores waits for it
 
     def pose_config(self, stage: str) -> PoseConfig:
         if stage == "paper":
@@ -118,7 +124,8 @@ class MethodResult:
     right_after_retouch: list[bool] = field(default_factory=list)  # the pose right after the re-touch (or without)
     right_after_two: list[bool] = field(default_factory=list)  # ... after a second re-touch where still ambiguous
     contact_latency_ms: list[float] = field(default_factory=list)  # per contact, warm-up excluded
-    pose_latency_ms: list[float] = field(default_factory=list)  # per pair: both localizations + the pose stage
+    pose_latency_ms: list[float] = field(default_factory=list)  # per pair: both localizations (at once with
+    # `both_cores`) + the pose stage
     pose_stage_ms: list[float] = field(default_factory=list)  # per pair: the pose stage alone (no next_touch)
     next_touch_ms: list[float] = field(default_factory=list)  # per ambiguous pair
     failures: int = 0
@@ -176,9 +183,28 @@ def symmetric_errors(model: ObjectModel, T_world_mesh_estimate: np.ndarray, T_wo
 def evaluate_method(
     spec: MethodSpec, model: ObjectModel, simulated_pairs: list, simulator, config: BenchConfig, workspace
 ) -> dict[str, MethodResult]:
-    """Run one method over the simulated pairs of one object: localize once, then each pose stage."""
+    """Run one method over the simulated pairs of one object: localize once, then each pose stage (with
+    `config.both_cores`, in this process and a helper)."""
     localizer = _make_localizer(spec)
     localize_model = load_object_model(model.name + spec.model_suffix, workspace) if spec.model_suffix else model
+    with LocalizerProcess(localizer) if config.both_cores else nullcontext() as helper:
+        if helper is not None:  # the helper's per-model data and surface field, before the first pair
+            helper.prepare_object(localize_model)
+            prepare_pose_helper(helper, localize_model, config.pose_config("full").field_config).result()
+        return _evaluate_pairs(spec, model, localize_model, localizer, simulated_pairs, simulator, config, helper)
+
+
+def _evaluate_pairs(
+    spec: MethodSpec,
+    model: ObjectModel,
+    localize_model: ObjectModel,
+    localizer,
+    simulated_pairs: list,
+    simulator,
+    config: BenchConfig,
+    helper: LocalizerProcess | None,
+) -> dict[str, MethodResult]:
+    """`evaluate_method`'s pairs, with its localizer and its helper (or none)."""
     results = {
         stage: MethodResult(label=row_label(spec.label, stage), object_name=model.name) for stage in config.pose_stages
     }
@@ -188,8 +214,10 @@ def evaluate_method(
             pose_config = config.pose_config(stage)
             try:
                 if stage == config.pose_stages[0]:
-                    candidates, world, latency = localize_contacts(pair, localize_model, localizer)
-                estimate = pose_from_candidates(pair, localize_model, candidates, world, pose_config, spec.method)
+                    candidates, world, latency = localize_contacts(pair, localize_model, localizer, helper)
+                estimate = pose_from_candidates(
+                    pair, localize_model, candidates, world, pose_config, spec.method, helper=helper
+                )
             except YotoError as exc:
                 log.warning("%s pair %d: %s failed: %s", model.name, simulated.index, result.label, exc)
                 result.failures += 1
@@ -229,9 +257,10 @@ def evaluate_method(
             if number >= config.warmup_pairs:
                 result.contact_latency_ms += [latency["localize_left"], latency["localize_right"]]
                 result.pose_stage_ms.append(estimate.latency_ms["pose"])
-                result.pose_latency_ms.append(
-                    latency["localize_left"] + latency["localize_right"] + result.pose_stage_ms[-1]
+                both = (
+                    latency["localize_left"] + latency["localize_right"] if helper is None else latency["localize_pair"]
                 )
+                result.pose_latency_ms.append(both + result.pose_stage_ms[-1])
                 if "next_touch" in estimate.latency_ms:
                     result.next_touch_ms.append(estimate.latency_ms["next_touch"])
     return results
@@ -642,7 +671,12 @@ def format_markdown(report: dict[str, Any]) -> str:
     lines += ["", "Reliability diagram: `reliability.png`.", ""]
     lines += [
         "## Latency (ms, warm-up excluded): per contact median / p90; pose stage alone median / p90; "
-        "per pose median; next_touch median",
+        "per pose median; next_touch median"
+        + (
+            " (both cores: both contacts at once, half of the pose stage's batches in a helper process)"
+            if run["config"].get("both_cores")
+            else ""
+        ),
         "",
         header,
         rule,

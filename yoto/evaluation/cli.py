@@ -64,6 +64,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--no-retouch", action="store_true", help="do not simulate the suggested re-touch of ambiguous pairs"
     )
     parser.add_argument(
+        "--both-cores",
+        action="store_true",
+        help="localize each pair's right contact in a helper process while this one localizes the left, and compute "
+        "half of the pose stage's batches there (the same poses, bit for bit): per pose latency as a robot with two "
+        "free cores waits for it (on a busy machine, slower)",
+    )
+    parser.add_argument(
         "--via-images",
         metavar="CALIBRATION",
         help="add a row per method on the same pairs with every contact sent through a rendered GelSight image "
@@ -160,6 +167,7 @@ def run(args: argparse.Namespace) -> int:
         pose_stages=tuple(args.pose_stages),
         image_calibration=args.via_images,
         image_variation=args.image_variation,
+        both_cores=args.both_cores,
     )
     run_benchmark(args.objects, methods, config, args.out, args.workspace, args.overwrite)
     from pathlib import Path

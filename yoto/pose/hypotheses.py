@@ -73,6 +73,10 @@ class Hypotheses:
         return len(self.probability)
 
 
+GROUPING_PRODUCT_SIZE = 2_000_000  # grouping compares founders with every pose in parts of at most this many
+# entries per symmetry (many poses, or a large symmetry group, stay small in memory)
+
+
 def log_likelihoods(refined: Refined, config: HypothesisConfig) -> np.ndarray:
     """(K,) log-likelihood of each refined pose (see the module docstring)."""
     fit = config.effective_points * np.sum((refined.fit_rms_m / config.fit_noise_m) ** 2, axis=1)
@@ -92,26 +96,62 @@ def group_hypotheses(refined: Refined, symmetry: Symmetry, config: HypothesisCon
     score = log_likelihoods(refined, config)
     order = np.argsort(-score, kind="stable")
     poses = refined.T_world_object
-    position = poses[:, :3, 3]
+    close = _close_pairs(poses, symmetry, config)
     unassigned = np.ones(len(order), dtype=bool)
     members, support = [], []
     for k in order:
         if not unassigned[k]:
             continue
-        # The rotation (the costly part, modulo symmetry) only of the unassigned poses close enough in translation.
-        close = np.flatnonzero(unassigned)
-        close = close[np.linalg.norm(position[close] - position[k], axis=1) <= config.distinct_translation_m]
-        if len(close) > 1:
-            rotation = symmetry.rotation_errors_rad(poses[close], np.broadcast_to(poses[k], (len(close), 4, 4)))
-            close = close[rotation <= config.distinct_rotation_rad]
-        unassigned[close] = False  # k among them (at distance 0)
+        joining = unassigned & close[k]  # k among them
+        unassigned &= ~joining
         members.append(k)
-        support.append(len(close))
+        support.append(int(np.count_nonzero(joining)))
     best = np.array(members, dtype=np.int64)
     log_l = score[best]
     weights = np.exp((log_l - log_l.max()) / config.temperature) if len(best) else np.empty(0)
     probability = weights / weights.sum() if len(best) else weights
     return Hypotheses(poses[best], probability, log_l, best, np.array(support, dtype=np.int64))
+
+
+def _close_pairs(poses: np.ndarray, symmetry: Symmetry, config: HypothesisConfig) -> np.ndarray:
+    """(K, K) whether each pose (row, a founder) and each other (column) of K poses (K, 4, 4) are one hypothesis:
+    within `distinct_translation_m` (the centroid's distance) and `distinct_rotation_rad` modulo the symmetries
+    (`Symmetry.rotation_errors_rad(other, founder)`'s angle, compared through its cosine: every pair at once by small
+    matrix products, instead of a loop over founders)."""
+    count, group = len(poses), len(symmetry.rotations)
+    position = poses[:, :3, 3]
+    rotation = np.ascontiguousarray(poses[:, :3, :3])
+    if symmetry.axis_object is None:
+        # trace(R_other^T R_founder S) = <R_founder S, R_other> (entrywise); the cosine is (that - 1) / 2
+        moved = np.einsum("kij,gjl->kgil", rotation, symmetry.rotations).reshape(count * group, 9)
+        others = rotation.reshape(count, 9)
+    else:
+        # Any twist about the axis u is free: the swing's cosine is (R_founder S u) . (R_other u)
+        u = symmetry.axis_object
+        moved = np.einsum("kij,gj->kgi", rotation, symmetry.rotations @ u).reshape(count * group, 3)
+        others = rotation @ u
+    close = np.empty((count, count), dtype=bool)
+    best = np.empty((count, count))
+    rows = max(1, GROUPING_PRODUCT_SIZE // (group * count))  # founders at a time
+    for first in range(0, count, rows):
+        gap = position[first : first + rows, None, :] - position[None, :, :]
+        close[first : first + rows] = np.sqrt(np.add.reduce(gap * gap, axis=2)) <= config.distinct_translation_m
+        inner = moved[first * group : (first + rows) * group] @ others.T
+        best[first : first + rows] = inner.reshape(-1, group, count).max(axis=1)
+    if symmetry.spherical:
+        return close
+    cosine = (best - 1.0) / 2.0 if symmetry.axis_object is None else best
+    least = np.cos(config.distinct_rotation_rad)
+    # Pairs within rounding of the limit (poses a family step placed exactly one unit apart, which the refinement
+    # left where they were) get `rotation_errors_rad`'s own angle, so the grouping is the one pose by pose.
+    near = np.argwhere(close & (np.abs(cosine - least) <= 1e-9))
+    close &= cosine >= least
+    if len(near):
+        founder, other = near.T
+        angle = symmetry.rotation_errors_rad(poses[other], poses[founder])
+        close[founder, other] = angle <= config.distinct_rotation_rad
+    np.fill_diagonal(close, True)
+    return close
 
 
 def neighbour_poses(T_world_object: np.ndarray, config: HypothesisConfig) -> np.ndarray:
