@@ -560,7 +560,9 @@ def contact_masks(
     edge lies at half its indentation (Hertz), and it measured best for sphere fits on the real presses
     (docs/sensor.md). The contact (for localization) is every pixel pressed deeper than the reconstruction's
     noise floor (`min_depth_m`, and `felt_relative_depth` of the deepest) in a connected region that holds
-    core pixels: a broad or tilted contact keeps its whole shape, the core alone is a small featureless patch.
+    core pixels, or that reaches `separate_floor_multiple` times that floor itself and has `min_area_px` pixels (an
+    object's second feature pressed apart from the first): a broad or tilted contact keeps its whole shape, the
+    core alone is a small featureless patch.
     Heights outside `box` are zero, so the regions are found inside it.
     """
     if changed_px < config.min_area_px and not faint:
@@ -582,9 +584,14 @@ def contact_masks(
         )
         return None, None, reason
     core = window <= -np.float32(max(floor, config.relative_depth * deepest))
-    labels, _ = ndimage.label(felt)
-    kept = np.zeros(int(labels.max()) + 1, dtype=bool)
+    labels, count = ndimage.label(felt)
+    kept = np.zeros(count + 1, dtype=bool)
     kept[labels[core]] = True
+    if count > 1:  # a region apart from the core's that is pressed clearly deeper than the noise floor
+        region_deepest = ndimage.minimum(window, labels, np.arange(1, count + 1))
+        region_area = np.bincount(labels.ravel(), minlength=count + 1)[1:]
+        separate = config.separate_floor_multiple * floor
+        kept[1:] |= (np.asarray(region_deepest) <= -separate) & (region_area >= config.min_area_px)
     kept[0] = False
     shape = height_m.shape
     mask = np.zeros(shape, dtype=bool)
