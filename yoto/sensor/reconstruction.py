@@ -19,9 +19,9 @@ Steps, for one 320x240 RGB frame:
    contact: a tilted face's colour change of a few levels over many blocks that no lighting change explains,
    integrated over the whole frame), the core (pixels
    pressed at least half as deep as the deepest point: a ball's contact, for sphere fits) and the contact the
-   gel felt (pixels deeper than the noise floor, connected to the core: what localization needs, the whole
-   shape of a broad or tilted contact). Depth, not colour: the middle of a contact is flat, so its colour
-   barely changes.
+   gel felt (pixels deeper than the noise floor, connected to the core or in a region itself pressed well below
+   the floor: what localization needs, the whole shape of a broad or tilted contact). Depth, not colour: the
+   middle of a contact is flat, so its colour barely changes.
 5. points: the contact's pixels' sensor-frame (x, y, z) in metres (SPEC: z <= 0 where the gel is pressed).
 
 Bad input never yields a silent garbage cloud: a wrong size or dtype, a saturated frame or a frame that
