@@ -212,6 +212,36 @@ def test_a_pressed_plateau_is_not_taken_for_untouched_gel(shading):
         assert 0.85 < recon.max_depth_m / -truth.min() < 1.2
 
 
+def two_features() -> np.ndarray:
+    """The gel under an object that presses it in two places apart: a rounded corner 1 mm deep on the left and, a few
+    millimetres away, a rounded edge 0.4 mm deep running off the pad's right border (a box's corner and the edge
+    beside it)."""
+    x, y = SPEC.pixel_xy_sensor()
+    corner = -1.0e-3 + ((x + 0.005) ** 2 + y**2) / (2 * 0.006)
+    edge = -0.4e-3 + (y + 0.002) ** 2 / (2 * 0.003) + np.maximum(0.0, 0.004 - x) ** 2 / (2 * 0.004)
+    height, _, _ = gel_surface(np.minimum(corner, edge), GelModel(), SPEC)
+    return height
+
+
+def test_a_second_feature_pressed_apart_from_the_first_belongs_to_the_contact(shading):
+    """Where an object presses the gel in two places apart, the shallower region (here 40% of the deepest: below
+    the core's half, so not connected to it) is part of the contact the gel felt: left out, the localizer lost its
+    shape and the pose stage took the gel there for free space the object cannot reach. Through the shading sensor
+    and the fitted model with varied lighting, noise and gel; the core (sphere fits) stays the deep feature."""
+    _, calibration = shading
+    truth = two_features()
+    regions, count = ndimage.label(truth < -0.05e-3)
+    assert count == 2
+    x, _ = SPEC.pixel_xy_sensor()
+    second = regions == regions[np.unravel_index(np.argmin(np.where(x > 0.004, truth, 0.0)), truth.shape)]
+    for image in two_optics(truth, shading):
+        recon = reconstruct(image, calibration)
+        assert recon.contact
+        assert (recon.mask & second).sum() > 0.6 * (second & (truth < -0.1e-3)).sum()
+        assert not (recon.core_mask & second).any()
+        assert (recon.mask & ~(truth < -0.02e-3)).sum() < 0.05 * recon.mask.sum()
+
+
 @pytest.mark.parametrize("draw", range(3))
 def test_reconstruction_does_not_depend_on_lighting_noise_and_gel(shading, draw):
     """The fitted optical model with its lighting (per channel), noise, blur and gel smoothing varied around the

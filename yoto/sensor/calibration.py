@@ -39,6 +39,8 @@ class MaskConfig:
     min_depth_m: float = 5e-5  # every contact pixel is at least this deep (metres); shallower frames have no contact
     felt_relative_depth: float = 0.05  # the contact (localization): pixels deeper than this fraction of the deepest
     # depth and min_depth_m, connected to the core: the whole region the gel felt, above the reconstruction's noise
+    separate_floor_multiple: float = 3.0  # ... and every other region so felt that reaches this many times that
+    # noise floor (a second feature of the object pressed apart from the first: a box's edge beside its face)
     min_area_px: int = 40  # fewer changed or contact pixels than this: no contact (explicit empty result)
 
 

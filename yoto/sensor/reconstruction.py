@@ -19,9 +19,9 @@ Steps, for one 320x240 RGB frame:
    contact: a tilted face's colour change of a few levels over many blocks that no lighting change explains,
    integrated over the whole frame), the core (pixels
    pressed at least half as deep as the deepest point: a ball's contact, for sphere fits) and the contact the
-   gel felt (pixels deeper than the noise floor, connected to the core: what localization needs, the whole
-   shape of a broad or tilted contact). Depth, not colour: the middle of a contact is flat, so its colour
-   barely changes.
+   gel felt (pixels deeper than the noise floor, connected to the core or in a region itself pressed well below
+   the floor: what localization needs, the whole shape of a broad or tilted contact). Depth, not colour: the
+   middle of a contact is flat, so its colour barely changes.
 5. points: the contact's pixels' sensor-frame (x, y, z) in metres (SPEC: z <= 0 where the gel is pressed).
 
 Bad input never yields a silent garbage cloud: a wrong size or dtype, a saturated frame or a frame that
@@ -560,7 +560,9 @@ def contact_masks(
     edge lies at half its indentation (Hertz), and it measured best for sphere fits on the real presses
     (docs/sensor.md). The contact (for localization) is every pixel pressed deeper than the reconstruction's
     noise floor (`min_depth_m`, and `felt_relative_depth` of the deepest) in a connected region that holds
-    core pixels: a broad or tilted contact keeps its whole shape, the core alone is a small featureless patch.
+    core pixels, or that reaches `separate_floor_multiple` times that floor itself and has `min_area_px` pixels (an
+    object's second feature pressed apart from the first): a broad or tilted contact keeps its whole shape, the
+    core alone is a small featureless patch.
     Heights outside `box` are zero, so the regions are found inside it.
     """
     if changed_px < config.min_area_px and not faint:
@@ -582,9 +584,14 @@ def contact_masks(
         )
         return None, None, reason
     core = window <= -np.float32(max(floor, config.relative_depth * deepest))
-    labels, _ = ndimage.label(felt)
-    kept = np.zeros(int(labels.max()) + 1, dtype=bool)
+    labels, count = ndimage.label(felt)
+    kept = np.zeros(count + 1, dtype=bool)
     kept[labels[core]] = True
+    if count > 1:  # a region apart from the core's that is pressed clearly deeper than the noise floor
+        region_deepest = ndimage.minimum(window, labels, np.arange(1, count + 1))
+        region_area = np.bincount(labels.ravel(), minlength=count + 1)[1:]
+        separate = config.separate_floor_multiple * floor
+        kept[1:] |= (np.asarray(region_deepest) <= -separate) & (region_area >= config.min_area_px)
     kept[0] = False
     shape = height_m.shape
     mask = np.zeros(shape, dtype=bool)
