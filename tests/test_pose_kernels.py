@@ -13,7 +13,9 @@ from yoto.pose.field import SurfaceField
 from yoto.pose.kernels import KERNELS
 from yoto.pose.refine import RefineConfig
 
-pytestmark = pytest.mark.skipif(KERNELS is None, reason="numba is not installed (the `fast` extra)")
+pytestmark = pytest.mark.skipif(
+    KERNELS is None, reason="no numba kernels (the `fast` extra not installed, or YOTO_NO_NUMBA set)"
+)
 
 
 def _sphere_field(radius: float = 0.02, cell: float = 0.001, band: float = 0.004) -> SurfaceField:
@@ -54,22 +56,33 @@ def test_field_read_is_bitwise_numpy(rng):
 def test_normal_equations_equal_numpy(rng, monkeypatch, scaled):
     field = _sphere_field()
     config = RefineConfig()
-    # 60 points on a cap of the sphere (sensor frame: the pad at the sensor's origin, pressing along -z)
+    # 60 points on a cap of the sphere (sensor frame: the pad at the sensor's origin, pressing along -z), the
+    # second sensor's contact (its correction's rows 12-17), its depth scale estimated when `scaled`
     directions = rng.normal(size=(60, 3)) * [0.2, 0.2, 0.0] + [0.0, 0.0, 1.0]
     on_sphere = 0.02 * directions / np.linalg.norm(directions, axis=1, keepdims=True)
     points_sensor = on_sphere - [0.0, 0.0, 0.02] + rng.normal(0.0, 5e-5, (60, 3))
-    # K poses of the sensor at the sphere's top, each off by a small twist (some far enough to drop points)
-    T_sensor = np.eye(4)
-    T_sensor[2, 3] = 0.02
-    twists = rng.normal(size=(25, 6)) * [0.05, 0.05, 0.05, 0.002, 0.002, 0.002]
-    A = T_sensor @ se3_exp(twists)
-    factor = rng.uniform(0.8, 1.2, 25) if scaled else None
-    compiled = refine_module._contact_normal_equations(field, A, points_sensor, factor, config)
-    _numpy_only(monkeypatch)
-    expected = refine_module._contact_normal_equations(field, A, points_sensor, factor, config)
-    for got, want in zip(compiled, expected):
-        assert got.shape == want.shape
-        assert np.abs(want).max() > 0.0 or (want.ndim == 2 and not scaled)  # no scale: zero rows
+    T_world_sensor = np.eye(4)
+    T_world_sensor[2, 3] = 0.02
+    contact = refine_module.ContactPoints(points_sensor, T_world_sensor, 1, np.zeros((0, 3)), 0.05 if scaled else 0.0)
+    # K object poses and corrections, each off by a small twist (some far enough to drop points)
+    poses = se3_exp(rng.normal(size=(25, 6)) * [0.05, 0.05, 0.05, 0.002, 0.002, 0.002])
+    corrections = se3_exp(rng.normal(size=(25, 2, 6)) * 0.01)
+    depth_scale = rng.uniform(0.8, 1.2, (25, 1)) if scaled else None
+    size = 19 if scaled else 18
+    results = []
+    for compiled in (True, False):
+        if not compiled:
+            _numpy_only(monkeypatch)
+        hessian, gradient = np.zeros((25, size, size)), np.zeros((25, size))
+        refine_module._add_normal_equations(
+            field, [contact], poses, corrections, config, hessian, gradient, depth_scale
+        )
+        results.append((hessian, gradient))
+    (hessian, gradient), (expected_hessian, expected_gradient) = results
+    assert np.all(expected_hessian[:, 6:12] == 0.0) and np.abs(expected_hessian[:, 12:18, :6]).max() > 0.0
+    if scaled:
+        assert np.abs(expected_hessian[:, 18, 12:18]).max() > 0.0
+    for got, want in ((hessian, expected_hessian), (gradient, expected_gradient)):
         np.testing.assert_allclose(got, want, rtol=TOL["float"], atol=TOL["float"] * np.abs(want).max())
 
 

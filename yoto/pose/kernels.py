@@ -66,20 +66,41 @@ def _build() -> Any:
                 normal[p, 2] = np.float64(gz * scale)
 
     @numba.njit(cache=True, nogil=True)
-    def normal_equations(
-        flat, nx, ny, nz, origin, inverse_cell, band, A, points, z_scale, max_distance, noise, weight_scale, out
+    def add_normal_equations(
+        flat,
+        nx,
+        ny,
+        nz,
+        origin,
+        inverse_cell,
+        band,
+        A,
+        points,
+        z_scale,
+        max_distance,
+        noise,
+        weight_scale,
+        side,
+        scale_row,
+        hessian,
+        gradient,
     ):
-        """One contact's robustly weighted point-to-surface normal equations under K poses A (K, 4, 4) (object <-
-        sensor) of its (M, 3) sensor-frame points, heights scaled by z_scale (K,), summed into out (K, 7, 8): per
-        pose rows 0-5 the 6 x 6 a^T W a, then a^T W r, then a^T W j (j = d r / d log scale); out[:, 6, :2] the
-        sums of W j^2 and W j r (see `refine._add_normal_equations`, which this fuses)."""
+        """Add one contact's robustly weighted point-to-surface normal equations under K poses A (K, 4, 4) (object
+        <- sensor) of its (M, 3) sensor-frame points, heights scaled by z_scale (K,), into hessian (K, S, S) and
+        gradient (K, S): the object pose's rows 0-5, its sensor's correction's rows side..side + 5, its log depth
+        scale's row scale_row (< 0: none). `refine._add_normal_equations` in one pass (its numpy path explains
+        the algebra)."""
         count = points.shape[0]
         q = np.empty((count, 3))
         r = np.empty(count)
         n = np.empty((count, 3))
         used = np.empty(count)
         a = np.empty(8)
+        sums = np.empty((7, 8))  # rows 0-5: a^T W a, a^T W r, a^T W j; row 6: W j^2, W j r
+        adjoint = np.zeros((6, 6))  # M = [[-R^T, R^T [t]x], [0, -R^T]]
+        coupled = np.empty((6, 8))  # M [B, g, a^T W j]
         for k in range(A.shape[0]):
+            sums[:] = 0.0
             for m in range(count):
                 x, y, z = points[m, 0], points[m, 1], points[m, 2] * z_scale[k]
                 for i in range(3):
@@ -111,11 +132,43 @@ def _build() -> Any:
                 for i in range(6):
                     wi = a[i] * w
                     for j in range(8):
-                        out[k, i, j] += wi * a[j]
-                out[k, 6, 0] += w * a[7] * a[7]
-                out[k, 6, 1] += w * a[7] * a[6]
+                        sums[i, j] += wi * a[j]
+                sums[6, 0] += w * a[7] * a[7]
+                sums[6, 1] += w * a[7] * a[6]
+            tx, ty, tz = A[k, 0, 3], A[k, 1, 3], A[k, 2, 3]
+            for i in range(3):
+                for j in range(3):
+                    adjoint[i, j] = adjoint[3 + i, 3 + j] = -A[k, j, i]
+                adjoint[i, 3] = A[k, 1, i] * tz - A[k, 2, i] * ty  # (R^T [t]x)[i, :]
+                adjoint[i, 4] = A[k, 2, i] * tx - A[k, 0, i] * tz
+                adjoint[i, 5] = A[k, 0, i] * ty - A[k, 1, i] * tx
+            for i in range(6):
+                for j in range(8):
+                    total = 0.0
+                    for m in range(6):
+                        total += adjoint[i, m] * sums[m, j]
+                    coupled[i, j] = total
+            for i in range(6):
+                gradient[k, i] += sums[i, 6]
+                gradient[k, side + i] += coupled[i, 6]
+                for j in range(6):
+                    hessian[k, i, j] += sums[i, j]
+                    hessian[k, i, side + j] += coupled[j, i]
+                    hessian[k, side + i, j] += coupled[i, j]
+                    total = 0.0
+                    for m in range(6):
+                        total += coupled[i, m] * adjoint[j, m]
+                    hessian[k, side + i, side + j] += total
+            if scale_row >= 0:
+                for i in range(6):
+                    hessian[k, i, scale_row] += sums[i, 7]
+                    hessian[k, scale_row, i] += sums[i, 7]
+                    hessian[k, side + i, scale_row] += coupled[i, 7]
+                    hessian[k, scale_row, side + i] += coupled[i, 7]
+                hessian[k, scale_row, scale_row] += sums[6, 0]
+                gradient[k, scale_row] += sums[6, 1]
 
-    return SimpleNamespace(field_read=field_read, normal_equations=normal_equations)
+    return SimpleNamespace(field_read=field_read, add_normal_equations=add_normal_equations)
 
 
 KERNELS = _build()

@@ -386,17 +386,48 @@ def _add_normal_equations(
     (K, 2, 4, 4); then the log depth scale of each of the S contacts with `depth_scale_sigma` > 0, in order, at
     `depth_scale` (K, C) (None: there are none)."""
     T_object_world = invert_transform(poses)
+    weight_scale = 1.0 / config.surface_noise_m**2
     scale_row = 18
     for c, contact in enumerate(contacts):
         s = contact.sensor
         A = T_object_world @ contact.T_world_sensor @ corrections[:, s]  # object <- sensor
         factor = depth_scale[:, c] if depth_scale is not None and contact.depth_scale_sigma > 0 else None
+        if KERNELS is not None:  # the same sums and products in one compiled pass, no (K, M, 6) temporaries
+            KERNELS.add_normal_equations(
+                *field.kernel_arguments(),
+                A,
+                np.ascontiguousarray(contact.points_sensor, dtype=np.float64),
+                np.ones(len(A)) if factor is None else np.ascontiguousarray(factor, dtype=np.float64),
+                config.max_distance_m,
+                config.surface_noise_m,
+                weight_scale,
+                6 + 6 * s,
+                -1 if factor is None else scale_row,
+                hessian,
+                gradient,
+            )
+            if factor is not None:
+                scale_row += 1
+            continue
+        points = contact.points_sensor if factor is None else _scaled_heights(contact.points_sensor, factor)
+        q = transform_batch(A, points)
+        r, n = field.distance(q)
+        assert n is not None
+        magnitude = np.abs(r)
+        use = magnitude < config.max_distance_m
+        scale = np.maximum(config.surface_noise_m, 1.4826 * masked_row_medians(magnitude, use))
+        w = np.where(use, np.minimum(1.0, scale[:, None] / np.maximum(magnitude, 1e-12)), 0.0) * weight_scale
         # The residuals of one contact depend on the object pose and on its sensor's correction only. Their
         # rows for the object pose are a = (n x q, -n); for the correction (p x m, m), with m = R^T n the
         # normal in the sensor frame (A = [R | t]), which is M a, M = [[-R^T, R^T [t]x], [0, -R^T]] (the
         # adjoint): so only the 6 x 6 normal equations B = a^T W a are summed over points, and the 12 x 12
         # block is [[B, B M^T], [M B, M B M^T]].
-        block, g, row, scale_sums = _contact_normal_equations(field, A, contact.points_sensor, factor, config)
+        J = np.empty(q.shape[:2] + (6,))
+        cross_into(n, q, J[..., 0:3])
+        np.negative(n, out=J[..., 3:6])
+        weighted = np.swapaxes(J * w[..., None], 1, 2)
+        block = weighted @ J
+        g = (weighted @ r[..., None])[..., 0]
         rotation_t = np.swapaxes(A[:, :3, :3], 1, 2)
         adjoint = np.zeros((len(A), 6, 6))
         adjoint[:, :3, :3] = -rotation_t
@@ -411,56 +442,14 @@ def _add_normal_equations(
         gradient[:, :6] += g
         gradient[:, side] += (adjoint @ g[:, :, None])[..., 0]
         if factor is not None:
+            # d r / d log s = n . (R e_z) s z: the normal in the sensor frame (m = R^T n) along z, times the height
+            along = np.einsum("kmi,ki->km", n, A[:, :3, 2]) * points[..., 2]
+            row = (weighted @ along[..., None])[..., 0]  # a^T W j
             hessian[:, :6, scale_row] += row
             hessian[:, scale_row, :6] += row
             moved = (adjoint @ row[..., None])[..., 0]
             hessian[:, side, scale_row] += moved
             hessian[:, scale_row, side] += moved
-            hessian[:, scale_row, scale_row] += scale_sums[:, 0]
-            gradient[:, scale_row] += scale_sums[:, 1]
+            hessian[:, scale_row, scale_row] += np.sum(w * along**2, axis=1)
+            gradient[:, scale_row] += np.sum(w * along * r, axis=1)
             scale_row += 1
-
-
-def _contact_normal_equations(
-    field: SurfaceField, A: np.ndarray, points_sensor: np.ndarray, factor: np.ndarray | None, config: RefineConfig
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One contact's robustly weighted sums under K poses A (K, 4, 4) (object <- sensor) of its points (M, 3),
-    heights scaled by `factor` (K,) (None: as given): B = a^T W a (K, 6, 6), a^T W r (K, 6), a^T W j (K, 6) and
-    (W j^2, W j r) (K, 2), with a = (n x q, -n) the residuals' rows for the object pose and j = d r / d log s =
-    n . (R e_z) s z (the normal in the sensor frame along z, times the height; zeros without `factor`)."""
-    weight_scale = 1.0 / config.surface_noise_m**2
-    if KERNELS is not None:  # the same sums in one compiled pass over the points, no (K, M, 6) temporaries
-        sums = np.zeros((len(A), 7, 8))
-        z_scale = np.ones(len(A)) if factor is None else np.ascontiguousarray(factor, dtype=np.float64)
-        KERNELS.normal_equations(
-            *field.kernel_arguments(),
-            np.ascontiguousarray(A, dtype=np.float64),
-            np.ascontiguousarray(points_sensor, dtype=np.float64),
-            z_scale,
-            config.max_distance_m,
-            config.surface_noise_m,
-            weight_scale,
-            sums,
-        )
-        if factor is None:
-            sums[:, :6, 7] = sums[:, 6, :2] = 0.0
-        return sums[:, :6, :6], sums[:, :6, 6], sums[:, :6, 7], sums[:, 6, :2]
-    points = points_sensor if factor is None else _scaled_heights(points_sensor, factor)
-    q = transform_batch(A, points)
-    r, n = field.distance(q)
-    assert n is not None
-    magnitude = np.abs(r)
-    use = magnitude < config.max_distance_m
-    scale = np.maximum(config.surface_noise_m, 1.4826 * masked_row_medians(magnitude, use))
-    w = np.where(use, np.minimum(1.0, scale[:, None] / np.maximum(magnitude, 1e-12)), 0.0) * weight_scale
-    J = np.empty(q.shape[:2] + (6,))
-    cross_into(n, q, J[..., 0:3])
-    np.negative(n, out=J[..., 3:6])
-    weighted = np.swapaxes(J * w[..., None], 1, 2)
-    block = weighted @ J
-    g = (weighted @ r[..., None])[..., 0]
-    if factor is None:
-        return block, g, np.zeros_like(g), np.zeros((len(A), 2))
-    along = np.einsum("kmi,ki->km", n, A[:, :3, 2]) * points[..., 2]
-    row = (weighted @ along[..., None])[..., 0]
-    return block, g, row, np.stack([np.sum(w * along**2, axis=1), np.sum(w * along * r, axis=1)], axis=1)
