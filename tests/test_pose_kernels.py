@@ -9,6 +9,7 @@ from conftest import TOL
 import yoto.pose.field as field_module
 import yoto.pose.refine as refine_module
 from yoto.geometry import se3_exp
+from yoto.pose.executor import _counted_refine
 from yoto.pose.field import SurfaceField
 from yoto.pose.kernels import KERNELS
 from yoto.pose.refine import RefineConfig
@@ -87,7 +88,8 @@ def test_normal_equations_equal_numpy(rng, monkeypatch, scaled):
 
 
 def test_refinement_equal_numpy(rng, monkeypatch):
-    """Whole refinements, both contacts of a pair on a sphere: the same poses and scores either way."""
+    """Whole refinements, both contacts of a pair on a sphere: the same poses and scores either way, and the same
+    count of field reads with gradients."""
     field = _sphere_field()
     config = RefineConfig()
     contacts = []
@@ -100,9 +102,10 @@ def test_refinement_equal_numpy(rng, monkeypatch):
         contacts.append(refine_module.ContactPoints(points, T_world_sensor, sensor, free, 0.05 * sensor))
     starts = se3_exp(rng.normal(size=(12, 6)) * [0.03, 0.03, 0.03, 0.001, 0.001, 0.001])
     prior = refine_module.CalibrationPrior()
-    compiled = refine_module.refine_hypotheses(field, contacts, starts, prior, config)
+    compiled, reads = _counted_refine(field, contacts, starts, prior, config)
     _numpy_only(monkeypatch)
-    expected = refine_module.refine_hypotheses(field, contacts, starts, prior, config)
+    expected, expected_reads = _counted_refine(field, contacts, starts, prior, config)
+    assert reads == expected_reads > 0  # the executor joins split batches by these counts
     for name in expected.__dataclass_fields__:
         want = getattr(expected, name)
         np.testing.assert_allclose(

@@ -71,6 +71,11 @@ class SurfaceField:
         nx, ny, nz = self.values.shape
         return self._flat, nx, ny, nz, np.asarray(self.origin, dtype=np.float64), 1.0 / self.cell_m, self.band_m
 
+    def gradient_kernel_arguments(self) -> tuple:
+        """`kernel_arguments` for a compiled read with gradients outside `distance` (the refinement's normal
+        equations): one call per such read, which `executor` counts."""
+        return self.kernel_arguments()
+
     def _distance_numpy(
         self, points: np.ndarray, shape: tuple[int, ...], with_gradient: bool
     ) -> tuple[np.ndarray, np.ndarray | None]:

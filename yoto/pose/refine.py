@@ -394,7 +394,7 @@ def _add_normal_equations(
         factor = depth_scale[:, c] if depth_scale is not None and contact.depth_scale_sigma > 0 else None
         if KERNELS is not None:  # the same sums and products in one compiled pass, no (K, M, 6) temporaries
             KERNELS.add_normal_equations(
-                *field.kernel_arguments(),
+                *field.gradient_kernel_arguments(),
                 A,
                 np.ascontiguousarray(contact.points_sensor, dtype=np.float64),
                 np.ones(len(A)) if factor is None else np.ascontiguousarray(factor, dtype=np.float64),
