@@ -53,6 +53,18 @@ def test_field_read_is_bitwise_numpy(rng):
     assert np.abs(field.distance(points[near], False)[0] - (radii[near] - 0.02)).max() < 5e-5
 
 
+def test_select_is_the_sorted_order_statistic(rng):
+    assert KERNELS is not None
+    for count in (1, 2, 3, 8, 24, 119, 120):
+        for values in (rng.normal(size=count), np.round(rng.normal(size=count), 1)):  # ties too
+            ordered = np.sort(values)
+            for rank in {0, (count - 1) // 2, count // 2, count - 1}:
+                work = np.concatenate([values, [np.inf]])  # what lies beyond `count` is left alone
+                assert KERNELS.select(work, count, rank) == ordered[rank]
+                assert np.all(work[:rank] <= ordered[rank]) and np.array_equal(np.sort(work[:count]), ordered)
+                assert work[count] == np.inf
+
+
 @pytest.mark.parametrize("scaled", [False, True])
 def test_normal_equations_equal_numpy(rng, monkeypatch, scaled):
     field = _sphere_field()

@@ -72,6 +72,32 @@ def field_read(flat, nx, ny, nz, origin, inverse_cell, band, points, distance, n
 
 
 @_jit
+def select(values, count, rank):
+    """The `rank`-th smallest of values[:count] (0: the least), by Hoare's quickselect in place: afterwards
+    values[:rank] hold the smaller ones (in no order)."""
+    low, high = 0, count - 1
+    while low < high:
+        pivot = values[(low + high) // 2]
+        i, j = low, high
+        while i <= j:
+            while values[i] < pivot:
+                i += 1
+            while values[j] > pivot:
+                j -= 1
+            if i <= j:
+                values[i], values[j] = values[j], values[i]
+                i += 1
+                j -= 1
+        if rank <= j:
+            high = j
+        elif rank >= i:
+            low = i
+        else:
+            break
+    return values[rank]
+
+
+@_jit
 def add_normal_equations(
     flat,
     nx,
@@ -118,10 +144,10 @@ def add_normal_equations(
                 used[kept] = abs(r[m])
                 kept += 1
         median = 0.0
-        if kept > 0:  # the middle one or two of the kept magnitudes (a partition, not a sort: the same values)
+        if kept > 0:  # the middle one or two of the kept magnitudes (selected in place, not sorted: the same values)
             half = kept // 2
-            ordered = np.partition(used[:kept], half)
-            median = ordered[half] if kept % 2 else 0.5 * (ordered[:half].max() + ordered[half])
+            upper = select(used, kept, half)
+            median = upper if kept % 2 else 0.5 * (used[:half].max() + upper)
         scale = max(noise, 1.4826 * median)
         for m in range(count):
             magnitude = abs(r[m])
@@ -175,4 +201,8 @@ def add_normal_equations(
             gradient[k, scale_row] += sums[6, 1]
 
 
-KERNELS = SimpleNamespace(field_read=field_read, add_normal_equations=add_normal_equations) if _ENABLED else None
+KERNELS = (
+    SimpleNamespace(field_read=field_read, select=select, add_normal_equations=add_normal_equations)
+    if _ENABLED
+    else None
+)
