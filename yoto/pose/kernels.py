@@ -1,10 +1,11 @@
 """Compiled loops for the pose stage's hottest work (numba, the `fast` extra), with numpy as the fallback.
 
 `KERNELS` is None where numba is missing (or `YOTO_NO_NUMBA=1` is set); callers then take their numpy path.
-The loops repeat the numpy path's arithmetic in the same order and precision (no fastmath), so the field read
-gives bitwise the same numbers; they only skip the numpy path's (8, N) and (3, N) temporaries. Compiled code is
-cached on disk (`cache=True`: next to this module, or under NUMBA_CACHE_DIR / the user's cache folder where the
-package is read-only), so only the first process on a machine pays the compile.
+The loops repeat the numpy paths' arithmetic in their precision (no fastmath) without their temporaries: the
+field read (`field.SurfaceField.distance`) in the same order, bitwise the same numbers; the refinement's
+Gauss-Newton system (`refine._add_normal_equations`) summed point by point, equal to ~1e-12 relative. Compiled
+code is cached on disk (`cache=True`: next to this module, or under NUMBA_CACHE_DIR / the user's cache folder where
+the package is read-only), so only the first process after an install pays the compile (~6 s of CPU).
 """
 
 from __future__ import annotations
