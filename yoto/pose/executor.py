@@ -219,6 +219,10 @@ class _CountingField(SurfaceField):
         self.gradient_reads += with_gradient
         return super().distance(points_object, with_gradient)
 
+    def gradient_kernel_arguments(self) -> tuple:  # the refinement's compiled reads (`pose.kernels`)
+        self.gradient_reads += 1
+        return super().gradient_kernel_arguments()
+
 
 def _counted_refine(
     field: SurfaceField,

@@ -21,6 +21,7 @@ from scipy import ndimage
 
 from yoto.objects.cache import ModelCache
 from yoto.objects.model import ObjectModel
+from yoto.pose.kernels import KERNELS
 
 
 @dataclass(frozen=True)
@@ -57,7 +58,28 @@ class SurfaceField:
         (grid units: a position error of 1e-5 cells, far below the field's own error), the results are float64.
         """
         shape = points_object.shape[:-1]
-        points = np.asarray(points_object, dtype=np.float64).reshape(-1, 3)
+        points = np.ascontiguousarray(points_object, dtype=np.float64).reshape(-1, 3)
+        if KERNELS is not None:  # the same arithmetic compiled, point by point (bitwise the same results)
+            distance = np.empty(len(points))
+            normal = np.empty((len(points) if with_gradient else 0, 3))
+            KERNELS.field_read(*self.kernel_arguments(), points, distance, normal, with_gradient)
+            return distance.reshape(shape), (normal.reshape(shape + (3,)) if with_gradient else None)
+        return self._distance_numpy(points, shape, with_gradient)
+
+    def kernel_arguments(self) -> tuple:
+        """The grid as `yoto.pose.kernels` reads it: flat values, shape, origin, 1 / cell, band."""
+        nx, ny, nz = self.values.shape
+        return self._flat, nx, ny, nz, np.asarray(self.origin, dtype=np.float64), 1.0 / self.cell_m, self.band_m
+
+    def gradient_kernel_arguments(self) -> tuple:
+        """`kernel_arguments` for a compiled read with gradients outside `distance` (the refinement's normal
+        equations): one call per such read, which `executor` counts."""
+        return self.kernel_arguments()
+
+    def _distance_numpy(
+        self, points: np.ndarray, shape: tuple[int, ...], with_gradient: bool
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """`distance` in numpy (without numba): (N, 3) points, the results shaped `shape`."""
         # (3, N) and (8, N) layouts: every row below is a contiguous run of N numbers.
         grid = np.empty((3, len(points)), dtype=np.float32)
         for axis in range(3):  # each coordinate straight into its float32 row (no (N, 3) temporaries)

@@ -27,6 +27,7 @@ from scipy import ndimage
 from yoto.geometry import cross_into, invert_transform, se3_exp, se3_log, skew
 from yoto.pointcloud import voxel_downsample
 from yoto.pose.field import SurfaceField
+from yoto.pose.kernels import KERNELS
 from yoto.registration import masked_row_medians, transform_batch
 from yoto.sensor.spec import GELSIGHT_MINI
 from yoto.simulate.body import SensorBody
@@ -391,6 +392,23 @@ def _add_normal_equations(
         s = contact.sensor
         A = T_object_world @ contact.T_world_sensor @ corrections[:, s]  # object <- sensor
         factor = depth_scale[:, c] if depth_scale is not None and contact.depth_scale_sigma > 0 else None
+        if KERNELS is not None:  # the same sums and products in one compiled pass, no (K, M, 6) temporaries
+            KERNELS.add_normal_equations(
+                *field.gradient_kernel_arguments(),
+                A,
+                np.ascontiguousarray(contact.points_sensor, dtype=np.float64),
+                np.ones(len(A)) if factor is None else np.ascontiguousarray(factor, dtype=np.float64),
+                config.max_distance_m,
+                config.surface_noise_m,
+                weight_scale,
+                6 + 6 * s,
+                -1 if factor is None else scale_row,
+                hessian,
+                gradient,
+            )
+            if factor is not None:
+                scale_row += 1
+            continue
         points = contact.points_sensor if factor is None else _scaled_heights(contact.points_sensor, factor)
         q = transform_batch(A, points)
         r, n = field.distance(q)

@@ -1,0 +1,125 @@
+"""The compiled kernels (numba, the `fast` extra) against the numpy paths they replace."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import TOL
+
+import yoto.pose.field as field_module
+import yoto.pose.refine as refine_module
+from yoto.geometry import se3_exp
+from yoto.pose.executor import _counted_refine
+from yoto.pose.field import SurfaceField
+from yoto.pose.kernels import KERNELS
+from yoto.pose.refine import RefineConfig
+
+pytestmark = pytest.mark.skipif(
+    KERNELS is None, reason="no numba kernels (the `fast` extra not installed, or YOTO_NO_NUMBA set)"
+)
+
+
+def _sphere_field(radius: float = 0.02, cell: float = 0.001, band: float = 0.004) -> SurfaceField:
+    """The signed distance of a sphere on a grid, clamped to the band like a built field."""
+    axis = np.arange(-0.03, 0.03 + 1e-9, cell)
+    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
+    values = np.clip(np.sqrt(x**2 + y**2 + z**2) - radius, -band, band).astype(np.float32)
+    return SurfaceField(np.full(3, axis[0]), cell, values, band, 0.0)
+
+
+def _numpy_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(field_module, "KERNELS", None)
+    monkeypatch.setattr(refine_module, "KERNELS", None)
+
+
+def test_field_read_is_bitwise_numpy(rng):
+    field = _sphere_field()
+    directions = rng.normal(size=(3000, 3))
+    radii = rng.uniform(0.0, 0.05, 3000)  # near the surface, deep inside, beyond the band, outside the grid
+    points = directions / np.linalg.norm(directions, axis=1, keepdims=True) * radii[:, None]
+    points[:10] = [-1.0, 0.0, 0.0]  # far outside: +band, zero normal
+    for with_gradient in (True, False):
+        distance, normal = field.distance(points.reshape(30, 100, 3), with_gradient)
+        expected, expected_normal = field._distance_numpy(points, (30, 100), with_gradient)
+        assert distance.shape == (30, 100)
+        assert np.array_equal(distance, expected)
+        if with_gradient:
+            assert normal is not None and expected_normal is not None
+            assert np.array_equal(normal, expected_normal)
+            assert np.all(normal[0, :10] == 0.0) and np.all(distance[0, :10] == field.band_m)
+    # and the values are the sphere's: within the float32 storage near the surface (interpolation of a
+    # smooth function on a 1 mm grid, second order)
+    near = np.abs(radii - 0.02) < 0.002
+    assert np.abs(field.distance(points[near], False)[0] - (radii[near] - 0.02)).max() < 5e-5
+
+
+def test_select_is_the_sorted_order_statistic(rng):
+    assert KERNELS is not None
+    for count in (1, 2, 3, 8, 24, 119, 120):
+        for values in (rng.normal(size=count), np.round(rng.normal(size=count), 1)):  # ties too
+            ordered = np.sort(values)
+            for rank in {0, (count - 1) // 2, count // 2, count - 1}:
+                work = np.concatenate([values, [np.inf]])  # what lies beyond `count` is left alone
+                assert KERNELS.select(work, count, rank) == ordered[rank]
+                assert np.all(work[:rank] <= ordered[rank]) and np.array_equal(np.sort(work[:count]), ordered)
+                assert work[count] == np.inf
+
+
+@pytest.mark.parametrize("scaled", [False, True])
+def test_normal_equations_equal_numpy(rng, monkeypatch, scaled):
+    field = _sphere_field()
+    config = RefineConfig()
+    # 60 points on a cap of the sphere (sensor frame: the pad at the sensor's origin, pressing along -z), the
+    # second sensor's contact (its correction's rows 12-17), its depth scale estimated when `scaled`
+    directions = rng.normal(size=(60, 3)) * [0.2, 0.2, 0.0] + [0.0, 0.0, 1.0]
+    on_sphere = 0.02 * directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    points_sensor = on_sphere - [0.0, 0.0, 0.02] + rng.normal(0.0, 5e-5, (60, 3))
+    T_world_sensor = np.eye(4)
+    T_world_sensor[2, 3] = 0.02
+    contact = refine_module.ContactPoints(points_sensor, T_world_sensor, 1, np.zeros((0, 3)), 0.05 if scaled else 0.0)
+    # K object poses and corrections, each off by a small twist (some far enough to drop points)
+    poses = se3_exp(rng.normal(size=(25, 6)) * [0.05, 0.05, 0.05, 0.002, 0.002, 0.002])
+    corrections = se3_exp(rng.normal(size=(25, 2, 6)) * 0.01)
+    depth_scale = rng.uniform(0.8, 1.2, (25, 1)) if scaled else None
+    size = 19 if scaled else 18
+    results = []
+    for compiled in (True, False):
+        if not compiled:
+            _numpy_only(monkeypatch)
+        hessian, gradient = np.zeros((25, size, size)), np.zeros((25, size))
+        refine_module._add_normal_equations(
+            field, [contact], poses, corrections, config, hessian, gradient, depth_scale
+        )
+        results.append((hessian, gradient))
+    (hessian, gradient), (expected_hessian, expected_gradient) = results
+    assert np.all(expected_hessian[:, 6:12] == 0.0) and np.abs(expected_hessian[:, 12:18, :6]).max() > 0.0
+    if scaled:
+        assert np.abs(expected_hessian[:, 18, 12:18]).max() > 0.0
+    for got, want in ((hessian, expected_hessian), (gradient, expected_gradient)):
+        np.testing.assert_allclose(got, want, rtol=TOL["float"], atol=TOL["float"] * np.abs(want).max())
+
+
+def test_refinement_equal_numpy(rng, monkeypatch):
+    """Whole refinements, both contacts of a pair on a sphere: the same poses and scores either way, and the same
+    count of field reads with gradients."""
+    field = _sphere_field()
+    config = RefineConfig()
+    contacts = []
+    for sensor, side in ((0, 1.0), (1, -1.0)):
+        directions = rng.normal(size=(80, 3)) * [0.2, 0.2, 0.0] + [0.0, 0.0, 1.0]
+        points = 0.02 * directions / np.linalg.norm(directions, axis=1, keepdims=True) - [0.0, 0.0, 0.02]
+        T_world_sensor = np.diag([1.0, side, side, 1.0])  # the second sensor faces the first from below
+        T_world_sensor[2, 3] = 0.02 * side
+        free = np.zeros((0, 3))
+        contacts.append(refine_module.ContactPoints(points, T_world_sensor, sensor, free, 0.05 * sensor))
+    starts = se3_exp(rng.normal(size=(12, 6)) * [0.03, 0.03, 0.03, 0.001, 0.001, 0.001])
+    prior = refine_module.CalibrationPrior()
+    compiled, reads = _counted_refine(field, contacts, starts, prior, config)
+    _numpy_only(monkeypatch)
+    expected, expected_reads = _counted_refine(field, contacts, starts, prior, config)
+    assert reads == expected_reads > 0  # the executor joins split batches by these counts
+    for name in expected.__dataclass_fields__:
+        want = getattr(expected, name)
+        np.testing.assert_allclose(
+            getattr(compiled, name), want, rtol=TOL["float"], atol=TOL["float"] * max(np.abs(want).max(), 1e-3)
+        )

@@ -1,0 +1,209 @@
+"""Compiled loops for the pose stage's hottest work (numba, the `fast` extra), with numpy as the fallback.
+
+`KERNELS` is None where numba is missing (or `YOTO_NO_NUMBA=1` is set); callers then take their numpy path.
+The loops repeat the numpy paths' arithmetic in their precision (no fastmath) without their temporaries: the
+field read (`field.SurfaceField.distance`) in the same order, bitwise the same numbers; the refinement's
+Gauss-Newton system (`refine._add_normal_equations`) summed point by point, equal to ~1e-12 relative. Compiled
+code is cached on disk (`cache=True`: next to this module, or under NUMBA_CACHE_DIR / the user's cache folder where
+the package is read-only), so only the first process after an install pays the compile (~6 s of CPU).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+
+_jit: Callable[[Any], Any] | None = None  # numba's njit where it is installed and not switched off
+if os.environ.get("YOTO_NO_NUMBA", "") in ("", "0"):
+    try:
+        import numba
+
+        _jit = numba.njit(cache=True, nogil=True)  # module-level functions: the on-disk cache finds them again
+    except ImportError:  # the numpy paths
+        pass
+_ENABLED = _jit is not None
+if _jit is None:
+    _jit = lambda function: function  # noqa: E731 (plain Python, never called: callers take their numpy paths)
+
+
+@_jit
+def field_read(flat, nx, ny, nz, origin, inverse_cell, band, points, distance, normal, with_gradient):
+    """Trilinear signed distance (and outward unit normal) of a (nx, ny, nz) float32 grid, flattened, at
+    (N, 3) points; the float32 operations of `SurfaceField.distance`'s numpy path, in its order."""
+    sx, sy = ny * nz, nz
+    tiny = np.float32(1e-12)
+    for p in range(points.shape[0]):
+        gxf = np.float32((points[p, 0] - origin[0]) * inverse_cell)
+        gyf = np.float32((points[p, 1] - origin[1]) * inverse_cell)
+        gzf = np.float32((points[p, 2] - origin[2]) * inverse_cell)
+        bx, by, bz = np.floor(gxf), np.floor(gyf), np.floor(gzf)
+        fx, fy, fz = gxf - bx, gyf - by, gzf - bz
+        # outside the grid's cells (NaN fails every test too): never a match
+        if not (bx >= 0 and by >= 0 and bz >= 0 and bx <= nx - 2 and by <= ny - 2 and bz <= nz - 2):
+            distance[p] = band
+            if with_gradient:
+                normal[p, 0] = 0.0
+                normal[p, 1] = 0.0
+                normal[p, 2] = 0.0
+            continue
+        base = int(bx) * sx + int(by) * sy + int(bz)
+        c000, c001 = flat[base], flat[base + 1]
+        c010, c011 = flat[base + sy], flat[base + sy + 1]
+        c100, c101 = flat[base + sx], flat[base + sx + 1]
+        c110, c111 = flat[base + sx + sy], flat[base + sx + sy + 1]
+        s00, s01, s10, s11 = c001 - c000, c011 - c010, c101 - c100, c111 - c110
+        z00, z01, z10, z11 = c000 + fz * s00, c010 + fz * s01, c100 + fz * s10, c110 + fz * s11
+        y0, y1 = z01 - z00, z11 - z10
+        a0, a1 = z00 + fy * y0, z10 + fy * y1
+        gx = a1 - a0
+        distance[p] = np.float64(a0 + fx * gx)
+        if with_gradient:
+            gy = y0 + fx * (y1 - y0)
+            d0, d1 = s00 + fy * (s01 - s00), s10 + fy * (s11 - s10)
+            gz = d0 + fx * (d1 - d0)
+            norm = np.sqrt(gx * gx + gy * gy + gz * gz)
+            scale = np.float32(1.0) / max(norm, tiny) if norm > tiny else np.float32(0.0)
+            normal[p, 0] = np.float64(gx * scale)
+            normal[p, 1] = np.float64(gy * scale)
+            normal[p, 2] = np.float64(gz * scale)
+
+
+@_jit
+def select(values, count, rank):
+    """The `rank`-th smallest of values[:count] (0: the least), by Hoare's quickselect in place: afterwards
+    values[:rank] hold the smaller ones (in no order)."""
+    low, high = 0, count - 1
+    while low < high:
+        pivot = values[(low + high) // 2]
+        i, j = low, high
+        while i <= j:
+            while values[i] < pivot:
+                i += 1
+            while values[j] > pivot:
+                j -= 1
+            if i <= j:
+                values[i], values[j] = values[j], values[i]
+                i += 1
+                j -= 1
+        if rank <= j:
+            high = j
+        elif rank >= i:
+            low = i
+        else:
+            break
+    return values[rank]
+
+
+@_jit
+def add_normal_equations(
+    flat,
+    nx,
+    ny,
+    nz,
+    origin,
+    inverse_cell,
+    band,
+    A,
+    points,
+    z_scale,
+    max_distance,
+    noise,
+    weight_scale,
+    side,
+    scale_row,
+    hessian,
+    gradient,
+):
+    """Add one contact's robustly weighted point-to-surface normal equations under K poses A (K, 4, 4) (object
+    <- sensor) of its (M, 3) sensor-frame points, heights scaled by z_scale (K,), into hessian (K, S, S) and
+    gradient (K, S): the object pose's rows 0-5, its sensor's correction's rows side..side + 5, its log depth
+    scale's row scale_row (< 0: none). `refine._add_normal_equations` in one pass (its numpy path explains
+    the algebra)."""
+    count = points.shape[0]
+    q = np.empty((count, 3))
+    r = np.empty(count)
+    n = np.empty((count, 3))
+    used = np.empty(count)
+    a = np.empty(8)
+    sums = np.empty((7, 8))  # rows 0-5: a^T W a, a^T W r, a^T W j; row 6: W j^2, W j r
+    adjoint = np.zeros((6, 6))  # M = [[-R^T, R^T [t]x], [0, -R^T]]
+    coupled = np.empty((6, 8))  # M [B, g, a^T W j]
+    for k in range(A.shape[0]):
+        sums[:] = 0.0
+        for m in range(count):
+            x, y, z = points[m, 0], points[m, 1], points[m, 2] * z_scale[k]
+            for i in range(3):
+                q[m, i] = x * A[k, i, 0] + y * A[k, i, 1] + z * A[k, i, 2] + A[k, i, 3]
+        field_read(flat, nx, ny, nz, origin, inverse_cell, band, q, r, n, True)
+        kept = 0
+        for m in range(count):
+            if abs(r[m]) < max_distance:
+                used[kept] = abs(r[m])
+                kept += 1
+        median = 0.0
+        if kept > 0:  # the middle one or two of the kept magnitudes (selected in place, not sorted: the same values)
+            half = kept // 2
+            upper = select(used, kept, half)
+            median = upper if kept % 2 else 0.5 * (used[:half].max() + upper)
+        scale = max(noise, 1.4826 * median)
+        for m in range(count):
+            magnitude = abs(r[m])
+            if not magnitude < max_distance:
+                continue
+            w = min(1.0, scale / max(magnitude, 1e-12)) * weight_scale
+            a[0] = n[m, 1] * q[m, 2] - n[m, 2] * q[m, 1]
+            a[1] = n[m, 2] * q[m, 0] - n[m, 0] * q[m, 2]
+            a[2] = n[m, 0] * q[m, 1] - n[m, 1] * q[m, 0]
+            a[3], a[4], a[5] = -n[m, 0], -n[m, 1], -n[m, 2]
+            a[6] = r[m]
+            height = points[m, 2] * z_scale[k]
+            a[7] = (n[m, 0] * A[k, 0, 2] + n[m, 1] * A[k, 1, 2] + n[m, 2] * A[k, 2, 2]) * height
+            for i in range(6):
+                wi = a[i] * w
+                for j in range(8):
+                    sums[i, j] += wi * a[j]
+            sums[6, 0] += w * a[7] * a[7]
+            sums[6, 1] += w * a[7] * a[6]
+        tx, ty, tz = A[k, 0, 3], A[k, 1, 3], A[k, 2, 3]
+        for i in range(3):
+            for j in range(3):
+                adjoint[i, j] = adjoint[3 + i, 3 + j] = -A[k, j, i]
+            adjoint[i, 3] = A[k, 1, i] * tz - A[k, 2, i] * ty  # (R^T [t]x)[i, :]
+            adjoint[i, 4] = A[k, 2, i] * tx - A[k, 0, i] * tz
+            adjoint[i, 5] = A[k, 0, i] * ty - A[k, 1, i] * tx
+        for i in range(6):
+            for j in range(8):
+                total = 0.0
+                for m in range(6):
+                    total += adjoint[i, m] * sums[m, j]
+                coupled[i, j] = total
+        for i in range(6):
+            gradient[k, i] += sums[i, 6]
+            gradient[k, side + i] += coupled[i, 6]
+            for j in range(6):
+                hessian[k, i, j] += sums[i, j]
+                hessian[k, i, side + j] += coupled[j, i]
+                hessian[k, side + i, j] += coupled[i, j]
+                total = 0.0
+                for m in range(6):
+                    total += coupled[i, m] * adjoint[j, m]
+                hessian[k, side + i, side + j] += total
+        if scale_row >= 0:
+            for i in range(6):
+                hessian[k, i, scale_row] += sums[i, 7]
+                hessian[k, scale_row, i] += sums[i, 7]
+                hessian[k, side + i, scale_row] += coupled[i, 7]
+                hessian[k, scale_row, side + i] += coupled[i, 7]
+            hessian[k, scale_row, scale_row] += sums[6, 0]
+            gradient[k, scale_row] += sums[6, 1]
+
+
+KERNELS = (
+    SimpleNamespace(field_read=field_read, select=select, add_normal_equations=add_normal_equations)
+    if _ENABLED
+    else None
+)
