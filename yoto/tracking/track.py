@@ -12,7 +12,8 @@ a few millimetres), gives the correction; frames of both sensors taken at about 
 together (two contacts fix all six degrees of freedom where one may leave some free). The correction is not
 applied blindly: a small Kalman filter on the object-frame error weighs it against the prediction, with
   - the registration's information (its Gauss-Newton normal matrix), so directions a contact cannot see (sliding
-    along a flat face, spinning a sphere) keep the prediction;
+    along a flat face, spinning a sphere) keep the prediction; where it is weakest it is checked by re-matching the
+    points at a small step (a scanned mesh's tilted planes claim directions its surface leaves free);
   - a measurement bias: a reconstruction's errors are smooth over the patch and the same from frame to frame
     (calibration, lighting), so a registration is off by a bias that repeating the frame does not average away.
     The filter estimates it beside the slip, with the size a contact's shape gives it in each direction (small
