@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from conftest import TOL
@@ -224,3 +226,63 @@ def test_benchmark_report_separates_right_touches():
     text = format_markdown(report)
     assert "| closed loop: drift under the target, right touches | 1 of 1 |" in text
     assert "| closed loop: drift under the target, all trajectories | 1 of 2 |" in text
+
+
+class _Surface:
+    """A sampled surface for registration: points, normals, and their k-d tree."""
+
+    def __init__(self, points: np.ndarray, normals: np.ndarray):
+        from scipy.spatial import cKDTree
+
+        self.points_object, self.normals_object, self.kdtree = points, normals, cKDTree(points)
+
+
+def _cylinder(radius_m: float, normal_tilt_rad: float, rng) -> _Surface:
+    """A cylinder about z (30 mm high) sampled every ~0.3 mm, its normals tilted at random by `normal_tilt_rad`
+    (as a scanned mesh's are)."""
+    angles, heights = np.meshgrid(np.arange(0.0, 2 * np.pi, 0.0003 / radius_m), np.arange(-0.015, 0.015, 0.0003))
+    angles, heights = angles.ravel(), heights.ravel()
+    points = np.stack([radius_m * np.cos(angles), radius_m * np.sin(angles), heights], axis=1)
+    radial = np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)], axis=1)
+    tangent = np.cross(radial, rng.normal(size=radial.shape))
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    normals = np.cos(normal_tilt_rad) * radial + np.sin(normal_tilt_rad) * tangent
+    return _Surface(points, normals)
+
+
+def _two_contacts(radius_m: float) -> np.ndarray:
+    """Points of two opposite 8 x 8 mm contacts on the cylinder (at +x and -x), on its exact surface."""
+    arc, heights = np.meshgrid(np.linspace(-0.004, 0.004, 16), np.linspace(-0.004, 0.004, 16))
+    angles = (arc / radius_m).ravel()
+    side = np.stack([radius_m * np.cos(angles), radius_m * np.sin(angles), heights.ravel()], axis=1)
+    return np.vstack([side, side * [-1.0, -1.0, 1.0]])
+
+
+def test_information_a_scanned_surface_of_revolution_does_not_give_is_taken_back(rng):
+    """Tilted sample normals claim a spin about a cylinder's axis (and slides along it) that its surface leaves
+    free; re-matching at a step shows it, and the check scales those directions down while what the surface does
+    pin (the contacts' common normal) keeps its information."""
+    from yoto.registration import plane_distances, point_to_plane_jacobian
+    from yoto.tracking.track import CorrectionConfig, secant_scaling
+
+    radius, config = 0.03, CorrectionConfig()
+    unit = np.array([config.observable_rotation_rad] * 3 + [config.observable_translation_m] * 3)
+    points = _two_contacts(radius)
+    surface = _cylinder(radius, np.radians(9.0), rng)
+    _, matched, _, normals = plane_distances(surface, points, config.max_distance_m)
+    jacobian = point_to_plane_jacobian(points, normals)[matched]
+    normal = jacobian.T @ jacobian
+    spin, slide_z, push_x = np.eye(6)[2], np.eye(6)[5], np.eye(6)[3]
+    claimed = (normal[2, 2] * unit[2] ** 2, normal[5, 5] * unit[5] ** 2)
+    # the planes claim the free directions at a few percent of what the contacts' normal gets: far from free
+    assert min(claimed) > 1e-3 * normal[3, 3] * unit[3] ** 2
+    checked = secant_scaling(surface, normal, points, unit, config)  # the 3 weakest: turns about z and x, slide y
+    assert spin @ checked @ normal @ checked.T @ spin < 0.1 * (spin @ normal @ spin)
+    # every direction checked: the slide along the axis goes too, what the surface really pins keeps its information
+    everything = secant_scaling(surface, normal, points, unit, dataclasses.replace(config, secant_directions=6))
+    after = everything @ normal @ everything.T
+    assert slide_z @ after @ slide_z < 0.1 * (slide_z @ normal @ slide_z)
+    assert push_x @ after @ push_x > 0.8 * (push_x @ normal @ push_x)
+    # off: the normal matrix as it was
+    off = secant_scaling(surface, normal, points, unit, dataclasses.replace(config, secant_directions=0))
+    np.testing.assert_array_equal(off, np.eye(6))

@@ -12,7 +12,8 @@ a few millimetres), gives the correction; frames of both sensors taken at about 
 together (two contacts fix all six degrees of freedom where one may leave some free). The correction is not
 applied blindly: a small Kalman filter on the object-frame error weighs it against the prediction, with
   - the registration's information (its Gauss-Newton normal matrix), so directions a contact cannot see (sliding
-    along a flat face, spinning a sphere) keep the prediction;
+    along a flat face, spinning a sphere) keep the prediction; where it is weakest it is checked by re-matching the
+    points at a small step (a scanned mesh's tilted planes claim directions its surface leaves free);
   - a measurement bias: a reconstruction's errors are smooth over the patch and the same from frame to frame
     (calibration, lighting), so a registration is off by a bias that repeating the frame does not average away.
     The filter estimates it beside the slip, with the size a contact's shape gives it in each direction (small
@@ -61,6 +62,7 @@ from yoto.geometry import (
 from yoto.objects.model import ObjectModel
 from yoto.registration import (
     GaussNewtonConfig,
+    SurfaceCloud,
     one_blas_thread,
     plane_distances,
     point_to_plane_gauss_newton,
@@ -136,6 +138,12 @@ class CorrectionConfig:
     guard_support_fraction: float = 0.5  # ... and stay there: the fit moves the pose less than this share of the
     # departure (observable units); frames that see a real pivot lead it away from the open loop
     guard_every: int = 5  # instants between two such checks while the slip stays beyond the bound
+    secant_directions: int = 3  # an instant's information (both contacts; a lone contact's own rule is above) is
+    # checked along its this many weakest directions (observable units): its points re-matched to the surface at
+    # +-`secant_step` there, the cost's actual rise against the planes' prediction; where the surface rises less (a
+    # scanned mesh's tilted planes claim a spin its surface of revolution leaves free), the information there is
+    # scaled down to what re-matching shows (0: off)
+    secant_step: float = 0.5  # that step, in observable units (`observable_rotation_rad`, `observable_translation_m`)
 
 
 @dataclass(frozen=True)
@@ -447,6 +455,38 @@ def pad_rest_solver(config: CorrectionConfig) -> GaussNewtonConfig:
     )
 
 
+def secant_scaling(
+    surface: SurfaceCloud, normal: np.ndarray, points_object: np.ndarray, unit: np.ndarray, config: CorrectionConfig
+) -> np.ndarray:
+    """The map S (6, 6) that scales a registration's normal matrix N (of `points_object`, registered, object frame,
+    rotation about the origin), as S N S^T, down along its `secant_directions` weakest directions (in `unit`s of
+    each twist component) to the curvature the surface shows: the truncated sum of squared plane distances with
+    every point matched afresh at +-`secant_step` along each direction, its second difference against the planes'
+    prediction (step^2 times N there). The planes of the nearest surface samples predict a rise wherever they are
+    tilted to the motion, also where the surface itself slides along (a scanned mug's wall under a spin about its
+    axis); matched afresh, the points find the surface where it is. S is the identity where the check is off."""
+    if config.secant_directions <= 0:
+        return np.eye(6)
+    values, vectors = np.linalg.eigh(normal * np.outer(unit, unit))
+    reach = config.max_distance_m
+
+    def cost(T_object_moved: np.ndarray) -> float:
+        distance, matched, _, _ = plane_distances(surface, transform_points(T_object_moved, points_object), reach)
+        return float(np.sum(np.where(matched, np.minimum(distance**2, reach**2), reach**2)))
+
+    at_fit = cost(np.eye(4))
+    shrink = np.eye(6)  # in units: I - sum (1 - sqrt(keep)) v v^T over the orthonormal directions v checked
+    for value, vector in zip(values[: config.secant_directions], vectors.T[: config.secant_directions]):
+        predicted = config.secant_step**2 * value
+        if predicted <= 0.0:
+            continue
+        step = pose_from_twist(config.secant_step * vector * unit)
+        rise = 0.5 * (cost(step) + cost(invert_transform(step))) - at_fit
+        keep = min(max(rise / predicted, 0.0), 1.0)
+        shrink -= (1.0 - np.sqrt(keep)) * np.outer(vector, vector)
+    return (1.0 / unit)[:, None] * shrink * unit[None, :]
+
+
 class _Corrector:
     """The closed loop's state: the grasps, and a Kalman filter on (error, slip rate, measurement bias).
 
@@ -605,17 +645,28 @@ class _Corrector:
         self.covariance = transition @ self.covariance @ transition.T + noise
         self.last_time, self.last_sensors = now_s, sensors
 
-    def _information(self, points_object: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Gauss-Newton normal matrices (6, 6) of one contact's registered points (object frame, rotation about the
+    def _information(self, points_object: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Gauss-Newton normal matrices (6, 6) of each contact's registered points (object frame, rotation about the
         origin), for the noise new in every frame (all points, `pixel_noise_m`) and for the shared bias
-        (`bias_points` points of `bias_noise_m`)."""
+        (`bias_points` points of `bias_noise_m`), checked against the surface (`secant_scaling`) where more than
+        `observable_max_contacts` contacts register together."""
         c = self.config.correction
-        _, matched, _, normals = plane_distances(self.model, points_object, c.max_distance_m)
-        jacobian = point_to_plane_jacobian(points_object, normals)[matched]
-        if len(jacobian) == 0:
-            return np.zeros((6, 6)), np.zeros((6, 6))
-        normal = jacobian.T @ jacobian
-        return normal / c.pixel_noise_m**2, normal * (c.bias_points / len(jacobian)) / c.bias_noise_m**2
+        normals, counts = {}, {}
+        for side, side_points in points_object.items():
+            _, matched, _, surface_normals = plane_distances(self.model, side_points, c.max_distance_m)
+            jacobian = point_to_plane_jacobian(side_points, surface_normals)[matched]
+            normals[side], counts[side] = jacobian.T @ jacobian, len(jacobian)
+        scaling = (
+            secant_scaling(self.model, sum(normals.values()), np.vstack(list(points_object.values())), self.unit, c)
+            if len(points_object) > c.observable_max_contacts
+            else np.eye(6)
+        )
+        information = {}
+        for side, normal in normals.items():
+            normal = scaling @ normal @ scaling.T
+            bias_share = c.bias_points / max(counts[side], 1)
+            information[side] = (normal / c.pixel_noise_m**2, normal * bias_share / c.bias_noise_m**2)
+        return information
 
     def _register(
         self, points: dict[str, np.ndarray], sensors: dict[str, np.ndarray]
@@ -769,8 +820,8 @@ class _Corrector:
         c = self.config.correction
         twist = twist_of_pose(correction)
         white, shared = np.zeros((6, 6)), np.zeros((6, 6))
-        for side, side_points in points_predicted.items():
-            per_frame, bias = self._information(transform_points(correction, side_points))
+        registered = {side: transform_points(correction, side_points) for side, side_points in points_predicted.items()}
+        for side, (per_frame, bias) in self._information(registered).items():
             white += per_frame @ np.linalg.inv(np.eye(6) + pose_noise[side] @ per_frame)
             shared += bias
         lone = len(points_predicted) <= c.observable_max_contacts
