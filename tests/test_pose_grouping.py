@@ -133,5 +133,4 @@ def test_family_mean_weights_the_first_hypothesis_family(symmetry, rng):
     )
     expected[:3, 3] = (centre[:3, 3] + w * neighbour[:3, 3]) / (1.0 + w)
     assert np.linalg.norm(mean[:3, 3] - expected[:3, 3]) < TOL["pose_exact_m"]
-    if not symmetry.spherical:
-        assert rotation_angle_rad(mean, expected) < TOL["pose_exact_rad"]
+    assert rotation_angle_rad(mean, expected) < TOL["pose_exact_rad"]

@@ -303,8 +303,9 @@ def mean_rotation(rotations: np.ndarray, weights: np.ndarray | None = None) -> n
     (Frobenius) their weighted sum, i.e. the minimiser of sum_k w_k |R - R_k|_F^2 over SO(3)."""
     rotations = np.asarray(rotations, dtype=np.float64)[..., :3, :3]
     weights = np.ones(len(rotations)) if weights is None else np.asarray(weights, dtype=np.float64)
-    u, _, vt = np.linalg.svd(np.einsum("k,kij->ij", weights, rotations))
-    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0]) @ vt
+    # Procrustes of each R_k's columns onto the axes: the cross-covariance is sum_k w_k R_k.
+    columns = np.transpose(rotations, (1, 0, 2)).reshape(3, -1)
+    return procrustes_rotation(columns, np.tile(np.eye(3), len(rotations)), np.repeat(weights, 3))[0]
 
 
 def procrustes_rotation(
