@@ -11,6 +11,7 @@ from yoto.errors import InputError
 from yoto.geometry import (
     invert_transform,
     make_transform,
+    mean_rotation,
     procrustes_rotation,
     quaternion_xyzw_to_rotation,
     random_rotations,
@@ -138,6 +139,27 @@ def test_procrustes_returns_a_proper_rotation_for_any_input(rng):
     source = rng.normal(size=(3, 3))
     recovered, _ = procrustes_rotation(rotation @ source, source)
     assert rotation_angle_rad(recovered, rotation) < TOL["pose_exact_rad"]
+
+
+def test_mean_rotation_is_the_weighted_chordal_mean(rng):
+    centre = random_rotations(rng, 1)[0]
+    axis = rng.normal(size=3)
+    # Turns both ways about one axis, equally weighted, average back to the centre ...
+    turns = np.array([centre @ rotation_about_axis(axis, sign * 0.4) for sign in (-1.0, 1.0)])
+    assert rotation_angle_rad(mean_rotation(turns), centre) < TOL["pose_exact_rad"]
+    # ... and weighted w, 1 - w at angles 0 and phi, to the angle atan2((1 - w) sin phi, w + (1 - w) cos phi)
+    # (the chordal mean: the projection of the weighted sum onto SO(3)), not the geodesic (1 - w) phi.
+    phi, w = 1.2, 0.7
+    turns = np.array([centre, centre @ rotation_about_axis(axis, phi)])
+    expected = centre @ rotation_about_axis(axis, np.arctan2((1 - w) * np.sin(phi), w + (1 - w) * np.cos(phi)))
+    mean = mean_rotation(turns, np.array([w, 1 - w]))
+    assert rotation_angle_rad(mean, expected) < TOL["pose_exact_rad"]
+    assert abs(rotation_angle_rad(mean, centre) - (1 - w) * phi) > 0.01
+    # Any scattered set gives a proper rotation; poses' rotation parts are read as rotations.
+    poses = random_poses(rng, 7)
+    mean = mean_rotation(poses, rng.uniform(0.1, 1.0, size=7))
+    assert abs(np.linalg.det(mean) - 1.0) < TOL["float"]
+    assert np.allclose(mean.T @ mean, np.eye(3), atol=TOL["float"])
 
 
 def test_rotation_angle_is_accurate_at_small_angles(rng):

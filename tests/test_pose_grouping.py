@@ -5,11 +5,19 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import TOL
 
-from yoto.geometry import make_transform, random_rotations, rotation_about_axis, se3_exp
+from yoto.geometry import make_transform, random_rotations, rotation_about_axis, rotation_angle_rad, se3_exp
 from yoto.objects.symmetry import Symmetry
 from yoto.pose import hypotheses
-from yoto.pose.hypotheses import HypothesisConfig, _close_pairs, group_hypotheses, log_likelihoods, pose_distances
+from yoto.pose.hypotheses import (
+    HypothesisConfig,
+    _close_pairs,
+    family_mean,
+    group_hypotheses,
+    log_likelihoods,
+    pose_distances,
+)
 from yoto.pose.refine import Refined
 
 SYMMETRIES = [
@@ -94,3 +102,35 @@ def test_close_pairs_on_the_limit(symmetry, product_size, rng, monkeypatch):
     )
     np.fill_diagonal(expected, True)
     np.testing.assert_array_equal(_close_pairs(poses, symmetry, config), expected)
+
+
+@pytest.mark.parametrize("symmetry", SYMMETRIES, ids=IDS)
+def test_family_mean_weights_the_first_hypothesis_family(symmetry, rng):
+    # The most likely pose, a neighbour 1.5 units away (within `mean_reach`, given in a symmetric equivalent) and
+    # a likelier pose 3 units away (beyond it): the mean is that of the first two, weighted by their tempered
+    # likelihoods, rotations by their chordal mean (turned about an axis across the symmetry axis z).
+    config = HypothesisConfig()
+    centre = make_transform(random_rotations(rng, 1)[0], rng.normal(scale=0.01, size=3))
+    axis = np.array([np.cos(0.3), np.sin(0.3), 0.0])
+    phi = 1.5 * config.distinct_rotation_rad
+    slide = np.array([0.0, 0.0, 0.006])
+    neighbour = centre @ make_transform(rotation_about_axis(axis, phi), slide)
+    equivalent = symmetry.rotations[-1]
+    if symmetry.axis_object is not None:
+        equivalent = equivalent @ rotation_about_axis(symmetry.axis_object, 0.7)
+    far = centre @ make_transform(rotation_about_axis(axis, 3.0 * config.distinct_rotation_rad), np.zeros(3))
+    poses = np.array([neighbour @ make_transform(equivalent, np.zeros(3)), far, centre])
+    cost = np.array([2.0, 0.5, 0.0])  # log-likelihoods -1, -0.25, 0
+    refined = Refined(
+        poses, np.zeros((3, 2, 6)), np.zeros((3, 2)), np.ones((3, 2)), np.zeros((3, 2)), cost, np.zeros((3, 6))
+    )
+    grouped = group_hypotheses(refined, symmetry, config)
+    assert grouped.member[0] == 2
+    mean = family_mean(refined, grouped, symmetry, config)
+    w = np.exp(-1.0 / config.mean_temperature)
+    expected = centre @ make_transform(
+        rotation_about_axis(axis, np.arctan2(w * np.sin(phi), 1.0 + w * np.cos(phi))), np.zeros(3)
+    )
+    expected[:3, 3] = (centre[:3, 3] + w * neighbour[:3, 3]) / (1.0 + w)
+    assert np.linalg.norm(mean[:3, 3] - expected[:3, 3]) < TOL["pose_exact_m"]
+    assert rotation_angle_rad(mean, expected) < TOL["pose_exact_rad"]

@@ -298,6 +298,16 @@ def rotation_angle_rad(rotation_a: np.ndarray, rotation_b: np.ndarray) -> float:
     return float(np.linalg.norm(so3_log(rotation_a[:3, :3].T @ rotation_b[:3, :3])))
 
 
+def mean_rotation(rotations: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """The weighted chordal L2 mean of (K, 3, 3) rotations (or the rotation parts of poses): the rotation nearest
+    (Frobenius) their weighted sum, i.e. the minimiser of sum_k w_k |R - R_k|_F^2 over SO(3)."""
+    rotations = np.asarray(rotations, dtype=np.float64)[..., :3, :3]
+    weights = np.ones(len(rotations)) if weights is None else np.asarray(weights, dtype=np.float64)
+    # Procrustes of each R_k's columns onto the axes: the cross-covariance is sum_k w_k R_k.
+    columns = np.transpose(rotations, (1, 0, 2)).reshape(3, -1)
+    return procrustes_rotation(columns, np.tile(np.eye(3), len(rotations)), np.repeat(weights, 3))[0]
+
+
 def procrustes_rotation(
     directions_target: np.ndarray, directions_source: np.ndarray, weights: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -49,6 +49,7 @@ from yoto.pose.field import FieldConfig, SurfaceField, surface_field
 from yoto.pose.hypotheses import (
     Hypotheses,
     HypothesisConfig,
+    family_mean,
     family_poses,
     group_hypotheses,
     is_ambiguous,
@@ -508,10 +509,18 @@ def _estimate(
     field: SurfaceField,
     contacts: list[ContactPoints],
 ) -> PoseEstimate:
-    """The estimate of the most probable hypothesis (its confidence still to be set)."""
+    """The estimate of the most probable hypothesis (its confidence still to be set): the likelihood-weighted mean
+    of the refined poses in its family (`hypotheses.family_mean`), refined once more so that both clouds lie on the
+    surface again; the first reported hypothesis is that pose."""
     best = int(hypotheses.member[0])
-    T_world_object = refined.T_world_object[best]
-    corrections = refined.corrections[best]
+    mean = refined.subset(np.array([best]))
+    if config.hypotheses.mean_reach > 0.0:
+        T_mean = family_mean(refined, hypotheses, model.symmetry, config.hypotheses)
+        mean = refine_hypotheses(
+            field, contacts, T_mean[None], config.calibration, config.refine_config, mean.corrections
+        )
+    T_world_object = mean.T_world_object[0]
+    corrections = mean.corrections[0]
     chosen = {
         side: _contact_under_pose(
             model, T_world_object, world[side], corrections[s], pair.contact(side).T_world_sensor, candidates[side]
@@ -520,6 +529,9 @@ def _estimate(
     }
     solution = solve_pose(chosen["left"], chosen["right"], world["left"], world["right"])
     shown = reported(hypotheses, config.hypotheses)
+    shown.T_world_object[0] = T_world_object
+    hypothesis_corrections = refined.corrections[shown.member]
+    hypothesis_corrections[0] = corrections
     return PoseEstimate(
         object_name=model.name,
         method=method,
@@ -542,10 +554,10 @@ def _estimate(
             model.symmetry,
             pose_covariance(field, contacts, refined, best, config.calibration, config.refine_config),
         ),
-        fit_rms_m=(float(refined.fit_rms_m[best, 0]), float(refined.fit_rms_m[best, 1])),
-        depth_scale=(float(refined.depth_scale[best, 0]), float(refined.depth_scale[best, 1])),
+        fit_rms_m=(float(mean.fit_rms_m[0, 0]), float(mean.fit_rms_m[0, 1])),
+        depth_scale=(float(mean.depth_scale[0, 0]), float(mean.depth_scale[0, 1])),
         corrections=corrections,
-        hypothesis_corrections=refined.corrections[shown.member],
+        hypothesis_corrections=hypothesis_corrections,
         searched=searched,
     )
 
