@@ -135,6 +135,9 @@ class PoseEstimate:
     depth_scale: tuple[float, float] = (1.0, 1.0)  # each cloud's depth scale as refined (1: its heights taken as exact)
     corrections: np.ndarray | None = None  # (2, 6) each sensor's correction twist (rotation vector, translation)
     hypothesis_corrections: np.ndarray | None = None  # (H, 2, 6) the same under each hypothesis
+    most_likely: tuple[np.ndarray, np.ndarray] | None = None  # the most likely refined pose (4, 4) and its
+    # corrections (2, 6) before the family mean: along a free family the mean sits between poses, and a re-touch
+    # that fixes the family must still start from one the family holds
     next_touch: NextTouch | None = None
     searched: bool = False  # whether the joint two-contact search ran
     latency_ms: dict[str, float] = field(default_factory=dict)
@@ -558,6 +561,7 @@ def _estimate(
         depth_scale=(float(mean.depth_scale[0, 0]), float(mean.depth_scale[0, 1])),
         corrections=corrections,
         hypothesis_corrections=hypothesis_corrections,
+        most_likely=(refined.T_world_object[best], refined.corrections[best]),
         searched=searched,
     )
 
@@ -596,14 +600,11 @@ def fuse_next_touch(
     # own refinement left them: a sensor's correction moves its new contact too, often by millimetres far from the
     # first, and from no correction the refinement can settle beside the truth. The second pair's seeds are
     # verified beside them.
-    refined = refine_hypotheses(
-        field,
-        contacts,
-        estimate.hypotheses.T_world_object,
-        config.calibration,
-        config.refine_config,
-        estimate.hypothesis_corrections,
-    )
+    starts, start_corrections = estimate.hypotheses.T_world_object, estimate.hypothesis_corrections
+    if estimate.most_likely is not None and start_corrections is not None:
+        starts = np.concatenate([starts, estimate.most_likely[0][None]])
+        start_corrections = np.concatenate([start_corrections, estimate.most_likely[1][None]])
+    refined = refine_hypotheses(field, contacts, starts, config.calibration, config.refine_config, start_corrections)
     second_seeds = _second_pair_seeds(now, model, touch, sensor, config, localizer) if localizer else None
     if second_seeds is not None and len(second_seeds):
         more = _verify_and_refine(
