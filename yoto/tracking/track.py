@@ -542,12 +542,16 @@ class _Corrector:
             covariance[12:, 12:] = self.bias_covariance
         return covariance
 
+    def _slip(self) -> np.ndarray:
+        """(4, 4) the tracked slip since the touch: the closed loop's object pose in the open loop's (object frame)."""
+        return invert_transform(self.open_grasps["left"]) @ self.grasps["left"]
+
     def _slip_beyond_model(self) -> bool:
         """Whether the tracked slip since the touch (closed loop against open loop, object frame) lies beyond what
         the slip model allows over the travel so far: a rate drawn from its prior and wandering as it may, the
         elastic wander, and the touch's own uncertainty."""
         c = self.config.correction
-        slip = twist_of_pose(invert_transform(self.open_grasps["left"]) @ self.grasps["left"])
+        slip = twist_of_pose(self._slip())
         travel, share = self.travel_m, self.travel_m / c.slip_travel_m
         spread = travel**2 + travel**3 / (3.0 * c.slip_travel_m)  # a constant rate and its random walk
         variance = np.array(
@@ -562,7 +566,6 @@ class _Corrector:
         sensors: SensorPoses,
         rows: dict[str, int],
         points_sensor: dict[str, np.ndarray],
-        correction: np.ndarray,
         fractions: dict[str, float],
     ) -> str:
         """The divergence guard, after an applied update: where the tracked slip has left what the slip model allows,
@@ -597,7 +600,7 @@ class _Corrector:
         # Observable units: the departure (closed loop from open loop) and the fit's shift from open loop. Frames
         # that see a real pivot lead the fit away from open loop (back to the pivot, or anywhere but there).
         shift = twist_of_pose(anchor) / self.unit
-        slip = twist_of_pose(invert_transform(self.open_grasps["left"]) @ self.grasps["left"]) / self.unit
+        slip = twist_of_pose(self._slip()) / self.unit
         if np.linalg.norm(shift) >= c.guard_support_fraction * np.linalg.norm(slip):
             return "kept"
         # The departure undone is a direction the frames leave free: from now on the prediction stands along it,
@@ -760,7 +763,7 @@ class _Corrector:
                     record.inlier_fraction = float(np.mean(list(fractions.values())))
                     record.correction_m, record.correction_rad = self.last_correction
                     record.guard = self._guard(
-                        sensors, rows, {side: points_sensor[side] for side in record.used}, correction, fractions
+                        sensors, rows, {side: points_sensor[side] for side in record.used}, fractions
                     )
                     if self.pads and (self.moving or not c.pad_error.rest_map):  # what the registered frames leave
                         for side in record.used:  # unexplained teaches the pads' sliding maps
@@ -770,7 +773,7 @@ class _Corrector:
                                 correction @ T_predicted_sensors[side],
                                 c.max_distance_m,
                             )
-        slip = invert_transform(self.open_grasps["left"]) @ self.grasps["left"]
+        slip = self._slip()
         record.slip_m = float(np.linalg.norm(slip[:3, 3]))
         record.slip_rad = rotation_angle_rad(slip, np.eye(4))
         record.latency_ms = 1000.0 * (time.perf_counter() - started)
