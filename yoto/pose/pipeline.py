@@ -601,9 +601,10 @@ def fuse_next_touch(
     # first, and from no correction the refinement can settle beside the truth. The second pair's seeds are
     # verified beside them.
     starts, start_corrections = estimate.hypotheses.T_world_object, estimate.hypothesis_corrections
-    if estimate.most_likely is not None and start_corrections is not None:
-        starts = np.concatenate([starts, estimate.most_likely[0][None]])
-        start_corrections = np.concatenate([start_corrections, estimate.most_likely[1][None]])
+    most_likely = estimate.most_likely  # (with `mean_reach` 0 it is the first hypothesis already)
+    if most_likely is not None and start_corrections is not None and not np.array_equal(most_likely[0], starts[0]):
+        starts = np.concatenate([starts, most_likely[0][None]])
+        start_corrections = np.concatenate([start_corrections, most_likely[1][None]])
     refined = refine_hypotheses(field, contacts, starts, config.calibration, config.refine_config, start_corrections)
     second_seeds = _second_pair_seeds(now, model, touch, sensor, config, localizer) if localizer else None
     if second_seeds is not None and len(second_seeds):
