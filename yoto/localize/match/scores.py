@@ -9,6 +9,7 @@ import numpy as np
 from yoto.localize.match.anchors import AnchorMaps
 from yoto.localize.match.config import MatchConfig
 from yoto.localize.match.contact import ContactImage, ContactMaps
+from yoto.localize.match.kernels import KERNELS
 
 
 def plane_costs(
@@ -105,6 +106,14 @@ def free_space_violation(
     reach = float(np.hypot(*pad)) + 0.002
     tactile_samples = max(int(image.mask.sum()), 1)
     sample_area = image.pixel_m**2
+    if KERNELS is not None:
+        sums = np.empty(len(T_object_sensor))
+        KERNELS.free_space_depths(
+            anchors.points_object, np.ascontiguousarray(T_object_sensor, dtype=np.float64), reach, pad[0], pad[1],
+            image.free_margin_m, np.asarray(image.centre_sensor, dtype=np.float64), image.basis_sensor, image.half_m,
+            image.pixel_m, ~image.touched, config.residual_tau_m, sums,
+        )  # fmt: skip
+        return sums * anchors.area_m2 / sample_area / tactile_samples
     members = anchors.kdtree.query_ball_point(T_object_sensor[:, :3, 3], reach)
     counts = np.array([len(m) for m in members])
     if counts.sum() == 0:
