@@ -5,10 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from yoto.localize.match.config import MatchConfig
-from yoto.tactile_image import TactileHeightImage, tactile_height_image
+from yoto.tactile_image import TactileHeightImage, binary_dilation, tactile_height_image
 
 
 @dataclass
@@ -39,7 +38,7 @@ def contact_image(points_sensor: np.ndarray, radius_m: float, config: MatchConfi
     image = tactile_height_image(points_sensor, radius_m, config.contact_pixel_m, config.contact_erode_px)
     pixel, filled = image.pixel_m, image.filled
     clearance = int(np.ceil(config.free_clearance_m / pixel))
-    touched = ndimage.binary_dilation(filled, iterations=clearance) if clearance > 0 else filled
+    touched = binary_dilation(filled, clearance) if clearance > 0 else filled
     # A sensor may report only the deeper part of a contact (a reconstruction's mask keeps pixels pressed at
     # least some fraction of the deepest): surface pressing the gel less deep than the cloud's shallowest
     # points may lie where nothing was reported.

@@ -7,32 +7,19 @@ for the nearest-point lookups (pykdtree or SciPy, called between the passes), an
 matches, takes the robust scale (the same median), builds the 6 x 6 system point by point, solves it by Cholesky
 and moves the pose, with none of the numpy path's (K, M, ...) temporaries. Sums and the solve run in another
 order than numpy's BLAS and LAPACK: poses agree to ~1e-15 (docs/localization.md, "Compiled candidate ICP").
-Compiled code is cached on disk (`cache=True`), so only the first process after an install pays the compile.
+Compiled by `yoto.jit` (cached on disk: only the first process after an install pays the compile).
 """
 
 from __future__ import annotations
 
-import os
-from collections.abc import Callable
 from types import SimpleNamespace
-from typing import Any
 
 import numpy as np
 
-_jit: Callable[[Any], Any] | None = None  # numba's njit where it is installed and not switched off
-if os.environ.get("YOTO_NO_NUMBA", "") in ("", "0"):
-    try:
-        import numba
-
-        _jit = numba.njit(cache=True, nogil=True)  # module-level functions: the on-disk cache finds them again
-    except ImportError:  # the numpy path
-        pass
-_ENABLED = _jit is not None
-if _jit is None:
-    _jit = lambda function: function  # noqa: E731 (plain Python, never called: the caller takes the numpy path)
+from yoto.jit import ENABLED, jit
 
 
-@_jit
+@jit
 def transform_active(poses, active, points, out):
     """out[k] = the (M, 3) points under pose active[k] (out: (len(active), M, 3))."""
     for k in range(active.shape[0]):
@@ -43,7 +30,7 @@ def transform_active(poses, active, points, out):
                 out[k, m, i] = pose[i, 0] * x + pose[i, 1] * y + pose[i, 2] * z + pose[i, 3]
 
 
-@_jit
+@jit
 def _rotation_log(r, out):
     """`geometry.so3_log` of one 3 x 3 rotation into out (3,): the same formulas, the branch near pi included."""
     a0, a1, a2 = r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]
@@ -66,7 +53,7 @@ def _rotation_log(r, out):
             out[i] = sign * axis[i] / norm * angle
 
 
-@_jit
+@jit
 def _rotation_exp(omega, out):
     """`geometry.so3_exp` of one rotation vector (3,) into out (3, 3): (1 - cos) a a^T + cos I + sin [a]_x."""
     angle = np.sqrt(omega[0] ** 2 + omega[1] ** 2 + omega[2] ** 2)
@@ -79,7 +66,7 @@ def _rotation_exp(omega, out):
     out[2, 0], out[2, 1], out[2, 2] = one * a2 * a0 - s * a1, one * a2 * a1 + s * a0, one * a2 * a2 + c
 
 
-@_jit
+@jit
 def _cholesky_solve(a, b, size, out):
     """out[:size] = a[:size, :size]^-1 b[:size] for a symmetric positive definite a (overwritten)."""
     for j in range(size):
@@ -104,7 +91,7 @@ def _cholesky_solve(a, b, size, out):
         out[i] = value / a[i, i]
 
 
-@_jit
+@jit
 def gauss_newton_step(
     poses,
     active,
@@ -226,7 +213,7 @@ def gauss_newton_step(
         )
 
 
-@_jit
+@jit
 def truncated_rms(poses, points, gaps, index, surface_points, surface_normals, facing_source, tau, out):
     """out[k]: `registration.truncated_plane_fit(...).rms_m` of the (K, M, 3) points under pose k (their nearest
     surface points `gaps`, `index`), correspondences facing the pose's `facing_source` normal."""
@@ -253,7 +240,7 @@ def truncated_rms(poses, points, gaps, index, surface_points, surface_normals, f
         out[k] = np.sqrt(total / size)
 
 
-@_jit
+@jit
 def free_space_depths(
     anchor_points, poses, reach, pad_x, pad_y, margin, centre, basis, half, pixel, untouched, tau, out
 ):
@@ -294,6 +281,6 @@ KERNELS = (
         truncated_rms=truncated_rms,
         free_space_depths=free_space_depths,
     )
-    if _ENABLED
+    if ENABLED
     else None
 )
