@@ -126,6 +126,8 @@ def tactile_height_image(
     pixel = pixel_m if tactile_spacing_at_most(local, pixel_m / 1.5) else max(pixel_m, 1.5 * tactile_spacing_m(local))
     half = radius_m + 2.0 * pixel
     side = int(np.ceil(2.0 * half / pixel))
+    sums: np.ndarray
+    counts: np.ndarray
     if ENABLED:
         sums, counts = np.zeros((side, side)), np.zeros((side, side))
         any_inside = _bin_heights(local, half, pixel, sums, counts)
