@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from yoto.localize.match.config import MatchConfig
+from yoto.localize.match.kernels import KERNELS
 from yoto.tactile_image import TactileHeightImage, binary_dilation, tactile_height_image
 
 
@@ -62,6 +63,17 @@ class ContactMaps:
 def contact_maps(image: ContactImage, centres: np.ndarray, roll_count: int, config: MatchConfig) -> ContactMaps:
     """Sample the contact image at the cell centres (C, 2) of every roll: anchor local = Rz(roll) contact local."""
     rolls = np.arange(roll_count) * (2.0 * np.pi / roll_count)
+    if KERNELS is not None:
+        shape = (roll_count, len(centres))
+        heights, mask = np.empty(shape, dtype=np.float32), np.empty(shape, dtype=np.float32)
+        free, gel = np.empty(shape, dtype=bool), np.empty(shape, dtype=np.float32)
+        pad_x, pad_y = np.asarray(config.pad_size_m) / 2.0
+        KERNELS.sample_rolls(
+            image.heights, image.mask, ~image.touched, image.half_m, image.pixel_m, np.cos(rolls), np.sin(rolls),
+            np.ascontiguousarray(centres, dtype=np.float64), image.centre_sensor, image.basis_sensor, pad_x, pad_y,
+            heights, mask, free, gel,
+        )  # fmt: skip
+        return ContactMaps(image=image, heights=heights, mask=mask, free=free, gel_heights=gel, rolls_rad=rolls)
     cos, sin = np.cos(rolls)[:, None], np.sin(rolls)[:, None]
     x = cos * centres[:, 0] + sin * centres[:, 1]  # Rz(-roll) applied to the cell centres
     y = -sin * centres[:, 0] + cos * centres[:, 1]

@@ -274,12 +274,64 @@ def free_space_depths(
         out[k] = total
 
 
+@jit
+def sample_rolls(
+    image_heights, image_mask, untouched, half, pixel, cos, sin, centres, centre, basis, pad_x, pad_y, heights, mask,
+    free, gel,
+):  # fmt: skip
+    """`contact.contact_maps`' per-cell values at every roll (R, C), bitwise: the image's bilinear height where all
+    four pixels lie in its mask (else 0), that coverage, whether the cell lies on the pad with all four pixels
+    untouched, and the gel plane's height there."""
+    side = image_heights.shape[0]
+    for r in range(cos.shape[0]):
+        for c in range(centres.shape[0]):
+            x = cos[r] * centres[c, 0] + sin[r] * centres[c, 1]
+            y = -sin[r] * centres[c, 0] + cos[r] * centres[c, 1]
+            fx = (x + half) / pixel - 0.5
+            fy = (y + half) / pixel - 0.5
+            i = min(max(int(np.floor(fx)), 0), side - 2)
+            j = min(max(int(np.floor(fy)), 0), side - 2)
+            wx = min(max(fx - i, 0.0), 1.0)
+            wy = min(max(fy - j, 0.0), 1.0)
+            covered = image_mask[i, j] and image_mask[i + 1, j] and image_mask[i, j + 1] and image_mask[i + 1, j + 1]
+            value = 0.0
+            value += image_heights[i, j] * ((1 - wx) * (1 - wy))
+            value += image_heights[i + 1, j] * (wx * (1 - wy))
+            value += image_heights[i, j + 1] * ((1 - wx) * wy)
+            value += image_heights[i + 1, j + 1] * (wx * wy)
+            heights[r, c] = np.float32(value) if covered else np.float32(0.0)
+            mask[r, c] = np.float32(1.0) if covered else np.float32(0.0)
+            near = untouched[i, j] and untouched[i + 1, j] and untouched[i, j + 1] and untouched[i + 1, j + 1]
+            pad0 = centre[0] + basis[0, 0] * x + basis[0, 1] * y
+            pad1 = centre[1] + basis[1, 0] * x + basis[1, 1] * y
+            free[r, c] = abs(pad0) <= pad_x and abs(pad1) <= pad_y and near
+            gel[r, c] = np.float32(-(centre[2] + basis[2, 0] * x + basis[2, 1] * y) / basis[2, 2])
+
+
+@jit
+def free_space_squares(anchor_heights, anchor_valid, anchor_index, roll_index, beta, x, y, gel, free, margin, cap):
+    """(K, C) float32: `scores.free_space_penalty`'s squared depths, bitwise (its float32 operations in its order)."""
+    out = np.zeros((anchor_index.shape[0], x.shape[0]), dtype=np.float32)
+    zero = np.float32(0.0)
+    for k in range(anchor_index.shape[0]):
+        a, r = anchor_index[k], roll_index[k]
+        for c in range(x.shape[0]):
+            if not (free[r, c] and anchor_valid[a, c] > 0):
+                continue
+            surface = anchor_heights[a, c] + beta[0, k] + beta[1, k] * x[c] + beta[2, k] * y[c]
+            depth = max(min(gel[r, c] - margin - surface, cap), zero)
+            out[k, c] = depth * depth
+    return out
+
+
 KERNELS = (
     SimpleNamespace(
         transform_active=transform_active,
         gauss_newton_step=gauss_newton_step,
         truncated_rms=truncated_rms,
         free_space_depths=free_space_depths,
+        sample_rolls=sample_rolls,
+        free_space_squares=free_space_squares,
     )
     if ENABLED
     else None

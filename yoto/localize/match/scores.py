@@ -83,6 +83,13 @@ def free_space_penalty(
     the sensor saw no contact contradicts the hypothesis.
     """
     x, y = anchors.grid.centres.T.astype(np.float32)
+    if KERNELS is not None:
+        squared = KERNELS.free_space_squares(
+            anchors.heights, anchors.valid, anchor_index, roll_index, np.ascontiguousarray(beta), x, y,
+            contact.gel_heights, contact.free, np.float32(contact.image.free_margin_m),
+            np.float32(config.anchors.ray_start_m),
+        )  # fmt: skip
+        return np.asarray(squared.sum(axis=1, dtype=np.float64))
     surface = anchors.heights[anchor_index] + beta[0][:, None] + beta[1][:, None] * x + beta[2][:, None] * y
     depth = np.minimum(
         contact.gel_heights[roll_index] - np.float32(contact.image.free_margin_m) - surface,
