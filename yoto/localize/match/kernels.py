@@ -324,6 +324,53 @@ def free_space_squares(anchor_heights, anchor_valid, anchor_index, roll_index, b
     return out
 
 
+@jit
+def best_plane_costs(sums, height_sums, squared_sums, total, air_squared):
+    """Per anchor, `scores.plane_costs` (with tilt) at its best roll, bitwise: its float32 arithmetic on the products
+    it forms (`sums` (10 R, A): the mask's moments and the contact's height sums against the anchors' validity,
+    `height_sums` (4 R, A) against their heights, `squared_sums` (R, A) against their squares; `total` (R,) each
+    roll's covered cells). Returns the first best roll (R,) as `np.argmin`, its cost and plane (3, A)."""
+    rolls, count = squared_sums.shape
+    best_roll = np.zeros(count, dtype=np.int64)
+    best_cost = np.empty(count, dtype=np.float32)
+    best_beta = np.empty((3, count), dtype=np.float32)
+    one, zero, two = np.float32(1.0), np.float32(0.0), np.float32(2.0)
+    for a in range(count):
+        for r in range(rolls):
+            n, sx, sy = sums[r, a], sums[rolls + r, a], sums[2 * rolls + r, a]
+            sxx, sxy, syy = sums[3 * rolls + r, a], sums[4 * rolls + r, a], sums[5 * rolls + r, a]
+            st, stx, sty, stt = (
+                sums[6 * rolls + r, a],
+                sums[7 * rolls + r, a],
+                sums[8 * rolls + r, a],
+                sums[9 * rolls + r, a],
+            )
+            sh, shx, shy = height_sums[r, a], height_sums[rolls + r, a], height_sums[2 * rolls + r, a]
+            sth = height_sums[3 * rolls + r, a]
+            b0, b1, b2 = st - sh, stx - shx, sty - shy
+            sdd = stt - two * sth + squared_sums[r, a]
+            c00, c01, c02 = sxx * syy - sxy * sxy, sy * sxy - sx * syy, sx * sxy - sy * sxx
+            c11, c12, c22 = n * syy - sy * sy, sx * sy - n * sxy, n * sxx - sx * sx
+            det = n * c00 + sx * c01 + sy * c02
+            spread = sxx + syy
+            solvable = n >= 6 and det > np.float32(1e-2) * n * spread * spread / np.float32(4.0)
+            inv = one / det if solvable else zero
+            beta0 = (c00 * b0 + c01 * b1 + c02 * b2) * inv
+            beta1 = (c01 * b0 + c11 * b1 + c12 * b2) * inv
+            beta2 = (c02 * b0 + c12 * b1 + c22 * b2) * inv
+            safe_n = max(n, one)
+            if solvable:
+                sse = sdd - (beta0 * b0 + beta1 * b1 + beta2 * b2)
+            else:
+                sse = sdd - b0 * b0 / safe_n
+                beta0 = b0 / safe_n
+            cost = (max(sse, zero) + air_squared * (total[r] - n)) / max(total[r], one)
+            if r == 0 or cost < best_cost[a]:
+                best_roll[a], best_cost[a] = r, cost
+                best_beta[0, a], best_beta[1, a], best_beta[2, a] = beta0, beta1, beta2
+    return best_roll, best_cost, best_beta
+
+
 KERNELS = (
     SimpleNamespace(
         transform_active=transform_active,
@@ -332,6 +379,7 @@ KERNELS = (
         free_space_depths=free_space_depths,
         sample_rolls=sample_rolls,
         free_space_squares=free_space_squares,
+        best_plane_costs=best_plane_costs,
     )
     if ENABLED
     else None

@@ -15,7 +15,7 @@ from yoto.localize.match.contact import ContactImage, contact_image, contact_map
 from yoto.localize.match.kernels import KERNELS
 from yoto.localize.match.lookup import ParentSurface, one_openmp_thread, parent_surface
 from yoto.localize.match.rings import contact_rings, ring_distances
-from yoto.localize.match.scores import free_space_penalty, free_space_violation, plane_costs
+from yoto.localize.match.scores import best_plane_costs, free_space_penalty, free_space_violation, plane_costs
 from yoto.localize.ranking import rank_registrations
 from yoto.objects.model import ObjectModel
 from yoto.registration import GaussNewtonConfig, one_blas_thread, point_to_plane_gauss_newton, truncated_plane_fit
@@ -67,7 +67,7 @@ class MatchLocalizer:
         shortlist = self._shortlist(image, anchors)
         # Fine stage: the shortlist, every cell, every roll, offset and tilt, free space.
         heights = anchors.heights[shortlist]
-        cost, beta = plane_costs(
+        best_roll, score, beta = best_plane_costs(
             contact.mask,
             contact.heights,
             anchors.valid[shortlist].T,
@@ -77,10 +77,6 @@ class MatchLocalizer:
             config.remove_tilt,
             config.air_penalty_m,
         )
-        best_roll = np.argmin(cost, axis=0)
-        columns = np.arange(len(shortlist))
-        score = cost[best_roll, columns].astype(np.float64)
-        beta = beta[:, best_roll, columns]
         if config.free_space:
             penalty = free_space_penalty(contact, anchors, shortlist, best_roll, beta, config)
             score = score + penalty / np.maximum(contact.mask.sum(axis=1)[best_roll], 1.0)

@@ -30,15 +30,14 @@ def plane_costs(
     anchor has no surface) / contact cells; without `remove_tilt` beta is the offset alone. Every sum over
     cells is one matrix product of (rolls x cells) contact terms with (cells x anchors) anchor terms.
     """
-    x, y = centres.T.astype(np.float32)
     mtt = mt * t
     total = mt.sum(axis=1, keepdims=True)
     if remove_tilt:
-        first = np.concatenate([mt, mt * x, mt * y, mt * x * x, mt * x * y, mt * y * y, mtt, mtt * x, mtt * y, mtt * t])
-        n, sx, sy, sxx, sxy, syy, st, stx, sty, stt = np.split(first @ ma, 10)
-        sh, shx, shy, sth = np.split(np.concatenate([mt, mt * x, mt * y, mtt]) @ h, 4)
+        sums, height_sums, squared_sums = _tilt_products(mt, t, ma, h, hh, centres)
+        n, sx, sy, sxx, sxy, syy, st, stx, sty, stt = np.split(sums, 10)
+        sh, shx, shy, sth = np.split(height_sums, 4)
         b0, b1, b2 = st - sh, stx - shx, sty - shy
-        sdd = stt - 2.0 * sth + mt @ hh
+        sdd = stt - 2.0 * sth + squared_sums
         # Normal equations G beta = b, G = [[n, sx, sy], [sx, sxx, sxy], [sy, sxy, syy]], solved by cofactors.
         c00, c01, c02 = sxx * syy - sxy * sxy, sy * sxy - sx * syy, sx * sxy - sy * sxx
         c11, c12, c22 = n * syy - sy * sy, sx * sy - n * sxy, n * sxx - sx * sx
@@ -66,6 +65,42 @@ def plane_costs(
         beta[0] = (st - sh) / safe_n
     cost = (np.maximum(sse, 0.0) + air_penalty_m**2 * (total - n)) / np.maximum(total, 1.0)
     return cost, beta
+
+
+def _tilt_products(
+    mt: np.ndarray, t: np.ndarray, ma: np.ndarray, h: np.ndarray, hh: np.ndarray, centres: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The matrix products of `plane_costs` with tilt: the contact's mask moments and height sums (10 R rows) against
+    the anchors' validity, (mask, its x and y moments, heights) (4 R rows) against their heights, the mask against
+    their squared heights (R rows)."""
+    x, y = centres.T.astype(np.float32)
+    mtt = mt * t
+    first = np.concatenate([mt, mt * x, mt * y, mt * x * x, mt * x * y, mt * y * y, mtt, mtt * x, mtt * y, mtt * t])
+    return first @ ma, np.concatenate([mt, mt * x, mt * y, mtt]) @ h, mt @ hh
+
+
+def best_plane_costs(
+    mt: np.ndarray,
+    t: np.ndarray,
+    ma: np.ndarray,
+    h: np.ndarray,
+    hh: np.ndarray,
+    centres: np.ndarray,
+    remove_tilt: bool,
+    air_penalty_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`plane_costs` at each anchor's best roll: the roll (A,) (the first of equal costs), its cost (A,) float64 and
+    its plane (3, A); compiled past the products where numba is, the same numbers."""
+    if KERNELS is not None and remove_tilt:
+        total = mt.sum(axis=1)
+        roll, cost, beta = KERNELS.best_plane_costs(
+            *_tilt_products(mt, t, ma, h, hh, centres), total, np.float32(air_penalty_m**2)
+        )
+        return roll, cost.astype(np.float64), beta
+    costs, betas = plane_costs(mt, t, ma, h, hh, centres, remove_tilt, air_penalty_m)
+    roll = np.argmin(costs, axis=0)
+    columns = np.arange(costs.shape[1])
+    return roll, costs[roll, columns].astype(np.float64), betas[:, roll, columns]
 
 
 def free_space_penalty(
