@@ -4,6 +4,8 @@ network both read a contact from.
 The frame: origin at the contact centre, x and y tangent (x as close to the sensor's x as it gets), z into the
 object (-normal). Pixels hold the mean height of their points; single empty pixels inside the contact are filled
 from their neighbours (sparse clouds from other programs must not punch holes that the rim erosion would widen).
+Where numba is installed (`yoto.jit`) the binning and the mask's closing, erosion and dilation run compiled (the same
+masks and sums; the local frame's product in another order: heights within ~1e-17 m of numpy's).
 """
 
 from __future__ import annotations

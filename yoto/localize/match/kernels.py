@@ -1,13 +1,17 @@
-"""Compiled loops for the matched filter's candidate ICP (numba, the `fast` extra), with numpy as the fallback.
+"""Compiled loops of the matched filter (numba, the `fast` extra, through `yoto.jit`), numpy as the fallback.
 
-`KERNELS` is None where numba is missing (or `YOTO_NO_NUMBA=1` is set); the localizer then calls
-`yoto.registration.point_to_plane_gauss_newton`, which these loops repeat for its one use here (a pivot, one
-facing normal, every pose iterating until it stops): per iteration one pass transforms the active poses' points
-for the nearest-point lookups (pykdtree or SciPy, called between the passes), and one pass per pose gathers the
-matches, takes the robust scale (the same median), builds the 6 x 6 system point by point, solves it by Cholesky
-and moves the pose, with none of the numpy path's (K, M, ...) temporaries. Sums and the solve run in another
-order than numpy's BLAS and LAPACK: poses agree to ~1e-15 (docs/localization.md, "Compiled candidate ICP").
-Compiled by `yoto.jit` (cached on disk: only the first process after an install pays the compile).
+`KERNELS` is None where numba is missing (or `YOTO_NO_NUMBA=1` is set); callers then take their numpy paths.
+
+- The candidate ICP (`localizer.candidate_icp`, `registration.point_to_plane_gauss_newton` for its one use here: a
+  pivot, one facing normal, every pose iterating until it stops): per iteration one pass transforms the active
+  poses' points for the nearest-point lookups (pykdtree or SciPy, called between the passes), and one pass per pose
+  gathers its matches, takes the robust scale (the same median), sums its 6 x 6 system point by point, solves it by
+  Cholesky and moves the pose, with none of the numpy path's (K, M, ...) temporaries. The residual fits and the
+  free-space violation likewise. Their sums and the solve run in another order than numpy's BLAS and LAPACK:
+  poses and residuals agree to ~1e-13 (docs/localization.md, "Compiled kernels").
+- The filter's per-cell work (the contact's maps at every roll, the plane costs past their matrix products with
+  each anchor's best roll, the free-space penalty's squared depths): numpy's float32 operations in numpy's order,
+  bitwise its results.
 """
 
 from __future__ import annotations
