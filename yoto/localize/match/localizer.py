@@ -222,7 +222,7 @@ class MatchLocalizer:
             KERNELS.transform_active(poses, np.arange(len(poses)), np.ascontiguousarray(samples), points)
             gaps, index = surface.kdtree.query(points.reshape(-1, 3), distance_upper_bound=reach)
             residual = np.empty(len(poses))
-            normal = np.asarray(image.normal_sensor, dtype=np.float64)
+            normal = np.ascontiguousarray(image.normal_sensor, dtype=np.float64)
             KERNELS.truncated_rms(
                 poses, points, gaps, index, surface.points_object, surface.normals_object, normal,
                 config.residual_tau_m, residual,
@@ -273,10 +273,10 @@ def candidate_icp(
         )
     poses = np.array(T_object_sensor, dtype=np.float64).reshape(-1, 4, 4)
     start_rotations = np.ascontiguousarray(poses[:, :3, :3])
-    pivot = np.asarray(image.centre_sensor, dtype=np.float64)
+    pivot = np.ascontiguousarray(image.centre_sensor, dtype=np.float64)
     anchor_start = start_rotations @ pivot + poses[:, :3, 3]
     prior = np.array([1.0 / config.prior_rotation_rad**2] * 3 + [1.0 / config.prior_translation_m**2] * 3)
-    facing = np.asarray(image.normal_sensor, dtype=np.float64)
+    facing = np.ascontiguousarray(image.normal_sensor, dtype=np.float64)
     samples = np.ascontiguousarray(samples, dtype=np.float64)
     active = np.arange(len(poses))
     for iteration in range(config.iterations):

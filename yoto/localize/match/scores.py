@@ -152,8 +152,8 @@ def free_space_violation(
         sums = np.empty(len(T_object_sensor))
         KERNELS.free_space_depths(
             anchors.points_object, np.ascontiguousarray(T_object_sensor, dtype=np.float64), reach, pad[0], pad[1],
-            image.free_margin_m, np.asarray(image.centre_sensor, dtype=np.float64), image.basis_sensor, image.half_m,
-            image.pixel_m, ~image.touched, config.residual_tau_m, sums,
+            image.free_margin_m, np.ascontiguousarray(image.centre_sensor, dtype=np.float64), image.basis_sensor,
+            image.half_m, image.pixel_m, ~image.touched, config.residual_tau_m, sums,
         )  # fmt: skip
         return sums * anchors.area_m2 / sample_area / tactile_samples
     members = anchors.kdtree.query_ball_point(T_object_sensor[:, :3, 3], reach)
