@@ -140,3 +140,18 @@ def test_the_tactile_image_kernels_repeat_numpy_and_scipy(fruit_clouds, monkeypa
         slow = tactile_height_image(points, 0.0105, 0.0002, 1)
         assert np.array_equal(fast.filled, slow.filled) and np.array_equal(fast.mask, slow.mask)
         assert np.abs(fast.heights - slow.heights).max() < 1e-15
+
+
+def test_the_contact_centre_is_bitwise_the_numpy_paths(fruit_clouds, monkeypatch):
+    """`contact_in_sensor`'s compiled offsets and nearest point: numpy's centre and normal bit for bit, on float64
+    clouds, a float32 copy (computed in float32, as numpy does) and a strided view."""
+    import yoto.contacts as contacts_module
+
+    _, clouds = fruit_clouds
+    inputs = [points for points, _ in clouds] + [clouds[0][0].astype(np.float32), clouds[1][0][::3]]
+    compiled = [contacts_module._contact_in_sensor(points) for points in inputs]
+    monkeypatch.setattr(contacts_module, "ENABLED", False)
+    for points, (centre, normal) in zip(inputs, compiled, strict=True):
+        expected_centre, expected_normal = contacts_module._contact_in_sensor(points)
+        assert centre.dtype == expected_centre.dtype
+        assert centre.tobytes() == expected_centre.tobytes() and normal.tobytes() == expected_normal.tobytes()
