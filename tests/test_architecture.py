@@ -16,7 +16,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "yoto"
 
 CORE = {"errors", "workspace", "io", "geometry", "pointcloud", "raycast", "registration", "provenance", "metrics"}
-CORE |= {"contacts", "trajectory", "tactile_image"}
+CORE |= {"contacts", "trajectory", "tactile_image", "jit"}
 RANK = {
     **{name: 0 for name in CORE},
     "objects": 1,

@@ -34,6 +34,7 @@ import numpy as np
 from yoto.errors import InputError, NoContactError
 from yoto.geometry import normalize, rotate_vectors, transform_points, validate_transform
 from yoto.io import read_json, read_ply_points, write_json_atomic, write_ply_points
+from yoto.jit import ENABLED, jit
 from yoto.pointcloud import covariance_eigh
 
 SIDES = ("left", "right")
@@ -151,10 +152,15 @@ def _contact_in_sensor(points_sensor: np.ndarray) -> tuple[np.ndarray, np.ndarra
     """`contact_in_sensor`, computed."""
     # Column by column: numpy's mean over axis 0 of an (N, 3) array is ten times slower.
     centroid = np.array([points_sensor[:, axis].mean() for axis in range(3)])
-    offsets = points_sensor - centroid
     # Plain distances beat building a KD-tree for one query on a dense (~20k-point) tactile cloud.
-    from_centroid = np.einsum("ij,ij->i", offsets, offsets)
-    closest = np.argmin(from_centroid)
+    if ENABLED:
+        dtype = np.result_type(points_sensor, centroid)  # float32 for a float32 cloud, as numpy's path
+        offsets, from_centroid = np.empty((len(points_sensor), 3), dtype), np.empty(len(points_sensor), dtype)
+        closest = _centroid_offsets(points_sensor, centroid, offsets, from_centroid)
+    else:
+        offsets = points_sensor - centroid
+        from_centroid = np.einsum("ij,ij->i", offsets, offsets)
+        closest = np.argmin(from_centroid)
     nearest = points_sensor[closest]
     # The patch lies within the fit radius of the point nearest the centroid, so within that point's distance from
     # the centroid plus the radius (squared, with a margin for rounding): only those points are measured.
@@ -172,6 +178,20 @@ def _contact_in_sensor(points_sensor: np.ndarray) -> tuple[np.ndarray, np.ndarra
     off_line = from_centroid - along * along  # squared distances from the line (Pythagoras; same order, no root)
     closest_to_line = np.argpartition(off_line, min(LINE_POINTS, len(off_line) - 1))[:LINE_POINTS]
     return centroid + along[closest_to_line].mean() * normal, normal
+
+
+@jit
+def _centroid_offsets(points, centroid, offsets, squared):
+    """offsets = points - centroid and their squared norms (summed in `np.einsum`'s order: the same numbers); returns
+    the index of the first smallest, as `np.argmin`."""
+    closest = 0
+    for n in range(points.shape[0]):
+        x, y, z = points[n, 0] - centroid[0], points[n, 1] - centroid[1], points[n, 2] - centroid[2]
+        offsets[n, 0], offsets[n, 1], offsets[n, 2] = x, y, z
+        squared[n] = x * x + y * y + z * z
+        if squared[n] < squared[closest]:
+            closest = n
+    return closest
 
 
 def contact_in_world(contact: TactileContact) -> WorldContact:

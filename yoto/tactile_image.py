@@ -4,6 +4,8 @@ network both read a contact from.
 The frame: origin at the contact centre, x and y tangent (x as close to the sensor's x as it gets), z into the
 object (-normal). Pixels hold the mean height of their points; single empty pixels inside the contact are filled
 from their neighbours (sparse clouds from other programs must not punch holes that the rim erosion would widen).
+Where numba is installed (`yoto.jit`) the binning and the mask's closing, erosion and dilation run compiled (the same
+masks and sums; the local frame's product in another order: heights within ~1e-17 m of numpy's).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from scipy.spatial import cKDTree
 from yoto.contacts import contact_in_sensor
 from yoto.errors import DegenerateGeometryError
 from yoto.geometry import tangent_basis
+from yoto.jit import ENABLED, jit
 
 X_AXIS = np.array([1.0, 0.0, 0.0])
 
@@ -116,25 +119,103 @@ def tactile_height_image(
     centre, normal = contact_in_sensor(points_sensor)
     u, v = tangent_basis(-normal, reference=X_AXIS)
     basis = np.stack([u, v, -normal], axis=1)
-    local = (points_sensor - centre) @ basis
+    if ENABLED:
+        local = np.empty((len(points_sensor), 3))
+        _to_local(points_sensor, centre, basis, local)
+    else:
+        local = (points_sensor - centre) @ basis
     # A dense cloud (the usual case) is told from a sparse one without measuring its spacing.
     pixel = pixel_m if tactile_spacing_at_most(local, pixel_m / 1.5) else max(pixel_m, 1.5 * tactile_spacing_m(local))
     half = radius_m + 2.0 * pixel
     side = int(np.ceil(2.0 * half / pixel))
-    ix = np.floor((local[:, 0] + half) / pixel).astype(np.int64)
-    iy = np.floor((local[:, 1] + half) / pixel).astype(np.int64)
-    inside = (ix >= 0) & (ix < side) & (iy >= 0) & (iy < side)
-    if not inside.any():
+    sums: np.ndarray
+    counts: np.ndarray
+    if ENABLED:
+        sums, counts = np.zeros((side, side)), np.zeros((side, side))
+        any_inside = _bin_heights(local, half, pixel, sums, counts)
+    else:
+        ix = np.floor((local[:, 0] + half) / pixel).astype(np.int64)
+        iy = np.floor((local[:, 1] + half) / pixel).astype(np.int64)
+        inside = (ix >= 0) & (ix < side) & (iy >= 0) & (iy < side)
+        any_inside = bool(inside.any())
+        if any_inside:
+            key = ix[inside] * side + iy[inside]
+            sums = np.bincount(key, weights=local[inside, 2], minlength=side * side).reshape(side, side)
+            counts = np.bincount(key, minlength=side * side).reshape(side, side).astype(np.float64)
+    if not any_inside:
         raise DegenerateGeometryError("the tactile cloud has no points around its contact centre")
-    key = ix[inside] * side + iy[inside]
-    sums = np.bincount(key, weights=local[inside, 2], minlength=side * side).reshape(side, side)
-    counts = np.bincount(key, minlength=side * side).reshape(side, side).astype(np.float64)
     filled = counts > 0
-    holes = ndimage.binary_closing(filled) & ~filled
+    holes = binary_erosion(binary_dilation(filled, 1), 1) & ~filled  # a closing
     if holes.any():  # a hole's height: the mean of the points in its 3 x 3 neighbourhood
         sums = np.where(holes, ndimage.uniform_filter(sums, 3, mode="constant"), sums)
         counts = np.where(holes, ndimage.uniform_filter(counts, 3, mode="constant"), counts)
         filled = filled | holes
     heights = np.where(filled, sums / np.maximum(counts, 1e-12), 0.0)
-    mask = ndimage.binary_erosion(filled, iterations=erode_px) if erode_px > 0 else filled
+    mask = binary_erosion(filled, erode_px) if erode_px > 0 else filled
     return TactileHeightImage(centre, normal, basis, heights, filled, mask, pixel, half)
+
+
+def binary_dilation(mask: np.ndarray, iterations: int) -> np.ndarray:
+    """`scipy.ndimage.binary_dilation(mask, iterations=iterations)` (4-neighbour cross), compiled where numba is."""
+    if not ENABLED:
+        return ndimage.binary_dilation(mask, iterations=iterations)
+    out = np.array(mask, dtype=bool)
+    for _ in range(iterations):
+        out = _cross_morphology(out, True)
+    return out
+
+
+def binary_erosion(mask: np.ndarray, iterations: int) -> np.ndarray:
+    """`scipy.ndimage.binary_erosion(mask, iterations=iterations)` (4-neighbour cross, nothing beyond the border),
+    compiled where numba is."""
+    if not ENABLED:
+        return ndimage.binary_erosion(mask, iterations=iterations)
+    out = np.array(mask, dtype=bool)
+    for _ in range(iterations):
+        out = _cross_morphology(out, False)
+    return out
+
+
+@jit
+def _cross_morphology(mask, dilate):
+    """One step of a binary dilation (any of the pixel and its 4 neighbours set) or erosion (all set, pixels beyond
+    the border unset) of a 2-D boolean image."""
+    rows, columns = mask.shape
+    out = np.empty_like(mask)
+    for i in range(rows):
+        for j in range(columns):
+            centre = mask[i, j]
+            up = mask[i - 1, j] if i > 0 else False
+            down = mask[i + 1, j] if i + 1 < rows else False
+            left = mask[i, j - 1] if j > 0 else False
+            right = mask[i, j + 1] if j + 1 < columns else False
+            if dilate:
+                out[i, j] = centre or up or down or left or right
+            else:
+                out[i, j] = centre and up and down and left and right
+    return out
+
+
+@jit
+def _to_local(points, centre, basis, out):
+    """out = (points - centre) @ basis for (N, 3) points."""
+    for n in range(points.shape[0]):
+        x, y, z = points[n, 0] - centre[0], points[n, 1] - centre[1], points[n, 2] - centre[2]
+        for j in range(3):
+            out[n, j] = x * basis[0, j] + y * basis[1, j] + z * basis[2, j]
+
+
+@jit
+def _bin_heights(local, half, pixel, sums, counts):
+    """Add each local point's height to its pixel of the (S, S) `sums` and count it in `counts`, in point order (the
+    sums `np.bincount` makes); whether any point fell in the image."""
+    side = sums.shape[0]
+    any_inside = False
+    for n in range(local.shape[0]):
+        i = np.floor((local[n, 0] + half) / pixel)
+        j = np.floor((local[n, 1] + half) / pixel)
+        if i >= 0 and i < side and j >= 0 and j < side:
+            sums[int(i), int(j)] += local[n, 2]
+            counts[int(i), int(j)] += 1.0
+            any_inside = True
+    return any_inside

@@ -5,10 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from yoto.localize.match.config import MatchConfig
-from yoto.tactile_image import TactileHeightImage, tactile_height_image
+from yoto.localize.match.kernels import KERNELS
+from yoto.tactile_image import TactileHeightImage, binary_dilation, tactile_height_image
 
 
 @dataclass
@@ -39,7 +39,7 @@ def contact_image(points_sensor: np.ndarray, radius_m: float, config: MatchConfi
     image = tactile_height_image(points_sensor, radius_m, config.contact_pixel_m, config.contact_erode_px)
     pixel, filled = image.pixel_m, image.filled
     clearance = int(np.ceil(config.free_clearance_m / pixel))
-    touched = ndimage.binary_dilation(filled, iterations=clearance) if clearance > 0 else filled
+    touched = binary_dilation(filled, clearance) if clearance > 0 else filled
     # A sensor may report only the deeper part of a contact (a reconstruction's mask keeps pixels pressed at
     # least some fraction of the deepest): surface pressing the gel less deep than the cloud's shallowest
     # points may lie where nothing was reported.
@@ -63,6 +63,17 @@ class ContactMaps:
 def contact_maps(image: ContactImage, centres: np.ndarray, roll_count: int, config: MatchConfig) -> ContactMaps:
     """Sample the contact image at the cell centres (C, 2) of every roll: anchor local = Rz(roll) contact local."""
     rolls = np.arange(roll_count) * (2.0 * np.pi / roll_count)
+    if KERNELS is not None:
+        shape = (roll_count, len(centres))
+        heights, mask = np.empty(shape, dtype=np.float32), np.empty(shape, dtype=np.float32)
+        free, gel = np.empty(shape, dtype=bool), np.empty(shape, dtype=np.float32)
+        pad_x, pad_y = np.asarray(config.pad_size_m) / 2.0
+        KERNELS.sample_rolls(
+            image.heights, image.mask, ~image.touched, image.half_m, image.pixel_m, np.cos(rolls), np.sin(rolls),
+            np.ascontiguousarray(centres, dtype=np.float64), image.centre_sensor, image.basis_sensor, pad_x, pad_y,
+            heights, mask, free, gel,
+        )  # fmt: skip
+        return ContactMaps(image=image, heights=heights, mask=mask, free=free, gel_heights=gel, rolls_rad=rolls)
     cos, sin = np.cos(rolls)[:, None], np.sin(rolls)[:, None]
     x = cos * centres[:, 0] + sin * centres[:, 1]  # Rz(-roll) applied to the cell centres
     y = -sin * centres[:, 0] + cos * centres[:, 1]

@@ -12,12 +12,13 @@ from yoto.geometry import so3_exp
 from yoto.localize.match.anchors import AnchorMaps, anchor_maps
 from yoto.localize.match.config import MatchConfig
 from yoto.localize.match.contact import ContactImage, contact_image, contact_maps
-from yoto.localize.match.lookup import one_openmp_thread, parent_surface
+from yoto.localize.match.kernels import KERNELS
+from yoto.localize.match.lookup import ParentSurface, one_openmp_thread, parent_surface
 from yoto.localize.match.rings import contact_rings, ring_distances
-from yoto.localize.match.scores import free_space_penalty, free_space_violation, plane_costs
+from yoto.localize.match.scores import best_plane_costs, free_space_penalty, free_space_violation, plane_costs
 from yoto.localize.ranking import rank_registrations
 from yoto.objects.model import ObjectModel
-from yoto.registration import one_blas_thread, point_to_plane_gauss_newton, truncated_plane_fit
+from yoto.registration import GaussNewtonConfig, one_blas_thread, point_to_plane_gauss_newton, truncated_plane_fit
 
 Z_AXIS = np.array([0.0, 0.0, 1.0])
 MIN_CONTACT_CELLS = 3  # fewer covered cells leave nothing to match
@@ -66,7 +67,7 @@ class MatchLocalizer:
         shortlist = self._shortlist(image, anchors)
         # Fine stage: the shortlist, every cell, every roll, offset and tilt, free space.
         heights = anchors.heights[shortlist]
-        cost, beta = plane_costs(
+        best_roll, score, beta = best_plane_costs(
             contact.mask,
             contact.heights,
             anchors.valid[shortlist].T,
@@ -76,10 +77,6 @@ class MatchLocalizer:
             config.remove_tilt,
             config.air_penalty_m,
         )
-        best_roll = np.argmin(cost, axis=0)
-        columns = np.arange(len(shortlist))
-        score = cost[best_roll, columns].astype(np.float64)
-        beta = beta[:, best_roll, columns]
         if config.free_space:
             penalty = free_space_penalty(contact, anchors, shortlist, best_roll, beta, config)
             score = score + penalty / np.maximum(contact.mask.sum(axis=1)[best_roll], 1.0)
@@ -167,28 +164,14 @@ class MatchLocalizer:
         samples = self._samples(image, config.icp_points)
         poses = found.poses
         if config.refine:
-            poses = point_to_plane_gauss_newton(
-                surface,
-                samples,
-                poses,
-                config.icp,
-                pivot_source=image.centre_sensor,
-                facing_source=image.normal_sensor,
-                keep_best=config.icp_keep,
-            )
+            poses = candidate_icp(surface, samples, poses, config.icp, image, keep_best=config.icp_keep)
         residual, violation = self._fit(model, image, samples, poses)
         ranking = self._rank(model, image, poses, residual, violation)
         if config.refine and config.polish_candidates > 0:
             best = np.asarray(ranking.indices[: config.polish_candidates], dtype=np.int64)
             samples = self._samples(image, config.polish_points)
-            poses[best] = point_to_plane_gauss_newton(
-                surface,
-                samples,
-                poses[best],
-                replace(config.icp, iterations=config.polish_iterations),
-                pivot_source=image.centre_sensor,
-                facing_source=image.normal_sensor,
-            )
+            polish = replace(config.icp, iterations=config.polish_iterations)
+            poses[best] = candidate_icp(surface, samples, poses[best], polish, image)
             residual[best], violation[best] = self._fit(model, image, samples, poses[best])
             ranking = self._rank(model, image, poses, residual, violation)
         total = np.sqrt(residual**2 + violation)
@@ -230,14 +213,28 @@ class MatchLocalizer:
     ) -> tuple[np.ndarray, np.ndarray]:
         """(K,) truncated point-to-plane residual of the samples under each pose, and free-space violation."""
         config = self.config
-        residual = truncated_plane_fit(
-            parent_surface(model),
-            np.matmul(samples, np.transpose(poses[:, :3, :3], (0, 2, 1))) + poses[:, None, :3, 3],
-            config.residual_tau_m,
-            # search further than tau: a point on the surface can lie a point spacing from the nearest parent point
-            reach_m=config.residual_tau_m + 3.0 * model.point_spacing_m,
-            facing_surface=(poses[:, :3, :3] @ image.normal_sensor)[:, None, :],
-        ).rms_m
+        surface = parent_surface(model)
+        # search further than tau: a point on the surface can lie a point spacing from the nearest parent point
+        reach = config.residual_tau_m + 3.0 * model.point_spacing_m
+        if KERNELS is not None:
+            poses = np.ascontiguousarray(poses, dtype=np.float64)
+            points = np.empty((len(poses), len(samples), 3))
+            KERNELS.transform_active(poses, np.arange(len(poses)), np.ascontiguousarray(samples), points)
+            gaps, index = surface.kdtree.query(points.reshape(-1, 3), distance_upper_bound=reach)
+            residual = np.empty(len(poses))
+            normal = np.ascontiguousarray(image.normal_sensor, dtype=np.float64)
+            KERNELS.truncated_rms(
+                poses, points, gaps, index, surface.points_object, surface.normals_object, normal,
+                config.residual_tau_m, residual,
+            )  # fmt: skip
+        else:
+            residual = truncated_plane_fit(
+                surface,
+                np.matmul(samples, np.transpose(poses[:, :3, :3], (0, 2, 1))) + poses[:, None, :3, 3],
+                config.residual_tau_m,
+                reach_m=reach,
+                facing_surface=(poses[:, :3, :3] @ image.normal_sensor)[:, None, :],
+            ).rms_m
         violation = np.zeros(len(poses))
         if config.free_space:
             violation = free_space_violation(anchor_maps(model, config.anchors), image, poses, config)
@@ -251,6 +248,66 @@ class MatchLocalizer:
         p_object = model.nearest_surface_point(centres)
         ranking = rank_registrations(p_object, np.sqrt(residual**2 + violation), self.config.belief)
         return _Ranked(ranking.indices, ranking.probabilities, p_object)
+
+
+def candidate_icp(
+    surface: ParentSurface,
+    samples: np.ndarray,
+    T_object_sensor: np.ndarray,
+    config: GaussNewtonConfig,
+    image: ContactImage,
+    keep_best: int | None = None,
+) -> np.ndarray:
+    """(K, 4, 4) the candidates' poses refined by `registration.point_to_plane_gauss_newton` (the contact's centre
+    as pivot, its normal as the facing normal); compiled (`kernels.py`) where numba is installed and every pose
+    iterates (`keep_best` None), numpy otherwise."""
+    if KERNELS is None or keep_best is not None:
+        return point_to_plane_gauss_newton(
+            surface,
+            samples,
+            T_object_sensor,
+            config,
+            pivot_source=image.centre_sensor,
+            facing_source=image.normal_sensor,
+            keep_best=keep_best,
+        )
+    poses = np.array(T_object_sensor, dtype=np.float64).reshape(-1, 4, 4)
+    start_rotations = np.ascontiguousarray(poses[:, :3, :3])
+    pivot = np.ascontiguousarray(image.centre_sensor, dtype=np.float64)
+    anchor_start = start_rotations @ pivot + poses[:, :3, 3]
+    prior = np.array([1.0 / config.prior_rotation_rad**2] * 3 + [1.0 / config.prior_translation_m**2] * 3)
+    facing = np.ascontiguousarray(image.normal_sensor, dtype=np.float64)
+    samples = np.ascontiguousarray(samples, dtype=np.float64)
+    active = np.arange(len(poses))
+    for iteration in range(config.iterations):
+        points = np.empty((len(active), len(samples), 3))
+        KERNELS.transform_active(poses, active, samples, points)
+        gaps, index = surface.kdtree.query(points.reshape(-1, 3), distance_upper_bound=config.max_distance_m)
+        moving = np.empty(len(active), dtype=bool)
+        KERNELS.gauss_newton_step(
+            poses,
+            active,
+            points,
+            gaps,
+            index,
+            surface.points_object,
+            surface.normals_object,
+            facing,
+            pivot,
+            start_rotations,
+            anchor_start,
+            prior,
+            config.surface_noise_m,
+            iteration == 0,
+            iteration < config.translation_only_iterations,
+            config.step_tolerance_m,
+            config.step_tolerance_rad,
+            moving,
+        )
+        active = active[moving]
+        if len(active) == 0:
+            break
+    return poses
 
 
 @dataclass

@@ -9,6 +9,7 @@ import numpy as np
 from yoto.localize.match.anchors import AnchorMaps
 from yoto.localize.match.config import MatchConfig
 from yoto.localize.match.contact import ContactImage, ContactMaps
+from yoto.localize.match.kernels import KERNELS
 
 
 def plane_costs(
@@ -29,15 +30,14 @@ def plane_costs(
     anchor has no surface) / contact cells; without `remove_tilt` beta is the offset alone. Every sum over
     cells is one matrix product of (rolls x cells) contact terms with (cells x anchors) anchor terms.
     """
-    x, y = centres.T.astype(np.float32)
     mtt = mt * t
     total = mt.sum(axis=1, keepdims=True)
     if remove_tilt:
-        first = np.concatenate([mt, mt * x, mt * y, mt * x * x, mt * x * y, mt * y * y, mtt, mtt * x, mtt * y, mtt * t])
-        n, sx, sy, sxx, sxy, syy, st, stx, sty, stt = np.split(first @ ma, 10)
-        sh, shx, shy, sth = np.split(np.concatenate([mt, mt * x, mt * y, mtt]) @ h, 4)
+        sums, height_sums, squared_sums = _tilt_products(mt, t, ma, h, hh, centres)
+        n, sx, sy, sxx, sxy, syy, st, stx, sty, stt = np.split(sums, 10)
+        sh, shx, shy, sth = np.split(height_sums, 4)
         b0, b1, b2 = st - sh, stx - shx, sty - shy
-        sdd = stt - 2.0 * sth + mt @ hh
+        sdd = stt - 2.0 * sth + squared_sums
         # Normal equations G beta = b, G = [[n, sx, sy], [sx, sxx, sxy], [sy, sxy, syy]], solved by cofactors.
         c00, c01, c02 = sxx * syy - sxy * sxy, sy * sxy - sx * syy, sx * sxy - sy * sxx
         c11, c12, c22 = n * syy - sy * sy, sx * sy - n * sxy, n * sxx - sx * sx
@@ -67,6 +67,42 @@ def plane_costs(
     return cost, beta
 
 
+def _tilt_products(
+    mt: np.ndarray, t: np.ndarray, ma: np.ndarray, h: np.ndarray, hh: np.ndarray, centres: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The matrix products of `plane_costs` with tilt: the contact's mask moments and height sums (10 R rows) against
+    the anchors' validity, (mask, its x and y moments, heights) (4 R rows) against their heights, the mask against
+    their squared heights (R rows)."""
+    x, y = centres.T.astype(np.float32)
+    mtt = mt * t
+    first = np.concatenate([mt, mt * x, mt * y, mt * x * x, mt * x * y, mt * y * y, mtt, mtt * x, mtt * y, mtt * t])
+    return first @ ma, np.concatenate([mt, mt * x, mt * y, mtt]) @ h, mt @ hh
+
+
+def best_plane_costs(
+    mt: np.ndarray,
+    t: np.ndarray,
+    ma: np.ndarray,
+    h: np.ndarray,
+    hh: np.ndarray,
+    centres: np.ndarray,
+    remove_tilt: bool,
+    air_penalty_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`plane_costs` at each anchor's best roll: the roll (A,) (the first of equal costs), its cost (A,) float64 and
+    its plane (3, A); compiled past the products where numba is, the same numbers."""
+    if KERNELS is not None and remove_tilt:
+        total = mt.sum(axis=1)
+        roll, cost, beta = KERNELS.best_plane_costs(
+            *_tilt_products(mt, t, ma, h, hh, centres), total, np.float32(air_penalty_m**2)
+        )
+        return roll, cost.astype(np.float64), beta
+    costs, betas = plane_costs(mt, t, ma, h, hh, centres, remove_tilt, air_penalty_m)
+    roll = np.argmin(costs, axis=0)
+    columns = np.arange(costs.shape[1])
+    return roll, costs[roll, columns].astype(np.float64), betas[:, roll, columns]
+
+
 def free_space_penalty(
     contact: ContactMaps,
     anchors: AnchorMaps,
@@ -82,6 +118,13 @@ def free_space_penalty(
     the sensor saw no contact contradicts the hypothesis.
     """
     x, y = anchors.grid.centres.T.astype(np.float32)
+    if KERNELS is not None:
+        squared = KERNELS.free_space_squares(
+            anchors.heights, anchors.valid, anchor_index, roll_index, np.ascontiguousarray(beta), x, y,
+            contact.gel_heights, contact.free, np.float32(contact.image.free_margin_m),
+            np.float32(config.anchors.ray_start_m),
+        )  # fmt: skip
+        return np.asarray(squared.sum(axis=1, dtype=np.float64))
     surface = anchors.heights[anchor_index] + beta[0][:, None] + beta[1][:, None] * x + beta[2][:, None] * y
     depth = np.minimum(
         contact.gel_heights[roll_index] - np.float32(contact.image.free_margin_m) - surface,
@@ -105,6 +148,14 @@ def free_space_violation(
     reach = float(np.hypot(*pad)) + 0.002
     tactile_samples = max(int(image.mask.sum()), 1)
     sample_area = image.pixel_m**2
+    if KERNELS is not None:
+        sums = np.empty(len(T_object_sensor))
+        KERNELS.free_space_depths(
+            anchors.points_object, np.ascontiguousarray(T_object_sensor, dtype=np.float64), reach, pad[0], pad[1],
+            image.free_margin_m, np.ascontiguousarray(image.centre_sensor, dtype=np.float64), image.basis_sensor,
+            image.half_m, image.pixel_m, ~image.touched, config.residual_tau_m, sums,
+        )  # fmt: skip
+        return sums * anchors.area_m2 / sample_area / tactile_samples
     members = anchors.kdtree.query_ball_point(T_object_sensor[:, :3, 3], reach)
     counts = np.array([len(m) for m in members])
     if counts.sum() == 0:
