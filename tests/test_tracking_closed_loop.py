@@ -512,3 +512,51 @@ def test_a_real_pivot_the_frames_see_is_kept_by_the_divergence_guard(builtin_mod
     closed = settled(trajectory, guarded, guarded.T_world_object)["settled"]["deg"]
     open_loop = settled(trajectory, guarded, guarded.T_world_object_open_loop)["settled"]["deg"]
     assert open_loop > pivot_deg - 1.0 and closed < 4.0
+
+
+def test_the_registrations_bias_follows_what_a_pad_map_changes_under_the_rest_contact(builtin_models, fruit_trajectory):
+    """`CorrectionConfig.bias_follows_pads`: a pad map that learns on changes what it removes under the contact at
+    rest, where the filter learnt the registrations' bias; the bias then moves by the registration shift that change
+    makes there. The shift is checked against the closed loop's own registration of the rest instant's two frames
+    (true poses) with and without a smooth field (a 0.03 mm bump and a tilt) removed from the left one."""
+    from yoto.geometry import twist_of_pose
+    from yoto.registration import point_to_plane_gauss_newton
+    from yoto.tracking.pad_error import PadError
+    from yoto.tracking.track import _Corrector, contact_samples, registration_solver
+
+    model = builtin_models["fruit"]
+    config = TrackConfig()
+    c = config.correction
+    frames = {side: next(f for f in fruit_trajectory.tactile[side] if len(f.points_sensor)) for side in SIDES}
+    samples = {side: contact_samples(f.points_sensor, c) for side, f in frames.items()}
+    pads = {side: PadError(c.pad_error) for side in SIDES}
+    left = pads["left"].sliding
+    assert left is not None
+    nodes = np.stack(np.meshgrid(*[np.arange(left.per_axis) * c.pad_error.node_m - c.pad_error.extent_m] * 2), -1)
+    centre = samples["left"][:, :2].mean(axis=0)
+    bump = 3e-5 * np.exp(-np.sum((nodes - centre) ** 2, axis=-1) / (2 * 0.002**2)) + 4e-3 * (nodes[..., 0] - centre[0])
+    left.values = bump.reshape(-1)
+
+    corrector = _Corrector.__new__(_Corrector)
+    corrector.config, corrector.model, corrector.pads, corrector.bias = config, model, pads, np.zeros(6)
+    corrector.rest_reference = {
+        side: (samples[side], f.T_object_sensor_true, np.zeros(len(samples[side]))) for side, f in frames.items()
+    }
+    corrector._follow_pads()
+
+    def registered(removed: bool) -> np.ndarray:
+        points = [
+            transform_points(f.T_object_sensor_true, pads[side].correct(samples[side]) if removed else samples[side])
+            for side, f in frames.items()
+        ]
+        solver = dataclasses.replace(registration_solver(c), iterations=30)
+        return twist_of_pose(point_to_plane_gauss_newton(model, np.vstack(points), np.eye(4)[None], solver)[0])
+
+    shift = registered(True) - registered(False)
+    assert np.degrees(np.linalg.norm(shift[:3])) > 0.05 or 1e3 * np.linalg.norm(shift[3:]) > 0.01  # a real shift
+    scale = np.array([1.0 / np.radians(1.0)] * 3 + [1e3] * 3)  # deg, mm
+    assert np.abs((corrector.bias - shift) * scale).max() < 0.2 * np.abs(shift * scale).max()
+    # the reference now holds the map's removal: nothing more to follow
+    before = corrector.bias.copy()
+    corrector._follow_pads()
+    assert np.array_equal(corrector.bias, before)

@@ -130,6 +130,9 @@ class CorrectionConfig:
     creep_translation_m: float = 1e-5  # 1-sigma slip per second at rest (per square root of a second) ...
     creep_rotation_rad: float = float(np.radians(0.01))  # ... and its rotation
     pad_error: PadErrorConfig = PadErrorConfig()  # each pad's fixed reconstruction error, learnt at rest, removed
+    bias_follows_pads: bool = True  # where a pad's map, learning on, changes what it removes under the contact at
+    # rest (where the filter learnt the registrations' bias), the bias moves by the registration shift that change
+    # makes there: the map's later knowledge revises the bias instead of reading as slip
     guard_bound: float = 22.46  # divergence guard: when the tracked slip leaves what the slip model allows over the
     # travel so far (its squared Mahalanobis distance above this: chi-square, 6 degrees of freedom, 99.9%), the
     # instant's frames are registered from the open-loop pose as well ...
@@ -522,6 +525,9 @@ class _Corrector:
         self.touch_sensors = self.last_sensors
         self.pads = {side: PadError(c.pad_error) for side in SIDES} if c.pad_error.enabled else {}
         self.moving = False  # a sensor has left its pose at the touch: the pads' errors are set
+        # per side, the last frame used at rest: its samples (sensor frame), its registered T_object_sensor, and the
+        # pad's error removed from them as the bias now holds it (`bias_follows_pads`)
+        self.rest_reference: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self.travel_m = 0.0  # the sensors' travel since the touch (rotation counted at `turn_radius_m`)
         self.guard_wait = 0  # instants until the divergence guard may check again
         self.unpinned: np.ndarray | None = None  # (K, 6) orthonormal directions (observable units) the guard found
@@ -723,6 +729,7 @@ class _Corrector:
         predicted = fuse_object_poses(sensors, self.grasps)[0]
         points_predicted: dict[str, np.ndarray] = {}
         points_sensor: dict[str, np.ndarray] = {}  # each side's registered samples (pad error removed), sensor frame
+        raw_samples: dict[str, np.ndarray] = {}  # ... and as the frame gave them
         T_predicted_sensors: dict[str, np.ndarray] = {}
         pose_noise: dict[str, np.ndarray] = {}
         rows = {side: row for row, side in enumerate(clouds)}
@@ -732,6 +739,7 @@ class _Corrector:
                 continue
             T_predicted_sensor = invert_transform(predicted[row]) @ sensors.T_world_sensor[side][row]
             sampled = contact_samples(points, c)
+            raw_samples[side] = sampled
             pad = self.pads.get(side)
             if pad is not None:  # the pad's error learnt so far is removed (with the rest map: learnt at rest)
                 if not self.moving and c.pad_error.rest_map:
@@ -773,11 +781,43 @@ class _Corrector:
                                 correction @ T_predicted_sensors[side],
                                 c.max_distance_m,
                             )
+                            if c.bias_follows_pads and not self.moving:
+                                raw = raw_samples[side]
+                                self.rest_reference[side] = (
+                                    raw,
+                                    correction @ T_predicted_sensors[side],
+                                    raw[:, 2] - self.pads[side].correct(raw)[:, 2],
+                                )
+                        if c.bias_follows_pads and self.moving:
+                            self._follow_pads()
         slip = self._slip()
         record.slip_m = float(np.linalg.norm(slip[:3, 3]))
         record.slip_rad = rotation_angle_rad(slip, np.eye(4))
         record.latency_ms = 1000.0 * (time.perf_counter() - started)
         return record
+
+    def _follow_pads(self) -> None:
+        """Move the registrations' bias by the shift the pads' maps, as they are now, would make to the registration
+        of the last frames used at rest, against the maps the bias was learnt with (`bias_follows_pads`)."""
+        c = self.config.correction
+        normal, gradient = np.zeros((6, 6)), np.zeros(6)
+        for side, (raw, T_object_sensor, removed) in self.rest_reference.items():
+            now = raw[:, 2] - self.pads[side].correct(raw)[:, 2]
+            points_object = transform_points(T_object_sensor, raw - np.outer(now, [0.0, 0.0, 1.0]))
+            _, matched, _, normals = plane_distances(self.model, points_object, c.max_distance_m)
+            jacobian = point_to_plane_jacobian(points_object, normals)[matched]
+            # removing `now - removed` more moves each point by that much against the sensor's z
+            change = -(now - removed)[matched] * (normals[matched] @ T_object_sensor[:3, 2])
+            normal += jacobian.T @ jacobian
+            gradient += jacobian.T @ change
+            self.rest_reference[side] = (raw, T_object_sensor, now)
+        if not gradient.any():
+            return
+        # the registration's own prior, in the units of these unweighted normal equations
+        prior = c.surface_noise_m**2 * np.diag(
+            [c.registration_prior_rotation_rad**-2] * 3 + [c.registration_prior_translation_m**-2] * 3
+        )
+        self.bias = self.bias - np.linalg.solve(normal + prior, gradient)
 
     def _left_rest(self, sensors: SensorPoses) -> bool:
         """Whether a sensor has moved more than `pad_error.rest_m` from its pose at the touch (rotation counted at
