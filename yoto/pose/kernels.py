@@ -207,3 +207,98 @@ KERNELS = (
     if _ENABLED
     else None
 )
+
+
+# The joint search's key test (`search.key_matches`): appended after the pose stage's kernels above.
+
+KEY_SLACK = 1e-6  # the compiled key test keeps pairs within (1 + this) tolerances, tested without an arccos: numpy's
+# exact test (`search.key_matches`) then decides on what it keeps
+
+
+@_jit
+def _angle_may_fit(cosine, cosine_key, sine_key, variance):
+    """Whether an angle arccos(`cosine`) may lie within (1 + KEY_SLACK) sqrt(`variance`) of the key angle (its
+    cosine and sine given): cos(angle - key) >= cos(tolerance) >= 1 - tolerance^2 / 2, a test that never rejects an
+    angle that fits (by 1e-9 of rounding), without an arccos."""
+    reach2 = variance * (1.0 + KEY_SLACK) ** 2
+    if reach2 >= np.pi * np.pi:
+        return True
+    cosine = min(max(cosine, -1.0), 1.0)
+    turned = cosine * cosine_key + np.sqrt(max(1.0 - cosine * cosine, 0.0)) * sine_key
+    return turned >= 1.0 - 0.5 * reach2 - 1e-9
+
+
+@_jit
+def key_candidates(
+    partial,
+    low,
+    high,
+    squared_left,
+    p_left,
+    p_right,
+    n_left,
+    n_right,
+    own_left,
+    own_right,
+    left_variance,
+    right_turn2,
+    left_blur,
+    right_blur,
+    angles,
+    separation,
+    distance_tolerance,
+    right_angle_variance,
+    min_separation,
+    first_row,
+    found,
+):
+    """The flat indices into `partial` ((rows, R): [pL, 1] . [-2 pR, |pR|^2] of left locations `first_row` on, as
+    `search.key_matches` forms it) of the pairs in the separation shell [low, high] whose key may fit (within
+    1 + KEY_SLACK tolerances), in row order, written to `found`; returns how many. The same terms as
+    `key_matches`'s numpy path (per left and right location: blurs, the left's angle variance, the right's turn;
+    the right contact's angle variance), each test a superset of numpy's: numpy's exact test runs on what it keeps."""
+    rows, columns = partial.shape
+    slack2 = (1.0 + KEY_SLACK) ** 2
+    least = max(separation, 1e-3)
+    cosines, sines = np.cos(angles), np.sin(angles)
+    tolerance2 = distance_tolerance * distance_tolerance
+    shell = np.empty(columns, dtype=np.int64)
+    count = 0
+    for r in range(rows):
+        i = first_row + r
+        lo, hi = low[i], high[i]
+        within = 0
+        for j in range(columns):  # the row's pairs in the shell, without a branch per pair
+            value = partial[r, j]
+            shell[within] = j
+            within += (value >= lo) & (value <= hi)
+        for k in range(within):
+            j = shell[k]
+            value = partial[r, j]
+            # (nL, nR)
+            cosine = n_left[0, i] * n_right[0, j] + n_left[1, i] * n_right[1, j] + n_left[2, i] * n_right[2, j]
+            if not _angle_may_fit(cosine, cosines[2], sines[2], left_variance[i] + right_turn2[j]):
+                continue
+            # separation
+            distance = np.sqrt(max(value + squared_left[i], 0.0))
+            blur = left_blur[i] + right_blur[j]
+            gap = distance - separation
+            if distance < min_separation or gap * gap > slack2 * (tolerance2 + blur * blur):
+                continue
+            turn = blur / least
+            turn2 = turn * turn
+            length = max(distance, 1e-12)
+            # (d, nL) and (d, nR)
+            dot = p_right[0, j] * n_left[0, i] + p_right[1, j] * n_left[1, i] + p_right[2, j] * n_left[2, i]
+            if not _angle_may_fit((dot - own_left[i]) / length, cosines[0], sines[0], left_variance[i] + turn2):
+                continue
+            dot = p_left[0, i] * n_right[0, j] + p_left[1, i] * n_right[1, j] + p_left[2, i] * n_right[2, j]
+            variance = right_angle_variance + right_turn2[j] + turn2
+            if not _angle_may_fit((own_right[j] - dot) / length, cosines[1], sines[1], variance):
+                continue
+            found[count] = r * columns + j
+            count += 1
+    return count
+
+
+SEARCH_KERNELS = SimpleNamespace(key_candidates=key_candidates) if _ENABLED else None
