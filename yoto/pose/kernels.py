@@ -301,4 +301,67 @@ def key_candidates(
     return count
 
 
-SEARCH_KERNELS = SimpleNamespace(key_candidates=key_candidates) if _ENABLED else None
+@_jit
+def group_founders(
+    order, position, moved, others, group, translation_limit, least_cosine, trace_cosine, unassigned, row, state, out
+):
+    """The greedy grouping of K poses into hypotheses (`hypotheses.group_hypotheses`): in `order`, each pose still
+    `unassigned` founds a hypothesis and takes every unassigned pose within `translation_limit` of its `position`
+    (K, 3) whose rotation's cosine to it (modulo symmetry, the largest over the founder's `group` rows of `moved`
+    dotted with the other's row of `others`; a trace's (t - 1) / 2 where `trace_cosine`, no rotation test where
+    `group` is 0) is at least `least_cosine`. Only founders' rows are computed, and only against unassigned poses.
+    A founder whose row holds a cosine within 1e-9 of the limit stops the loop: it returns that founder with `row`
+    (K,) marking 1 (joins), 0 (not), 2 (to decide by the angle itself); the caller writes 0 or 1 there and calls
+    again, and the loop takes that row as it is. `state`: [position in `order`, a decided row waiting, founders
+    so far]; `out` (2, K): each founder and how many poses it took. Returns -1 when all are grouped."""
+    count, width = others.shape
+    while state[0] < count:
+        k = order[state[0]]
+        if not unassigned[k]:
+            state[0] += 1
+            continue
+        if state[1] == 0:
+            undecided = False
+            for j in range(count):
+                code = 0
+                if j == k:
+                    code = 1
+                elif unassigned[j]:
+                    gx = position[k, 0] - position[j, 0]
+                    gy = position[k, 1] - position[j, 1]
+                    gz = position[k, 2] - position[j, 2]
+                    if np.sqrt(gx * gx + gy * gy + gz * gz) <= translation_limit:
+                        code = 1
+                        if group:
+                            best = -np.inf
+                            for g in range(k * group, (k + 1) * group):
+                                inner = 0.0
+                                for c in range(width):
+                                    inner += moved[g, c] * others[j, c]
+                                best = max(best, inner)
+                            cosine = (best - 1.0) / 2.0 if trace_cosine else best
+                            if abs(cosine - least_cosine) <= 1e-9:
+                                code = 2
+                                undecided = True
+                            elif cosine < least_cosine:
+                                code = 0
+                row[j] = code
+            if undecided:
+                state[1] = 1
+                return k
+        taken = 0
+        for j in range(count):
+            if row[j] == 1 and unassigned[j]:
+                unassigned[j] = False
+                taken += 1
+        out[0, state[2]] = k
+        out[1, state[2]] = taken
+        state[1] = 0
+        state[2] += 1
+        state[0] += 1
+    return -1
+
+
+SEARCH_KERNELS = (  # the search's key test and the grouping of its refined poses
+    SimpleNamespace(key_candidates=key_candidates, group_founders=group_founders) if _ENABLED else None
+)
