@@ -325,7 +325,10 @@ def key_matches(test: KeyTest, first: int = 0, stop: int | None = None) -> Match
     over the chunk than forming the squared distances). On what falls in the shell, each part of the key is tested
     in turn on the pairs the parts before it kept, the most selective first: the angle (nL, nR), then the separation
     with its own tolerance, then the angles (d, nL), (d, nR) from dot products (offset . n = pR . n - pL . n, each
-    location's own term computed once).
+    location's own term computed once). Compiled (`kernels.key_candidates`, numba), the shell and every test run
+    pair by pair without an arccos, keeping a superset (within 1e-6 of the tolerances), and the numpy tests
+    above decide on what it keeps: the same pairs, order and mismatches bitwise (numba's arccos is libm's, which
+    differs from numpy's in the last place).
     """
     t = test
     stop = t.rows if stop is None else stop
