@@ -106,7 +106,9 @@ def pose_distances(T_a: np.ndarray, T_b: np.ndarray, symmetry: Symmetry) -> tupl
 
 
 def group_hypotheses(refined: Refined, symmetry: Symmetry, config: HypothesisConfig) -> Hypotheses:
-    """Group refined poses into distinct hypotheses (best first) with probabilities."""
+    """Group refined poses into distinct hypotheses (best first) with probabilities: in order of likelihood, each
+    pose not yet taken founds a hypothesis and takes every untaken pose within the distinct distances of it
+    (compiled where numba is installed, `kernels.group_founders`; else `_close_pairs` for every pair at once)."""
     score = log_likelihoods(refined, config)
     order = np.argsort(-score, kind="stable")
     poses = refined.T_world_object
