@@ -50,8 +50,34 @@ def _grouped_by_definition(refined: Refined, symmetry: Symmetry, config: Hypothe
     return np.array(members), np.array(support)
 
 
+PATHS = ["compiled", "numpy"]
+
+
+def _take_path(path: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    if path == "numpy":
+        monkeypatch.setattr(hypotheses, "SEARCH_KERNELS", None)
+    elif hypotheses.SEARCH_KERNELS is None:
+        pytest.skip("no numba kernels (the `fast` extra not installed, or YOTO_NO_NUMBA set)")
+
+
+def _refined(poses: np.ndarray, rng: np.random.Generator) -> Refined:
+    """Refined poses with random fits (the grouping's order)."""
+    count = len(poses)
+    return Refined(
+        poses,
+        np.zeros((count, 2, 6)),
+        rng.uniform(2e-5, 8e-5, size=(count, 2)),
+        np.ones((count, 2)),
+        np.zeros((count, 2)),
+        np.zeros(count),
+        np.zeros((count, 6)),
+    )
+
+
+@pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("symmetry", SYMMETRIES, ids=IDS)
-def test_grouping_matches_its_definition(symmetry, rng):
+def test_grouping_matches_its_definition(symmetry, path, rng, monkeypatch):
+    _take_path(path, monkeypatch)
     # Clusters of poses a few millimetres and degrees around a few centres: many lie within the distinct
     # distances of one another in translation but not in rotation, and the other way round.
     centres = [make_transform(rotation, rng.normal(scale=0.01, size=3)) for rotation in random_rotations(rng, 4)]
@@ -62,15 +88,7 @@ def test_grouping_matches_its_definition(symmetry, rng):
             poses.append(centre @ make_transform(turn, rng.normal(scale=0.003, size=3)))
     poses = np.array(poses)
     count = len(poses)
-    refined = Refined(
-        poses,
-        np.zeros((count, 2, 6)),
-        rng.uniform(2e-5, 8e-5, size=(count, 2)),
-        np.ones((count, 2)),
-        np.zeros((count, 2)),
-        np.zeros(count),
-        np.zeros((count, 6)),
-    )
+    refined = _refined(poses, rng)
     config = HypothesisConfig()
     grouped = group_hypotheses(refined, symmetry, config)
     members, support = _grouped_by_definition(refined, symmetry, config)
@@ -80,6 +98,32 @@ def test_grouping_matches_its_definition(symmetry, rng):
     assert grouped.support.sum() == count
 
 
+def _poses_on_the_limit(config: HypothesisConfig, rng: np.random.Generator) -> np.ndarray:
+    """Poses one distinct rotation apart along lines through six random poses, a few millimetres apart."""
+    poses = []
+    for centre in random_rotations(rng, 6):
+        twists = np.zeros((15, 6))
+        axis = rng.normal(size=3)
+        twists[:, :3] = np.outer(np.arange(-7, 8) * config.distinct_rotation_rad, axis / np.linalg.norm(axis))
+        poses.extend(make_transform(centre, rng.normal(scale=0.003, size=3)) @ se3_exp(twists))
+    return np.array(poses)
+
+
+@pytest.mark.parametrize("path", PATHS)
+@pytest.mark.parametrize("symmetry", [*SYMMETRIES, Symmetry(spherical=True)], ids=[*IDS, "spherical"])
+def test_grouping_on_the_limit_matches_its_definition(symmetry, path, rng, monkeypatch):
+    """Founders and supports where every rotation lies on the limit within rounding (the compiled grouping hands
+    those to the angle itself, as `_close_pairs` does), each translation a few millimetres."""
+    _take_path(path, monkeypatch)
+    config = HypothesisConfig()
+    refined = _refined(_poses_on_the_limit(config, rng), rng)
+    grouped = group_hypotheses(refined, symmetry, config)
+    members, support = _grouped_by_definition(refined, symmetry, config)
+    assert 3 < len(members) < len(refined.T_world_object)
+    np.testing.assert_array_equal(grouped.member, members)
+    np.testing.assert_array_equal(grouped.support, support)
+
+
 @pytest.mark.parametrize("symmetry", SYMMETRIES, ids=IDS)
 @pytest.mark.parametrize("product_size", [2_000_000, 1000], ids=["whole", "in parts"])
 def test_close_pairs_on_the_limit(symmetry, product_size, rng, monkeypatch):
@@ -87,13 +131,7 @@ def test_close_pairs_on_the_limit(symmetry, product_size, rng, monkeypatch):
     # Poses one distinct rotation apart along lines, as the family step places them: every pair on the limit within
     # rounding, where the angle's own rounding decides (the cosines alone decide 32 of 4500 such pairs otherwise).
     config = HypothesisConfig()
-    poses = []
-    for centre in random_rotations(rng, 6):
-        twists = np.zeros((15, 6))
-        axis = rng.normal(size=3)
-        twists[:, :3] = np.outer(np.arange(-7, 8) * config.distinct_rotation_rad, axis / np.linalg.norm(axis))
-        poses.extend(make_transform(centre, rng.normal(scale=0.003, size=3)) @ se3_exp(twists))
-    poses = np.array(poses)
+    poses = _poses_on_the_limit(config, rng)
     expected = np.array(
         [
             (translation <= config.distinct_translation_m) & (rotation <= config.distinct_rotation_rad)

@@ -8,6 +8,8 @@ from conftest import TOL
 
 import yoto.pose.field as field_module
 import yoto.pose.refine as refine_module
+import yoto.pose.search as search_module
+from yoto.contacts import WorldContact
 from yoto.geometry import se3_exp
 from yoto.pose.executor import _counted_refine
 from yoto.pose.field import SurfaceField
@@ -123,3 +125,37 @@ def test_refinement_equal_numpy(rng, monkeypatch):
         np.testing.assert_allclose(
             getattr(compiled, name), want, rtol=TOL["float"], atol=TOL["float"] * max(np.abs(want).max(), 1e-3)
         )
+
+
+@pytest.mark.parametrize("angle_tolerance_deg", [0.01, 8.0, 200.0])
+def test_key_test_finds_numpy_s_pairs_bitwise(rng, monkeypatch, angle_tolerance_deg):
+    """The compiled key test keeps a superset of the pairs that fit and numpy's exact test decides: the same pairs
+    in the same order with the same mismatches as the numpy path, for tolerances from a hair (0.01 deg: every
+    pair lies near its limit) to beyond a half turn (every angle fits), blurred samples beside candidates, rows
+    tested in two parts joined."""
+    points = rng.normal(size=(2500, 3)) * 0.03
+    normals = rng.normal(size=(2500, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    candidate = np.arange(2500) % 7 == 0
+    blur = np.where(candidate, 0.0, rng.uniform(0.0, 0.003, 2500))
+    curvature = np.where(candidate, 0.0, rng.uniform(0.0, 300.0, 2500))
+    left = search_module.Locations(points[:500], normals[:500], blur[:500], curvature[:500], candidate[:500])
+    right = search_module.Locations(points[500:], normals[500:], blur[500:], curvature[500:], candidate[500:])
+    # The measured pair: the key of a location pair, seen from a turned and shifted world
+    T = se3_exp(np.array([0.4, -0.2, 0.7, 0.1, 0.0, -0.05]))
+    world = {
+        side: WorldContact(p, n, T[:3, :3] @ p + T[:3, 3], T[:3, :3] @ n)
+        for side, p, n in (("left", points[3], normals[3]), ("right", points[600], normals[600]))
+    }
+    config = search_module.SearchConfig(angle_tolerance_rad=float(np.radians(angle_tolerance_deg)))
+    test = search_module.key_test(left, right, world, config)
+    assert test.chunk < test.rows  # several chunks
+    compiled = search_module.key_matches(test)
+    halves = zip(search_module.key_matches(test, 0, test.chunk), search_module.key_matches(test, test.chunk))
+    monkeypatch.setattr(search_module, "SEARCH_KERNELS", None)
+    exact = search_module.key_matches(test)
+    assert 100 < len(exact[0]) < test.rows * test.right_columns.shape[1]
+    assert (3, 100) in set(zip(exact[0].tolist(), exact[1].tolist()))  # the measured pair itself fits
+    for a, b, (first, second) in zip(exact, compiled, halves):
+        assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
+        assert a.tobytes() == np.concatenate([first, second]).tobytes()

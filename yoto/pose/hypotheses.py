@@ -40,6 +40,7 @@ from yoto.geometry import (
 )
 from yoto.objects.symmetry import Symmetry
 from yoto.pose.field import SurfaceField
+from yoto.pose.kernels import SEARCH_KERNELS
 from yoto.pose.refine import ContactPoints, Refined
 from yoto.registration import transform_batch
 
@@ -105,25 +106,30 @@ def pose_distances(T_a: np.ndarray, T_b: np.ndarray, symmetry: Symmetry) -> tupl
 
 
 def group_hypotheses(refined: Refined, symmetry: Symmetry, config: HypothesisConfig) -> Hypotheses:
-    """Group refined poses into distinct hypotheses (best first) with probabilities."""
+    """Group refined poses into distinct hypotheses (best first) with probabilities: in order of likelihood, each
+    pose not yet taken founds a hypothesis and takes every untaken pose within the distinct distances of it
+    (compiled where numba is installed, `kernels.group_founders`; else `_close_pairs` for every pair at once)."""
     score = log_likelihoods(refined, config)
     order = np.argsort(-score, kind="stable")
     poses = refined.T_world_object
-    close = _close_pairs(poses, symmetry, config)
-    unassigned = np.ones(len(order), dtype=bool)
-    members, support = [], []
-    for k in order:
-        if not unassigned[k]:
-            continue
-        joining = unassigned & close[k]  # k among them
-        unassigned &= ~joining
-        members.append(k)
-        support.append(int(np.count_nonzero(joining)))
-    best = np.array(members, dtype=np.int64)
+    if SEARCH_KERNELS is not None:
+        best, support = _compiled_groups(order, poses, symmetry, config)
+    else:
+        close = _close_pairs(poses, symmetry, config)
+        unassigned = np.ones(len(order), dtype=bool)
+        members, supports = [], []
+        for k in order:
+            if not unassigned[k]:
+                continue
+            joining = unassigned & close[k]  # k among them
+            unassigned &= ~joining
+            members.append(k)
+            supports.append(int(np.count_nonzero(joining)))
+        best, support = np.array(members, dtype=np.int64), np.array(supports, dtype=np.int64)
     log_l = score[best]
     weights = np.exp((log_l - log_l.max()) / config.temperature) if len(best) else np.empty(0)
     probability = weights / weights.sum() if len(best) else weights
-    return Hypotheses(poses[best], probability, log_l, best, np.array(support, dtype=np.int64))
+    return Hypotheses(poses[best], probability, log_l, best, support)
 
 
 def _close_pairs(poses: np.ndarray, symmetry: Symmetry, config: HypothesisConfig) -> np.ndarray:
@@ -133,16 +139,7 @@ def _close_pairs(poses: np.ndarray, symmetry: Symmetry, config: HypothesisConfig
     matrix products, instead of a loop over founders)."""
     count, group = len(poses), len(symmetry.rotations)
     position = poses[:, :3, 3]
-    rotation = np.ascontiguousarray(poses[:, :3, :3])
-    if symmetry.axis_object is None:
-        # trace(R_other^T R_founder S) = <R_founder S, R_other> (entrywise); the cosine is (that - 1) / 2
-        moved = np.einsum("kij,gjl->kgil", rotation, symmetry.rotations).reshape(count * group, 9)
-        others = rotation.reshape(count, 9)
-    else:
-        # Any twist about the axis u is free: the swing's cosine is (R_founder S u) . (R_other u)
-        u = symmetry.axis_object
-        moved = np.einsum("kij,gj->kgi", rotation, symmetry.rotations @ u).reshape(count * group, 3)
-        others = rotation @ u
+    moved, others = _rotation_rows(poses, symmetry)
     close = np.empty((count, count), dtype=bool)
     best = np.empty((count, count))
     rows = max(1, GROUPING_PRODUCT_SIZE // (group * count))  # founders at a time
@@ -165,6 +162,56 @@ def _close_pairs(poses: np.ndarray, symmetry: Symmetry, config: HypothesisConfig
         close[founder, other] = angle <= config.distinct_rotation_rad
     np.fill_diagonal(close, True)
     return close
+
+
+def _rotation_rows(poses: np.ndarray, symmetry: Symmetry) -> tuple[np.ndarray, np.ndarray]:
+    """(K G, 9) and (K, 9) rows (without an axis; (K G, 3) and (K, 3) with one) whose products give the rotation
+    cosines of K poses (K, 4, 4) modulo the G symmetries: row k G + g of the first with row j of the second,
+    largest over g, is founder k's and pose j's trace of R_j^T R_k S_g (the cosine is (trace - 1) / 2), or with a
+    continuous axis u the swing's cosine (R_k S_g u) . (R_j u) (any twist about u is free)."""
+    count, group = len(poses), len(symmetry.rotations)
+    rotation = np.ascontiguousarray(poses[:, :3, :3])
+    if symmetry.axis_object is None:
+        # trace(R_other^T R_founder S) = <R_founder S, R_other> (entrywise)
+        moved = np.einsum("kij,gjl->kgil", rotation, symmetry.rotations).reshape(count * group, 9)
+        return moved, rotation.reshape(count, 9)
+    u = symmetry.axis_object
+    return np.einsum("kij,gj->kgi", rotation, symmetry.rotations @ u).reshape(count * group, 3), rotation @ u
+
+
+def _compiled_groups(
+    order: np.ndarray, poses: np.ndarray, symmetry: Symmetry, config: HypothesisConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """`group_hypotheses`'s founders and supports by `kernels.group_founders`: only the founders' rows, the
+    cosines within rounding of the limit decided by `rotation_errors_rad`'s own angle, as `_close_pairs` does."""
+    count = len(poses)
+    moved, others = _rotation_rows(poses, symmetry)
+    position = np.ascontiguousarray(poses[:, :3, 3])
+    unassigned = np.ones(count, dtype=bool)
+    row = np.empty(count, dtype=np.int8)
+    state = np.zeros(3, dtype=np.int64)
+    out = np.empty((2, count), dtype=np.int64)
+    group = 0 if symmetry.spherical else len(symmetry.rotations)
+    while True:
+        founder = SEARCH_KERNELS.group_founders(  # type: ignore[union-attr]
+            order,
+            position,
+            moved,
+            others,
+            group,
+            config.distinct_translation_m,
+            np.cos(config.distinct_rotation_rad),
+            symmetry.axis_object is None,
+            unassigned,
+            row,
+            state,
+            out,
+        )
+        if founder < 0:
+            return out[0, : state[2]].copy(), out[1, : state[2]].copy()
+        near = np.flatnonzero(row == 2)
+        angle = symmetry.rotation_errors_rad(poses[near], poses[np.full(len(near), founder)])
+        row[near] = angle <= config.distinct_rotation_rad
 
 
 def neighbour_poses(T_world_object: np.ndarray, config: HypothesisConfig) -> np.ndarray:

@@ -207,3 +207,161 @@ KERNELS = (
     if _ENABLED
     else None
 )
+
+
+# The joint search's key test (`search.key_matches`): appended after the pose stage's kernels above.
+
+KEY_SLACK = 1e-6  # the compiled key test keeps pairs within (1 + this) tolerances, tested without an arccos: numpy's
+# exact test (`search.key_matches`) then decides on what it keeps
+
+
+@_jit
+def _angle_may_fit(cosine, cosine_key, sine_key, variance):
+    """Whether an angle arccos(`cosine`) may lie within (1 + KEY_SLACK) sqrt(`variance`) of the key angle (its
+    cosine and sine given): cos(angle - key) >= cos(tolerance) >= 1 - tolerance^2 / 2, a test that never rejects an
+    angle that fits (by 1e-9 of rounding), without an arccos."""
+    reach2 = variance * (1.0 + KEY_SLACK) ** 2
+    if reach2 >= np.pi * np.pi:
+        return True
+    cosine = min(max(cosine, -1.0), 1.0)
+    turned = cosine * cosine_key + np.sqrt(max(1.0 - cosine * cosine, 0.0)) * sine_key
+    return turned >= 1.0 - 0.5 * reach2 - 1e-9
+
+
+@_jit
+def key_candidates(
+    partial,
+    low,
+    high,
+    squared_left,
+    p_left,
+    p_right,
+    n_left,
+    n_right,
+    own_left,
+    own_right,
+    left_variance,
+    right_turn2,
+    left_blur,
+    right_blur,
+    angles,
+    separation,
+    distance_tolerance,
+    right_angle_variance,
+    min_separation,
+    first_row,
+    found,
+):
+    """The flat indices into `partial` ((rows, R): [pL, 1] . [-2 pR, |pR|^2] of left locations `first_row` on, as
+    `search.key_matches` forms it) of the pairs in the separation shell [low, high] whose key may fit (within
+    1 + KEY_SLACK tolerances), in row order, written to `found`; returns how many. The same terms as
+    `key_matches`'s numpy path (per left and right location: blurs, the left's angle variance, the right's turn;
+    the right contact's angle variance), each test a superset of numpy's: numpy's exact test runs on what it keeps."""
+    rows, columns = partial.shape
+    slack2 = (1.0 + KEY_SLACK) ** 2
+    least = max(separation, 1e-3)
+    cosines, sines = np.cos(angles), np.sin(angles)
+    tolerance2 = distance_tolerance * distance_tolerance
+    shell = np.empty(columns, dtype=np.int64)
+    count = 0
+    for r in range(rows):
+        i = first_row + r
+        lo, hi = low[i], high[i]
+        within = 0
+        for j in range(columns):  # the row's pairs in the shell, without a branch per pair
+            value = partial[r, j]
+            shell[within] = j
+            within += (value >= lo) & (value <= hi)
+        for k in range(within):
+            j = shell[k]
+            value = partial[r, j]
+            # (nL, nR)
+            cosine = n_left[0, i] * n_right[0, j] + n_left[1, i] * n_right[1, j] + n_left[2, i] * n_right[2, j]
+            if not _angle_may_fit(cosine, cosines[2], sines[2], left_variance[i] + right_turn2[j]):
+                continue
+            # separation
+            distance = np.sqrt(max(value + squared_left[i], 0.0))
+            blur = left_blur[i] + right_blur[j]
+            gap = distance - separation
+            if distance < min_separation or gap * gap > slack2 * (tolerance2 + blur * blur):
+                continue
+            turn = blur / least
+            turn2 = turn * turn
+            length = max(distance, 1e-12)
+            # (d, nL) and (d, nR)
+            dot = p_right[0, j] * n_left[0, i] + p_right[1, j] * n_left[1, i] + p_right[2, j] * n_left[2, i]
+            if not _angle_may_fit((dot - own_left[i]) / length, cosines[0], sines[0], left_variance[i] + turn2):
+                continue
+            dot = p_left[0, i] * n_right[0, j] + p_left[1, i] * n_right[1, j] + p_left[2, i] * n_right[2, j]
+            variance = right_angle_variance + right_turn2[j] + turn2
+            if not _angle_may_fit((own_right[j] - dot) / length, cosines[1], sines[1], variance):
+                continue
+            found[count] = r * columns + j
+            count += 1
+    return count
+
+
+@_jit
+def group_founders(
+    order, position, moved, others, group, translation_limit, least_cosine, trace_cosine, unassigned, row, state, out
+):
+    """The greedy grouping of K poses into hypotheses (`hypotheses.group_hypotheses`): in `order`, each pose still
+    `unassigned` founds a hypothesis and takes every unassigned pose within `translation_limit` of its `position`
+    (K, 3) whose rotation's cosine to it (modulo symmetry, the largest over the founder's `group` rows of `moved`
+    dotted with the other's row of `others`; a trace's (t - 1) / 2 where `trace_cosine`, no rotation test where
+    `group` is 0) is at least `least_cosine`. Only founders' rows are computed, and only against unassigned poses.
+    A founder whose row holds a cosine within 1e-9 of the limit stops the loop: it returns that founder with `row`
+    (K,) marking 1 (joins), 0 (not), 2 (to decide by the angle itself); the caller writes 0 or 1 there and calls
+    again, and the loop takes that row as it is. `state`: [position in `order`, a decided row waiting, founders
+    so far]; `out` (2, K): each founder and how many poses it took. Returns -1 when all are grouped."""
+    count, width = others.shape
+    while state[0] < count:
+        k = order[state[0]]
+        if not unassigned[k]:
+            state[0] += 1
+            continue
+        if state[1] == 0:
+            undecided = False
+            for j in range(count):
+                code = 0
+                if j == k:
+                    code = 1
+                elif unassigned[j]:
+                    gx = position[k, 0] - position[j, 0]
+                    gy = position[k, 1] - position[j, 1]
+                    gz = position[k, 2] - position[j, 2]
+                    if np.sqrt(gx * gx + gy * gy + gz * gz) <= translation_limit:
+                        code = 1
+                        if group:
+                            best = -np.inf
+                            for g in range(k * group, (k + 1) * group):
+                                inner = 0.0
+                                for c in range(width):
+                                    inner += moved[g, c] * others[j, c]
+                                best = max(best, inner)
+                            cosine = (best - 1.0) / 2.0 if trace_cosine else best
+                            if abs(cosine - least_cosine) <= 1e-9:
+                                code = 2
+                                undecided = True
+                            elif cosine < least_cosine:
+                                code = 0
+                row[j] = code
+            if undecided:
+                state[1] = 1
+                return k
+        taken = 0
+        for j in range(count):
+            if row[j] == 1 and unassigned[j]:
+                unassigned[j] = False
+                taken += 1
+        out[0, state[2]] = k
+        out[1, state[2]] = taken
+        state[1] = 0
+        state[2] += 1
+        state[0] += 1
+    return -1
+
+
+SEARCH_KERNELS = (  # the search's key test and the grouping of its refined poses
+    SimpleNamespace(key_candidates=key_candidates, group_founders=group_founders) if _ENABLED else None
+)

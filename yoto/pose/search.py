@@ -41,6 +41,7 @@ from yoto.geometry import normalize, tangent_basis
 from yoto.objects.cache import ModelCache
 from yoto.objects.model import ObjectModel
 from yoto.pointcloud import voxel_downsample
+from yoto.pose.kernels import SEARCH_KERNELS
 from yoto.pose.solver import (
     MIN_CONTACT_SEPARATION_M,
     closed_form_quaternions,
@@ -324,7 +325,10 @@ def key_matches(test: KeyTest, first: int = 0, stop: int | None = None) -> Match
     over the chunk than forming the squared distances). On what falls in the shell, each part of the key is tested
     in turn on the pairs the parts before it kept, the most selective first: the angle (nL, nR), then the separation
     with its own tolerance, then the angles (d, nL), (d, nR) from dot products (offset . n = pR . n - pL . n, each
-    location's own term computed once).
+    location's own term computed once). Compiled (`kernels.key_candidates`, numba), the shell and every test run
+    pair by pair without an arccos, keeping a superset (within 1e-6 of the tolerances), and the numpy tests
+    above decide on what it keeps: the same pairs, order and mismatches bitwise (numba's arccos is libm's, which
+    differs from numpy's in the last place).
     """
     t = test
     stop = t.rows if stop is None else stop
@@ -332,15 +336,21 @@ def key_matches(test: KeyTest, first: int = 0, stop: int | None = None) -> Match
     found = []
     # Work buffers reused by every chunk (fresh multi-megabyte arrays cost page faults each time).
     partial_buffer = np.empty((min(chunk, max(stop - first, 0)), columns))
-    low_buffer = np.empty(partial_buffer.shape, dtype=bool)
-    high_buffer = np.empty_like(low_buffer)
+    if SEARCH_KERNELS is None:
+        low_buffer = np.empty(partial_buffer.shape, dtype=bool)
+        high_buffer = np.empty_like(low_buffer)
+    else:
+        kept_buffer = np.empty(partial_buffer.size, dtype=np.int64)
     for start in range(first, stop, chunk):
         rows = slice(start, min(start + chunk, stop))
         count = rows.stop - start
         partial = np.matmul(t.left_rows[rows], t.right_columns, out=partial_buffer[:count])
-        shell = np.greater_equal(partial, t.low_rows[rows, None], out=low_buffer[:count])
-        shell &= np.less_equal(partial, t.high_rows[rows, None], out=high_buffer[:count])
-        flat = np.flatnonzero(shell)  # far faster than a 2-D nonzero; the same pairs in the same order
+        if SEARCH_KERNELS is None:
+            shell = np.greater_equal(partial, t.low_rows[rows, None], out=low_buffer[:count])
+            shell &= np.less_equal(partial, t.high_rows[rows, None], out=high_buffer[:count])
+            flat = np.flatnonzero(shell)  # far faster than a 2-D nonzero; the same pairs in the same order
+        else:  # the shell's pairs that fit within a hair over the tolerances: the tests below decide, as above
+            flat = kept_buffer[: _compiled_key_candidates(t, partial, start, kept_buffer)]
         if not len(flat):
             continue
         i = flat // columns
@@ -375,6 +385,39 @@ def key_matches(test: KeyTest, first: int = 0, stop: int | None = None) -> Match
     return a, b, mismatch
 
 
+def key_test(left: Locations, right: Locations, world: dict[str, WorldContact], config: SearchConfig) -> KeyTest:
+    """The key test of every `left` x `right` location pair against the measured pair `world` (see KeyTest)."""
+    left_turn, right_turn = left.normal_blur_rad(config), right.normal_blur_rad(config)
+    offset = world["right"].p_world - world["left"].p_world
+    separation = float(np.linalg.norm(offset))
+    angles = direction_angles(offset, world["left"].n_world, world["right"].n_world)
+    n_left, n_right = normalize(left.n_object), normalize(right.n_object)
+    widest = float(np.hypot(config.distance_tolerance_m, left.blur_m.max(initial=0) + right.blur_m.max(initial=0)))
+    squared_left = np.sum(left.p_object**2, axis=1)
+    angle_variance = config.angle_tolerance_rad**2
+    return KeyTest(
+        separation=separation,
+        angles=angles,
+        distance_tolerance_m=config.distance_tolerance_m,
+        angle_variance=angle_variance,
+        left_rows=np.column_stack([left.p_object, np.ones(len(left.p_object))]),
+        right_columns=np.vstack([-2.0 * right.p_object.T, np.sum(right.p_object**2, axis=1)]),
+        low_rows=max(separation - widest, 0.0) ** 2 - squared_left,
+        high_rows=(separation + widest) ** 2 - squared_left,
+        squared_left=squared_left,
+        own_left=np.sum(left.p_object * n_left, axis=1),
+        own_right=np.sum(right.p_object * n_right, axis=1),
+        p_left_columns=np.ascontiguousarray(left.p_object.T),
+        p_right_columns=np.ascontiguousarray(right.p_object.T),
+        n_left_columns=np.ascontiguousarray(n_left.T),
+        n_right_columns=np.ascontiguousarray(n_right.T),
+        left_blur_m=left.blur_m,
+        right_blur_m=right.blur_m,
+        left_variance=angle_variance + left_turn**2,
+        right_turn2=right_turn**2,
+    )
+
+
 def search_poses(
     model: ObjectModel,
     world: dict[str, WorldContact],
@@ -396,43 +439,50 @@ def search_poses(
             left = thin(left, spacing)
         else:
             right = thin(right, spacing)
-    left_turn, right_turn = left.normal_blur_rad(config), right.normal_blur_rad(config)
-    offset = world["right"].p_world - world["left"].p_world
-    separation = float(np.linalg.norm(offset))
-    angles = direction_angles(offset, world["left"].n_world, world["right"].n_world)
-    n_left, n_right = normalize(left.n_object), normalize(right.n_object)
-    widest = float(np.hypot(config.distance_tolerance_m, left.blur_m.max(initial=0) + right.blur_m.max(initial=0)))
-    squared_left = np.sum(left.p_object**2, axis=1)
-    angle_variance = config.angle_tolerance_rad**2
-    test = KeyTest(
-        separation=separation,
-        angles=angles,
-        distance_tolerance_m=config.distance_tolerance_m,
-        angle_variance=angle_variance,
-        left_rows=np.column_stack([left.p_object, np.ones(len(left.p_object))]),
-        right_columns=np.vstack([-2.0 * right.p_object.T, np.sum(right.p_object**2, axis=1)]),
-        low_rows=max(separation - widest, 0.0) ** 2 - squared_left,
-        high_rows=(separation + widest) ** 2 - squared_left,
-        squared_left=squared_left,
-        own_left=np.sum(left.p_object * n_left, axis=1),
-        own_right=np.sum(right.p_object * n_right, axis=1),
-        p_left_columns=np.ascontiguousarray(left.p_object.T),
-        p_right_columns=np.ascontiguousarray(right.p_object.T),
-        n_left_columns=np.ascontiguousarray(n_left.T),
-        n_right_columns=np.ascontiguousarray(n_right.T),
-        left_blur_m=left.blur_m,
-        right_blur_m=right.blur_m,
-        left_variance=angle_variance + left_turn**2,
-        right_turn2=right_turn**2,
-    )
+    test = key_test(left, right, world, config)
     a, b, mismatch = (key_matches if matcher is None else matcher)(test)
     if len(mismatch) > config.max_matches:
         best = np.argpartition(mismatch, config.max_matches - 1)[: config.max_matches]
         a, b, mismatch = a[best], b[best], mismatch[best]
     quaternions, translations = closed_form_quaternions(
-        left.p_object[a], n_left[a], right.p_object[b], n_right[b], world["left"], world["right"]
+        left.p_object[a],
+        test.n_left_columns[:, a].T,
+        right.p_object[b],
+        test.n_right_columns[:, b].T,
+        world["left"],
+        world["right"],
     )
     return PairMatches(mismatch, quaternions, translations)
+
+
+def _compiled_key_candidates(test: KeyTest, partial: np.ndarray, start: int, found: np.ndarray) -> int:
+    """`kernels.key_candidates` on one chunk of `partial` (left locations from `start`): how many it wrote."""
+    t = test
+    return int(
+        SEARCH_KERNELS.key_candidates(  # type: ignore[union-attr]
+            partial,
+            t.low_rows,
+            t.high_rows,
+            t.squared_left,
+            t.p_left_columns,
+            t.p_right_columns,
+            t.n_left_columns,
+            t.n_right_columns,
+            t.own_left,
+            t.own_right,
+            t.left_variance,
+            t.right_turn2,
+            t.left_blur_m,
+            t.right_blur_m,
+            t.angles,
+            t.separation,
+            t.distance_tolerance_m,
+            t.angle_variance,
+            MIN_CONTACT_SEPARATION_M,
+            start,
+            found,
+        )
+    )
 
 
 def _dot(first: np.ndarray, i: np.ndarray, second: np.ndarray, j: np.ndarray) -> np.ndarray:
