@@ -17,26 +17,18 @@ depth scale error, the per-frame pixel noise), to tell which of them moves the f
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 from pathlib import Path
 
 import numpy as np
+from tracking_figure import figure_parser, parse_figure_arguments, simulated_touch
 
-from yoto.evaluation.bench import resolve_object
 from yoto.geometry import so3_log
 from yoto.io import write_bytes_atomic
 from yoto.localize import make_localizer
-from yoto.simulate.trajectory import TrajectorySimulator
-from yoto.tracking.bench import (
-    TrackBenchConfig,
-    scaled_trajectory,
-    tactile_streams,
-    touch_estimate,
-    truth_registrations,
-)
+from yoto.tracking.bench import TrackBenchConfig, tactile_streams, truth_registrations
 from yoto.tracking.evaluate import motion_interval
-from yoto.tracking.track import touch_from_pair, track
+from yoto.tracking.track import track
 
 NOISE_FIELDS = {"bias": "bias_std_m", "scale": "scale_std", "pixel": "pixel_std_m"}  # --without -> noise field
 
@@ -47,18 +39,11 @@ def rotation_errors(truth: np.ndarray, poses: np.ndarray) -> np.ndarray:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--objects", nargs="+", required=True, help="built-in object names or mesh files")
-    parser.add_argument("--indices", nargs="+", type=int, required=True, help="trajectory index, one per object")
-    parser.add_argument("--path-length-mm", type=float, default=200.0)
-    parser.add_argument("--workspace", default="yoto_workspace", help="workspace holding the object models")
-    parser.add_argument("--out", default="tracking_drift_growth.png")
+    parser = figure_parser(__doc__.split("\n\n")[0], "tracking_drift_growth.png")
     parser.add_argument(
         "--without", nargs="*", default=[], choices=sorted(NOISE_FIELDS), help="reconstruction errors switched off"
     )
-    args = parser.parse_args()
-    if len(args.indices) != len(args.objects):
-        parser.error("give one --indices entry per object")
+    args = parse_figure_arguments(parser)
 
     import io
 
@@ -76,11 +61,7 @@ def main() -> None:
     localizer = make_localizer(bench.method)
     figure, axes = plt.subplots(1, len(args.objects), figsize=(4.2 * len(args.objects), 3.6), squeeze=False)
     for axis, spec, index in zip(axes[0], args.objects, args.indices, strict=True):
-        model = resolve_object(spec, args.workspace)
-        scenario = scaled_trajectory(bench.trajectory, args.path_length_mm / 1e3)
-        trajectory = TrajectorySimulator(model, scenario).trajectory(bench.seed, index)
-        T_touch = touch_estimate(trajectory, model, localizer)
-        touch = touch_from_pair(trajectory.touch.pair, T_touch, trajectory.touch_time_s, "simulated")
+        model, trajectory, touch = simulated_touch(spec, index, args, bench, localizer)
         result = track(touch, trajectory.streams, model, tactile_streams(trajectory), bench.track)
         truth, _ = trajectory.truth.interpolate(result.timestamps_s)
         motion = motion_interval(trajectory.streams, result.timestamps_s)

@@ -14,32 +14,22 @@ each track's settled drift.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 
 import numpy as np
+from tracking_figure import figure_parser, parse_figure_arguments, simulated_touch
 
 from yoto.contacts import SIDES
-from yoto.evaluation.bench import resolve_object
 from yoto.io import write_bytes_atomic
 from yoto.localize import make_localizer
-from yoto.simulate.trajectory import TrajectorySimulator
-from yoto.tracking.bench import TrackBenchConfig, scaled_trajectory, tactile_streams, touch_estimate
+from yoto.tracking.bench import TrackBenchConfig, tactile_streams
 from yoto.tracking.evaluate import motion_interval, summarize_errors, tracking_errors
 from yoto.tracking.pad_error import PadErrorConfig
-from yoto.tracking.track import touch_from_pair, track
+from yoto.tracking.track import track
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--objects", nargs="+", required=True, help="built-in object names or mesh files")
-    parser.add_argument("--indices", nargs="+", type=int, required=True, help="trajectory index, one per object")
-    parser.add_argument("--path-length-mm", type=float, default=200.0)
-    parser.add_argument("--workspace", default="yoto_workspace", help="workspace holding the object models")
-    parser.add_argument("--out", default="tracking_pad_map.png")
-    args = parser.parse_args()
-    if len(args.indices) != len(args.objects):
-        parser.error("give one --indices entry per object")
+    args = parse_figure_arguments(figure_parser(__doc__.split("\n\n")[0], "tracking_pad_map.png"))
 
     import io
 
@@ -58,12 +48,7 @@ def main() -> None:
     rows = len(args.objects)
     figure, axes = plt.subplots(rows, 3, figsize=(13.0, 3.8 * rows), squeeze=False)
     for row, spec, index in zip(axes, args.objects, args.indices, strict=True):
-        model = resolve_object(spec, args.workspace)
-        trajectory = TrajectorySimulator(
-            model, scaled_trajectory(bench.trajectory, args.path_length_mm / 1e3)
-        ).trajectory(bench.seed, index)
-        T_touch = touch_estimate(trajectory, model, localizer)
-        touch = touch_from_pair(trajectory.touch.pair, T_touch, trajectory.touch_time_s, "simulated")
+        model, trajectory, touch = simulated_touch(spec, index, args, bench, localizer)
         results = {
             label: track(touch, trajectory.streams, model, tactile_streams(trajectory), config)
             for label, config in variants.items()
