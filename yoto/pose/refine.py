@@ -207,10 +207,28 @@ def evaluate_fit(
         T = T_object_world @ contact.T_world_sensor
         if corrections is not None:
             T = T @ se3_exp(corrections[:, contact.sensor])
-        if depth_scale is None or not contact.depth_scale_sigma > 0:
+        factor = depth_scale[:, c] if depth_scale is not None and contact.depth_scale_sigma > 0 else None
+        if KERNELS is not None:  # point by point, no (K, M, 3) temporaries
+            scores = np.empty((len(T), 3))
+            KERNELS.fit_scores(
+                *field.kernel_arguments(),
+                np.ascontiguousarray(T),
+                np.ascontiguousarray(contact.points_sensor, dtype=np.float64),
+                np.ones(len(T)) if factor is None else np.ascontiguousarray(factor, dtype=np.float64),
+                np.ascontiguousarray(contact.free_sensor, dtype=np.float64),
+                config.fit_tau_m,
+                config.inlier_distance_m,
+                config.free_tau_m,
+                scores,
+            )
+            rms.append(scores[:, 0])
+            inliers.append(scores[:, 1])
+            free.append(scores[:, 2])
+            continue
+        if factor is None:
             q = transform_batch(T, np.vstack([contact.points_sensor, contact.free_sensor]))
         else:  # the points' heights scaled per pose, the free space as it is
-            points = _scaled_heights(contact.points_sensor, depth_scale[:, c])
+            points = _scaled_heights(contact.points_sensor, factor)
             q = transform_batch(
                 T,
                 np.concatenate(
@@ -252,11 +270,30 @@ def evaluate_offsets(
     score = np.zeros(len(T_object_world))
     for contact in thinned(contacts, config.verify_points, config.verify_free_points):
         points = contact.points_sensor
+        centred = points[:, :2] - points[:, :2].mean(axis=0)
+        design = np.column_stack([np.ones(len(points)), centred])
+        if KERNELS is not None:  # pose by pose, no (K, M) temporaries
+            KERNELS.offset_scores(
+                *field.kernel_arguments(),
+                T_object_world @ contact.T_world_sensor,
+                np.ascontiguousarray(points, dtype=np.float64),
+                np.ascontiguousarray(contact.free_sensor, dtype=np.float64),
+                design,
+                np.linalg.pinv(design),
+                config.fit_tau_m,
+                config.max_distance_m,
+                config.verify_capture_truncated,
+                config.surface_noise_m,
+                offset_std,
+                tilt_std,
+                config.verify_free_noise_m,
+                config.free_tau_m,
+                score,
+            )
+            continue
         q = transform_batch(T_object_world @ contact.T_world_sensor, np.vstack([points, contact.free_sensor]))
         distance, _ = field.distance(q, with_gradient=False)
         distance, free_distance = distance[:, : len(points)], distance[:, len(points) :]
-        centred = points[:, :2] - points[:, :2].mean(axis=0)
-        design = np.column_stack([np.ones(len(points)), centred])
         plane = distance @ np.linalg.pinv(design).T  # (K, 3): offset, tilt x, tilt y
         residual = np.minimum(np.abs(distance - plane @ design.T), config.fit_tau_m)
         if config.verify_capture_truncated:
@@ -304,7 +341,31 @@ def refine_hypotheses(
     if corrections_start is not None:
         corrections = se3_exp(np.asarray(corrections_start, dtype=np.float64).reshape(count, 2, 6))
         deviation[:, 6:18] = np.asarray(corrections_start).reshape(count, 12)
-    for _ in range(config.iterations):
+    if KERNELS is not None:  # every iteration in one compiled call (the same steps, no per-iteration numpy calls)
+        rows = np.full(len(contacts), -1)
+        rows[scaled] = 18 + np.arange(len(scaled))
+        iterations = KERNELS.refine_loop(
+            *field.kernel_arguments(),
+            np.ascontiguousarray(np.concatenate([contact.points_sensor for contact in contacts]), dtype=np.float64),
+            np.cumsum([0] + [len(contact.points_sensor) for contact in contacts]),
+            np.stack([contact.T_world_sensor for contact in contacts]),
+            np.array([contact.sensor for contact in contacts]),
+            rows,
+            information,
+            poses,
+            corrections,
+            deviation,
+            log_scale,
+            config.iterations,
+            config.step_tolerance,
+            config.max_distance_m,
+            config.surface_noise_m,
+            1.0 / config.surface_noise_m**2,
+        )
+        if iterations < 0:
+            raise np.linalg.LinAlgError("Singular matrix")
+        field.count_gradient_reads(iterations * len(contacts))
+    for _ in range(config.iterations if KERNELS is None else 0):
         hessian = np.broadcast_to(information, (count, size, size)).copy()
         gradient = deviation @ information
         depth_scale = np.exp(log_scale) if scaled else None
@@ -393,8 +454,9 @@ def _add_normal_equations(
         A = T_object_world @ contact.T_world_sensor @ corrections[:, s]  # object <- sensor
         factor = depth_scale[:, c] if depth_scale is not None and contact.depth_scale_sigma > 0 else None
         if KERNELS is not None:  # the same sums and products in one compiled pass, no (K, M, 6) temporaries
+            field.count_gradient_reads(1)
             KERNELS.add_normal_equations(
-                *field.gradient_kernel_arguments(),
+                *field.kernel_arguments(),
                 A,
                 np.ascontiguousarray(contact.points_sensor, dtype=np.float64),
                 np.ones(len(A)) if factor is None else np.ascontiguousarray(factor, dtype=np.float64),
