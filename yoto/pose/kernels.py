@@ -239,6 +239,29 @@ def compose_into(first, second, out):
 
 
 @_jit
+def sensor_poses(poses, T_world_sensor, corrections, depth_scale, scaled, A, z_scale):
+    """A (K, 4, 4) = poses^-1 T_world_sensor corrections (object <- sensor, as numpy's inverse and two products
+    compute it) of K poses (K, 4, 4) and one sensor's corrections (K, 4, 4); z_scale (K,) = depth_scale (K,) where
+    the contact's heights are `scaled`, else 1."""
+    T_object_world = np.empty((4, 4))
+    T_object_sensor = np.empty((4, 4))
+    for k in range(poses.shape[0]):
+        for i in range(3):  # the inverse pose [R^T | -R^T t]
+            for j in range(3):
+                T_object_world[i, j] = poses[k, j, i]
+        for i in range(3):
+            T_object_world[i, 3] = -(
+                T_object_world[i, 0] * poses[k, 0, 3]
+                + T_object_world[i, 1] * poses[k, 1, 3]
+                + T_object_world[i, 2] * poses[k, 2, 3]
+            )
+        T_object_world[3, 0], T_object_world[3, 1], T_object_world[3, 2], T_object_world[3, 3] = 0.0, 0.0, 0.0, 1.0
+        compose_into(T_object_world, T_world_sensor, T_object_sensor)
+        compose_into(T_object_sensor, corrections[k], A[k])
+        z_scale[k] = depth_scale[k] if scaled else 1.0
+
+
+@_jit
 def solve_into(matrix, rhs, out, work):
     """out = matrix^-1 rhs for one symmetric (S, S) system (matrix left alone; work (S, S)): by Cholesky where
     the matrix is positive definite, else by Gaussian elimination with partial pivoting (what LAPACK's LU, numpy's
@@ -335,8 +358,6 @@ def refine_loop(
     gradient = np.empty((count, size))
     A = np.empty((count, 4, 4))
     z_scale = np.empty(count)
-    T_object_world = np.empty((4, 4))
-    T_object_sensor = np.empty((4, 4))
     step = np.empty(size)
     rhs = np.empty(size)
     work = np.empty((size, size))
@@ -352,19 +373,8 @@ def refine_loop(
                 gradient[k, j] = total
         for c in range(T_world_sensor.shape[0]):
             s = sensor[c]
-            for k in range(count):
-                for i in range(3):  # the inverse pose [R^T | -R^T t]
-                    for j in range(3):
-                        T_object_world[i, j] = poses[k, j, i]
-                for i in range(3):
-                    T_object_world[i, 3] = -(
-                        T_object_world[i, 0] * poses[k, 0, 3]
-                        + T_object_world[i, 1] * poses[k, 1, 3]
-                        + T_object_world[i, 2] * poses[k, 2, 3]
-                    )
-                compose_into(T_object_world, T_world_sensor[c], T_object_sensor)
-                compose_into(T_object_sensor, corrections[k, s], A[k])
-                z_scale[k] = np.exp(log_scale[k, c]) if scale_row[c] >= 0 else 1.0
+            depth_scale = np.exp(log_scale[:, c])
+            sensor_poses(poses, T_world_sensor[c], corrections[:, s], depth_scale, scale_row[c] >= 0, A, z_scale)
             add_normal_equations(
                 flat,
                 nx,
@@ -442,6 +452,57 @@ def fit_scores(flat, nx, ny, nz, origin, inverse_cell, band, A, points, z_scale,
 
 
 @_jit
+def fit_all(
+    flat,
+    nx,
+    ny,
+    nz,
+    origin,
+    inverse_cell,
+    band,
+    points,
+    starts,
+    free,
+    free_starts,
+    T_world_sensor,
+    sensor,
+    poses,
+    corrections,
+    depth_scale,
+    scaled,
+    tau,
+    inlier,
+    free_tau,
+    out,
+):
+    """`fit_scores` of every contact (packed as for `refine_loop`, its free-space points free[free_starts[c]:
+    free_starts[c + 1]]) under K poses (K, 4, 4) and their sensors' corrections (K, 2, 4, 4), each contact's
+    heights scaled by depth_scale[:, c] where scaled[c]: out (C, K, 3)."""
+    count = poses.shape[0]
+    A = np.empty((count, 4, 4))
+    z_scale = np.empty(count)
+    for c in range(T_world_sensor.shape[0]):
+        sensor_poses(poses, T_world_sensor[c], corrections[:, sensor[c]], depth_scale[:, c], scaled[c], A, z_scale)
+        fit_scores(
+            flat,
+            nx,
+            ny,
+            nz,
+            origin,
+            inverse_cell,
+            band,
+            A,
+            points[starts[c] : starts[c + 1]],
+            z_scale,
+            free[free_starts[c] : free_starts[c + 1]],
+            tau,
+            inlier,
+            free_tau,
+            out[c],
+        )
+
+
+@_jit
 def offset_scores(
     flat,
     nx,
@@ -509,7 +570,7 @@ KERNELS = (
         se3_exp_into=se3_exp_into,
         solve_into=solve_into,
         refine_loop=refine_loop,
-        fit_scores=fit_scores,
+        fit_all=fit_all,
         offset_scores=offset_scores,
     )
     if _ENABLED
