@@ -128,12 +128,12 @@ def add_normal_equations(
     r = np.empty(count)
     n = np.empty((count, 3))
     used = np.empty(count)
-    a = np.empty(8)
+    jacobian = np.empty((count, 8))  # each used point's row a (n x q, -n), its residual, its d r / d log s
+    weight = np.empty(count)
     sums = np.empty((7, 8))  # rows 0-5: a^T W a, a^T W r, a^T W j; row 6: W j^2, W j r
     adjoint = np.zeros((6, 6))  # M = [[-R^T, R^T [t]x], [0, -R^T]]
     coupled = np.empty((6, 8))  # M [B, g, a^T W j]
     for k in range(A.shape[0]):
-        sums[:] = 0.0
         for m in range(count):
             x, y, z = points[m, 0], points[m, 1], points[m, 2] * z_scale[k]
             for i in range(3):
@@ -150,11 +150,13 @@ def add_normal_equations(
             upper = select(used, kept, half)
             median = upper if kept % 2 else 0.5 * (used[:half].max() + upper)
         scale = max(noise, 1.4826 * median)
+        rows = 0
         for m in range(count):
             magnitude = abs(r[m])
             if not magnitude < max_distance:
                 continue
             w = min(1.0, scale / max(magnitude, 1e-12)) * weight_scale
+            a = jacobian[rows]
             a[0] = n[m, 1] * q[m, 2] - n[m, 2] * q[m, 1]
             a[1] = n[m, 2] * q[m, 0] - n[m, 0] * q[m, 2]
             a[2] = n[m, 0] * q[m, 1] - n[m, 1] * q[m, 0]
@@ -162,12 +164,29 @@ def add_normal_equations(
             a[6] = r[m]
             height = points[m, 2] * z_scale[k]
             a[7] = (n[m, 0] * A[k, 0, 2] + n[m, 1] * A[k, 1, 2] + n[m, 2] * A[k, 2, 2]) * height
-            for i in range(6):
-                wi = a[i] * w
-                for j in range(8):
-                    sums[i, j] += wi * a[j]
-            sums[6, 0] += w * a[7] * a[7]
-            sums[6, 1] += w * a[7] * a[6]
+            weight[rows] = w
+            rows += 1
+        for i in range(6):  # row by row, its 8 sums in registers (each summed in the points' order)
+            s0, s1, s2, s3, s4, s5, s6, s7 = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+            for m in range(rows):
+                a = jacobian[m]
+                wi = a[i] * weight[m]
+                s0 += wi * a[0]
+                s1 += wi * a[1]
+                s2 += wi * a[2]
+                s3 += wi * a[3]
+                s4 += wi * a[4]
+                s5 += wi * a[5]
+                s6 += wi * a[6]
+                s7 += wi * a[7]
+            sums[i, 0], sums[i, 1], sums[i, 2], sums[i, 3] = s0, s1, s2, s3
+            sums[i, 4], sums[i, 5], sums[i, 6], sums[i, 7] = s4, s5, s6, s7
+        s0, s1 = 0.0, 0.0
+        for m in range(rows):
+            a = jacobian[m]
+            s0 += weight[m] * a[7] * a[7]
+            s1 += weight[m] * a[7] * a[6]
+        sums[6, 0], sums[6, 1] = s0, s1
         tx, ty, tz = A[k, 0, 3], A[k, 1, 3], A[k, 2, 3]
         for i in range(3):
             for j in range(3):
