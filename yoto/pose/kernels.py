@@ -3,10 +3,12 @@
 `KERNELS` is None where numba is missing (or `YOTO_NO_NUMBA=1` is set); callers then take their numpy path.
 The loops repeat the numpy paths' arithmetic in their precision (no fastmath) without their temporaries: the
 field read (`field.SurfaceField.distance`) in the same order, bitwise the same numbers; the refinement's
-Gauss-Newton system (`refine._add_normal_equations`) summed point by point, equal to ~1e-12 relative. Compiled
-code is cached on disk (`cache=True`: next to this module, or under NUMBA_CACHE_DIR / the user's cache folder where
-the package is read-only), so only the first process after an install pays the compile (~6 s of CPU).
-"""
+Gauss-Newton system (`refine._add_normal_equations`) summed point by point, equal to ~1e-12 relative; the whole
+iteration loop of `refine.refine_hypotheses` (the system, its solve by Cholesky, the SE(3) updates, the same
+stopping rule), its final fit (`refine.evaluate_fit`) and the seeds' cheap score (`refine.evaluate_offsets`), pose
+by pose. Compiled code is cached on disk (`cache=True`: next to this module, or under NUMBA_CACHE_DIR / the user's
+cache folder where the package is read-only), so only the first process after an install pays the compile (~12 s
+of CPU)."""
 
 from __future__ import annotations
 
