@@ -376,13 +376,15 @@ def refine_hypotheses(
         deviation[:, 6:18] = np.asarray(corrections_start).reshape(count, 12)
     if KERNELS is not None:  # every iteration in one compiled call (the same steps, no per-iteration numpy calls)
         packed = _packed(contacts)
-        rows = np.full(len(contacts), -1)
+        points, starts, _, _, T_world_sensor, sensor = packed
+        rows = np.full(len(contacts), -1)  # each contact's depth scale's row in the system (-1: none)
         rows[scaled] = 18 + np.arange(len(scaled))
         iterations = KERNELS.refine_loop(
             *field.kernel_arguments(),
-            packed[0],
-            packed[1],
-            *packed[4:],
+            points,
+            starts,
+            T_world_sensor,
+            sensor,
             rows,
             information,
             poses,
@@ -398,20 +400,20 @@ def refine_hypotheses(
         if iterations < 0:
             raise np.linalg.LinAlgError("Singular matrix")
         field.count_gradient_reads(iterations * len(contacts))
-    for _ in range(config.iterations if KERNELS is None else 0):
-        hessian = np.broadcast_to(information, (count, size, size)).copy()
-        gradient = deviation @ information
-        _add_normal_equations(
-            field, contacts, poses, corrections, config, hessian, gradient, np.exp(log_scale) if scaled else None
-        )
-        step = -np.linalg.solve(hessian, gradient[:, :, None])[:, :, 0]
-        deviation += step
-        updates = se3_exp(step[:, :18].reshape(count, 3, 6))
-        poses = poses @ updates[:, 0]
-        corrections = corrections @ updates[:, 1:]
-        log_scale[:, scaled] += step[:, 18:]
-        if np.abs(step).max() < config.step_tolerance:
-            break
+    else:
+        for _ in range(config.iterations):
+            hessian = np.broadcast_to(information, (count, size, size)).copy()
+            gradient = deviation @ information
+            depth_scale = np.exp(log_scale) if scaled else None
+            _add_normal_equations(field, contacts, poses, corrections, config, hessian, gradient, depth_scale)
+            step = -np.linalg.solve(hessian, gradient[:, :, None])[:, :, 0]
+            deviation += step
+            updates = se3_exp(step[:, :18].reshape(count, 3, 6))
+            poses = poses @ updates[:, 0]
+            corrections = corrections @ updates[:, 1:]
+            log_scale[:, scaled] += step[:, 18:]
+            if np.abs(step).max() < config.step_tolerance:
+                break
     # both corrections and the offset from the start at once (one call)
     twists = se3_log(np.concatenate([corrections, (start_inverse @ poses)[:, None]], axis=1))
     correction_twists, start_offset = np.ascontiguousarray(twists[:, :2]), np.ascontiguousarray(twists[:, 2])
