@@ -276,7 +276,6 @@ def sensor_poses(poses, T_world_sensor, corrections, depth_scale, scaled, A, z_s
                 + T_object_world[i, 1] * poses[k, 1, 3]
                 + T_object_world[i, 2] * poses[k, 2, 3]
             )
-        T_object_world[3, 0], T_object_world[3, 1], T_object_world[3, 2], T_object_world[3, 3] = 0.0, 0.0, 0.0, 1.0
         compose_into(T_object_world, T_world_sensor, T_object_sensor)
         compose_into(T_object_sensor, corrections[k], A[k])
         z_scale[k] = depth_scale[k] if scaled else 1.0
