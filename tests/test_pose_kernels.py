@@ -101,19 +101,26 @@ def test_normal_equations_equal_numpy(rng, monkeypatch, scaled):
         np.testing.assert_allclose(got, want, rtol=TOL["float"], atol=TOL["float"] * np.abs(want).max())
 
 
+def _sphere_contacts(rng: np.random.Generator, count: int, free: int = 0) -> list[refine_module.ContactPoints]:
+    """Both contacts of a pair on the sphere of `_sphere_field` (the second sensor facing the first from below,
+    its depth scale estimated), each with `free` free-space points across its pad."""
+    contacts = []
+    for sensor, side in ((0, 1.0), (1, -1.0)):
+        directions = rng.normal(size=(count, 3)) * [0.2, 0.2, 0.0] + [0.0, 0.0, 1.0]
+        points = 0.02 * directions / np.linalg.norm(directions, axis=1, keepdims=True) - [0.0, 0.0, 0.02]
+        T_world_sensor = np.diag([1.0, side, side, 1.0])
+        T_world_sensor[2, 3] = 0.02 * side
+        pad = np.column_stack([rng.uniform(-0.012, 0.012, (free, 2)), np.full(free, -2e-4)])
+        contacts.append(refine_module.ContactPoints(points, T_world_sensor, sensor, pad, 0.05 * sensor))
+    return contacts
+
+
 def test_refinement_equal_numpy(rng, monkeypatch):
     """Whole refinements, both contacts of a pair on a sphere: the same poses and scores either way, and the same
     count of field reads with gradients."""
     field = _sphere_field()
     config = RefineConfig()
-    contacts = []
-    for sensor, side in ((0, 1.0), (1, -1.0)):
-        directions = rng.normal(size=(80, 3)) * [0.2, 0.2, 0.0] + [0.0, 0.0, 1.0]
-        points = 0.02 * directions / np.linalg.norm(directions, axis=1, keepdims=True) - [0.0, 0.0, 0.02]
-        T_world_sensor = np.diag([1.0, side, side, 1.0])  # the second sensor faces the first from below
-        T_world_sensor[2, 3] = 0.02 * side
-        free = np.zeros((0, 3))
-        contacts.append(refine_module.ContactPoints(points, T_world_sensor, sensor, free, 0.05 * sensor))
+    contacts = _sphere_contacts(rng, 80)
     starts = se3_exp(rng.normal(size=(12, 6)) * [0.03, 0.03, 0.03, 0.001, 0.001, 0.001])
     prior = refine_module.CalibrationPrior()
     compiled, reads = _counted_refine(field, contacts, starts, prior, config)
@@ -159,3 +166,53 @@ def test_key_test_finds_numpy_s_pairs_bitwise(rng, monkeypatch, angle_tolerance_
     for a, b, (first, second) in zip(exact, compiled, halves):
         assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
         assert a.tobytes() == np.concatenate([first, second]).tobytes()
+
+
+@pytest.mark.parametrize("truncated", [False, True])
+def test_scores_equal_numpy(rng, monkeypatch, truncated):
+    """The final fit (`evaluate_fit`, with corrections and depth scales) and the seeds' cheap score
+    (`evaluate_offsets`, free space included) of poses near and far from the sphere, compiled and in numpy."""
+    field = _sphere_field()
+    config = RefineConfig(verify_points=40, verify_free_points=30, verify_capture_truncated=truncated)
+    contacts = _sphere_contacts(rng, 60, free=50)
+    size = np.geomspace(1e-4, 1.0, 40)[:, None]  # from on the sphere to far off it
+    poses = se3_exp(rng.normal(size=(40, 6)) * [0.1, 0.1, 0.1, 0.003, 0.003, 0.003] * size)
+    corrections = rng.normal(size=(40, 2, 6)) * 0.001
+    depth_scale = rng.uniform(0.8, 1.2, (40, 2))
+    prior = refine_module.CalibrationPrior()
+    results = []
+    for compiled in (True, False):
+        if not compiled:
+            _numpy_only(monkeypatch)
+        fit = refine_module.evaluate_fit(field, contacts, poses, corrections, config, depth_scale)
+        plain = refine_module.evaluate_fit(field, contacts, poses, None, config)
+        results.append((*fit, *plain, refine_module.evaluate_offsets(field, contacts, poses, prior, config)))
+    for got, want in zip(*results):
+        np.testing.assert_allclose(got, want, rtol=TOL["float"], atol=TOL["float"] * np.abs(want).max())
+    rms, inliers, free = results[1][3:6]
+    # the cases are all there: clouds on and off the surface, free space inside the object and clear of it
+    assert rms.min() < 1e-4 and rms.max() == pytest.approx(config.fit_tau_m)
+    assert inliers.min() == 0.0 and inliers.max() > 0.5 and free.min() == 0.0 < free.max()
+    assert np.ptp(results[1][-1]) > 10.0
+
+
+def test_se3_exp_and_solve(rng):
+    """The loop's pose update is `geometry.se3_exp`'s (small angles by the series too); its solve is numpy's, by
+    Cholesky where positive definite, by pivoting where not, and says so where the system is singular."""
+    assert KERNELS is not None
+    twists = rng.normal(size=(30, 6)) * np.repeat([[1.0], [1e-3], [1e-7]], 10, axis=0)
+    out = np.empty((4, 4))
+    for twist, expected in zip(twists, se3_exp(twists)):
+        KERNELS.se3_exp_into(twist, out)
+        np.testing.assert_allclose(out, expected, rtol=0.0, atol=TOL["float_round_trip"])
+    basis = rng.normal(size=(19, 19))
+    indefinite = basis + basis.T  # symmetric, eigenvalues of both signs
+    for matrix in (basis @ basis.T + np.eye(19), indefinite):
+        rhs, solution, work = rng.normal(size=19), np.empty(19), np.empty((19, 19))
+        kept = matrix.copy()
+        assert KERNELS.solve_into(matrix, rhs, solution, work)
+        np.testing.assert_allclose(solution, np.linalg.solve(matrix, rhs), rtol=TOL["float"], atol=TOL["float"])
+        assert np.array_equal(matrix, kept)
+    singular = np.zeros((19, 19))
+    singular[:18, :18] = np.eye(18)
+    assert not KERNELS.solve_into(singular, np.ones(19), np.empty(19), np.empty((19, 19)))

@@ -219,9 +219,8 @@ class _CountingField(SurfaceField):
         self.gradient_reads += with_gradient
         return super().distance(points_object, with_gradient)
 
-    def gradient_kernel_arguments(self) -> tuple:  # the refinement's compiled reads (`pose.kernels`)
-        self.gradient_reads += 1
-        return super().gradient_kernel_arguments()
+    def count_gradient_reads(self, count: int) -> None:  # the refinement's compiled reads (`pose.kernels`)
+        self.gradient_reads += count
 
 
 def _counted_refine(

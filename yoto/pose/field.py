@@ -71,10 +71,9 @@ class SurfaceField:
         nx, ny, nz = self.values.shape
         return self._flat, nx, ny, nz, np.asarray(self.origin, dtype=np.float64), 1.0 / self.cell_m, self.band_m
 
-    def gradient_kernel_arguments(self) -> tuple:
-        """`kernel_arguments` for a compiled read with gradients outside `distance` (the refinement's normal
-        equations): one call per such read, which `executor` counts."""
-        return self.kernel_arguments()
+    def count_gradient_reads(self, count: int) -> None:
+        """Told of `count` compiled reads with gradients outside `distance` (the refinement's kernels, one per
+        contact and Gauss-Newton iteration), which `executor` counts; nothing here."""
 
     def _distance_numpy(
         self, points: np.ndarray, shape: tuple[int, ...], with_gradient: bool

@@ -201,16 +201,20 @@ def evaluate_fit(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Truncated RMS residual, inlier fraction and free-space violation (each (K, C)) of every contact under K
     poses (and sensor corrections, or none; and each contact's depth scale (K, C), or none: its heights as given)."""
+    if KERNELS is not None:  # all contacts in one compiled pass, no (K, M, 3) temporaries
+        matrices = np.tile(np.eye(4), (len(T_world_object), 2, 1, 1)) if corrections is None else se3_exp(corrections)
+        return _compiled_fit(field, contacts, T_world_object, matrices, depth_scale, config)
     T_object_world = invert_transform(T_world_object)
     rms, inliers, free = [], [], []
     for c, contact in enumerate(contacts):
         T = T_object_world @ contact.T_world_sensor
         if corrections is not None:
             T = T @ se3_exp(corrections[:, contact.sensor])
-        if depth_scale is None or not contact.depth_scale_sigma > 0:
+        factor = depth_scale[:, c] if depth_scale is not None and contact.depth_scale_sigma > 0 else None
+        if factor is None:
             q = transform_batch(T, np.vstack([contact.points_sensor, contact.free_sensor]))
         else:  # the points' heights scaled per pose, the free space as it is
-            points = _scaled_heights(contact.points_sensor, depth_scale[:, c])
+            points = _scaled_heights(contact.points_sensor, factor)
             q = transform_batch(
                 T,
                 np.concatenate(
@@ -225,6 +229,53 @@ def evaluate_fit(
         depth = np.clip(-distance[:, count:], 0.0, config.free_tau_m)
         free.append(np.sqrt(np.mean(depth**2, axis=1)) if depth.shape[1] else np.zeros(len(T)))
     return np.stack(rms, axis=1), np.stack(inliers, axis=1), np.stack(free, axis=1)
+
+
+def _packed(contacts: list[ContactPoints]) -> tuple[np.ndarray, ...]:
+    """The contacts as the compiled loops read them: all points (sum M, 3) and where each contact's start (C + 1,),
+    the same for the free-space points, each contact's T_world_sensor (C, 4, 4) and sensor (C,)."""
+    points, free = (
+        [np.asarray(getattr(contact, name), dtype=np.float64) for contact in contacts]
+        for name in ("points_sensor", "free_sensor")
+    )
+    return (
+        np.ascontiguousarray(np.concatenate(points)),
+        np.cumsum([0] + [len(part) for part in points]),
+        np.ascontiguousarray(np.concatenate(free)),
+        np.cumsum([0] + [len(part) for part in free]),
+        np.stack([contact.T_world_sensor for contact in contacts]),
+        np.array([contact.sensor for contact in contacts]),
+    )
+
+
+def _compiled_fit(
+    field: SurfaceField,
+    contacts: list[ContactPoints],
+    T_world_object: np.ndarray,
+    corrections: np.ndarray,
+    depth_scale: np.ndarray | None,
+    config: RefineConfig,
+    packed: tuple[np.ndarray, ...] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`evaluate_fit` by `kernels.fit_all`, the corrections as matrices (K, 2, 4, 4); `packed`: `_packed(contacts)`
+    where the caller has it."""
+    count = len(T_world_object)
+    scaled = np.array([contact.depth_scale_sigma > 0 and depth_scale is not None for contact in contacts])
+    scores = np.empty((len(contacts), count, 3))
+    assert KERNELS is not None
+    KERNELS.fit_all(
+        *field.kernel_arguments(),
+        *(packed or _packed(contacts)),
+        np.ascontiguousarray(T_world_object, dtype=np.float64),
+        np.ascontiguousarray(corrections, dtype=np.float64),
+        np.ones((count, len(contacts))) if depth_scale is None else np.ascontiguousarray(depth_scale, dtype=np.float64),
+        scaled,
+        config.fit_tau_m,
+        config.inlier_distance_m,
+        config.free_tau_m,
+        scores,
+    )
+    return scores[:, :, 0].T, scores[:, :, 1].T, scores[:, :, 2].T
 
 
 def evaluate_offsets(
@@ -252,11 +303,30 @@ def evaluate_offsets(
     score = np.zeros(len(T_object_world))
     for contact in thinned(contacts, config.verify_points, config.verify_free_points):
         points = contact.points_sensor
+        centred = points[:, :2] - points[:, :2].mean(axis=0)
+        design = np.column_stack([np.ones(len(points)), centred])
+        if KERNELS is not None:  # pose by pose, no (K, M) temporaries
+            KERNELS.offset_scores(
+                *field.kernel_arguments(),
+                T_object_world @ contact.T_world_sensor,
+                np.ascontiguousarray(points, dtype=np.float64),
+                np.ascontiguousarray(contact.free_sensor, dtype=np.float64),
+                design,
+                np.linalg.pinv(design),
+                config.fit_tau_m,
+                config.max_distance_m,
+                config.verify_capture_truncated,
+                config.surface_noise_m,
+                offset_std,
+                tilt_std,
+                config.verify_free_noise_m,
+                config.free_tau_m,
+                score,
+            )
+            continue
         q = transform_batch(T_object_world @ contact.T_world_sensor, np.vstack([points, contact.free_sensor]))
         distance, _ = field.distance(q, with_gradient=False)
         distance, free_distance = distance[:, : len(points)], distance[:, len(points) :]
-        centred = points[:, :2] - points[:, :2].mean(axis=0)
-        design = np.column_stack([np.ones(len(points)), centred])
         plane = distance @ np.linalg.pinv(design).T  # (K, 3): offset, tilt x, tilt y
         residual = np.minimum(np.abs(distance - plane @ design.T), config.fit_tau_m)
         if config.verify_capture_truncated:
@@ -304,26 +374,58 @@ def refine_hypotheses(
     if corrections_start is not None:
         corrections = se3_exp(np.asarray(corrections_start, dtype=np.float64).reshape(count, 2, 6))
         deviation[:, 6:18] = np.asarray(corrections_start).reshape(count, 12)
-    for _ in range(config.iterations):
-        hessian = np.broadcast_to(information, (count, size, size)).copy()
-        gradient = deviation @ information
-        depth_scale = np.exp(log_scale) if scaled else None
-        _add_normal_equations(field, contacts, poses, corrections, config, hessian, gradient, depth_scale)
-        step = -np.linalg.solve(hessian, gradient[:, :, None])[:, :, 0]
-        deviation += step
-        updates = se3_exp(step[:, :18].reshape(count, 3, 6))
-        poses = poses @ updates[:, 0]
-        corrections = corrections @ updates[:, 1:]
-        log_scale[:, scaled] += step[:, 18:]
-        if np.abs(step).max() < config.step_tolerance:
-            break
-    twists = np.stack([se3_log(corrections[:, 0]), se3_log(corrections[:, 1])], axis=1)
+    if KERNELS is not None:  # every iteration in one compiled call (the same steps, no per-iteration numpy calls)
+        packed = _packed(contacts)
+        points, starts, _, _, T_world_sensor, sensor = packed
+        rows = np.full(len(contacts), -1)  # each contact's depth scale's row in the system (-1: none)
+        rows[scaled] = 18 + np.arange(len(scaled))
+        iterations = KERNELS.refine_loop(
+            *field.kernel_arguments(),
+            points,
+            starts,
+            T_world_sensor,
+            sensor,
+            rows,
+            information,
+            poses,
+            corrections,
+            deviation,
+            log_scale,
+            config.iterations,
+            config.step_tolerance,
+            config.max_distance_m,
+            config.surface_noise_m,
+            1.0 / config.surface_noise_m**2,
+        )
+        if iterations < 0:
+            raise np.linalg.LinAlgError("Singular matrix")
+        field.count_gradient_reads(iterations * len(contacts))
+    else:
+        for _ in range(config.iterations):
+            hessian = np.broadcast_to(information, (count, size, size)).copy()
+            gradient = deviation @ information
+            depth_scale = np.exp(log_scale) if scaled else None
+            _add_normal_equations(field, contacts, poses, corrections, config, hessian, gradient, depth_scale)
+            step = -np.linalg.solve(hessian, gradient[:, :, None])[:, :, 0]
+            deviation += step
+            updates = se3_exp(step[:, :18].reshape(count, 3, 6))
+            poses = poses @ updates[:, 0]
+            corrections = corrections @ updates[:, 1:]
+            log_scale[:, scaled] += step[:, 18:]
+            if np.abs(step).max() < config.step_tolerance:
+                break
+    # both corrections and the offset from the start at once (one call)
+    twists = se3_log(np.concatenate([corrections, (start_inverse @ poses)[:, None]], axis=1))
+    correction_twists, start_offset = np.ascontiguousarray(twists[:, :2]), np.ascontiguousarray(twists[:, 2])
     depth_scale = np.exp(log_scale)
-    rms, inliers, free = evaluate_fit(field, contacts, poses, twists, config, depth_scale if scaled else None)
-    correction_cost = np.einsum("ksi,i,ksi->k", twists, calibration, twists)
+    if KERNELS is not None:
+        fit = _compiled_fit(field, contacts, poses, corrections, depth_scale if scaled else None, config, packed)
+    else:
+        fit = evaluate_fit(field, contacts, poses, correction_twists, config, depth_scale if scaled else None)
+    correction_cost = np.einsum("ksi,i,ksi->k", correction_twists, calibration, correction_twists)
     if scaled:
         correction_cost = correction_cost + log_scale[:, scaled] ** 2 @ scale_information
-    return Refined(poses, twists, rms, inliers, free, correction_cost, se3_log(start_inverse @ poses), depth_scale)
+    return Refined(poses, correction_twists, *fit, correction_cost, start_offset, depth_scale)
 
 
 def _prior_information(contacts: list[ContactPoints], prior: CalibrationPrior, config: RefineConfig) -> np.ndarray:
@@ -393,8 +495,9 @@ def _add_normal_equations(
         A = T_object_world @ contact.T_world_sensor @ corrections[:, s]  # object <- sensor
         factor = depth_scale[:, c] if depth_scale is not None and contact.depth_scale_sigma > 0 else None
         if KERNELS is not None:  # the same sums and products in one compiled pass, no (K, M, 6) temporaries
+            field.count_gradient_reads(1)
             KERNELS.add_normal_equations(
-                *field.gradient_kernel_arguments(),
+                *field.kernel_arguments(),
                 A,
                 np.ascontiguousarray(contact.points_sensor, dtype=np.float64),
                 np.ones(len(A)) if factor is None else np.ascontiguousarray(factor, dtype=np.float64),
