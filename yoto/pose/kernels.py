@@ -6,30 +6,17 @@ field read (`field.SurfaceField.distance`) in the same order, bitwise the same n
 Gauss-Newton system (`refine._add_normal_equations`) summed point by point, equal to ~1e-12 relative; the whole
 iteration loop of `refine.refine_hypotheses` (the system, its solve by Cholesky, the SE(3) updates, the same
 stopping rule), its final fit (`refine.evaluate_fit`) and the seeds' cheap score (`refine.evaluate_offsets`), pose
-by pose. Compiled code is cached on disk (`cache=True`: next to this module, or under NUMBA_CACHE_DIR / the user's
-cache folder where the package is read-only), so only the first process after an install pays the compile (~12 s
-of CPU)."""
+by pose. Compiled through `yoto.jit` (cached on disk: only the first process after an install pays the compile,
+~12 s of CPU)."""
 
 from __future__ import annotations
 
-import os
-from collections.abc import Callable
 from types import SimpleNamespace
-from typing import Any
 
 import numpy as np
 
-_jit: Callable[[Any], Any] | None = None  # numba's njit where it is installed and not switched off
-if os.environ.get("YOTO_NO_NUMBA", "") in ("", "0"):
-    try:
-        import numba
-
-        _jit = numba.njit(cache=True, nogil=True)  # module-level functions: the on-disk cache finds them again
-    except ImportError:  # the numpy paths
-        pass
-_ENABLED = _jit is not None
-if _jit is None:
-    _jit = lambda function: function  # noqa: E731 (plain Python, never called: callers take their numpy paths)
+from yoto.jit import ENABLED as _ENABLED
+from yoto.jit import jit as _jit
 
 
 @_jit
