@@ -143,6 +143,10 @@ class GaussNewtonConfig:
     step_tolerance_rad: float = 1e-7  # ... and its rotation update below this (also in translation-only
     # iterations: a start that needs no translation is not rotated); each pose of a batch stops on its own
 
+    def prior_information(self) -> np.ndarray:
+        """(6,) the prior's information (its diagonal): the rotation's (rad^-2), then the pivot translation's (m^-2)."""
+        return np.array([1.0 / self.prior_rotation_rad**2] * 3 + [1.0 / self.prior_translation_m**2] * 3)
+
 
 # Refining a localizer's candidate from where the candidate put the sensor: a few iterations, the start as a
 # weak prior (the matched filter's and the `cpu` network's fine stages).
@@ -183,7 +187,7 @@ def point_to_plane_gauss_newton(
     """
     poses = np.array(T_surface_source, dtype=np.float64).reshape(-1, 4, 4)
     start = poses.copy()
-    prior = np.diag([1.0 / config.prior_rotation_rad**2] * 3 + [1.0 / config.prior_translation_m**2] * 3)
+    prior = np.diag(config.prior_information())
     # The source point whose displacement the prior measures: the pivot, or the source point at the origin.
     if pivot_source is None:
         anchor_source = np.einsum("kji,kj->ki", start[:, :3, :3], -start[:, :3, 3])  # T_start^-1 @ 0

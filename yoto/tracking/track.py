@@ -458,6 +458,11 @@ def pad_rest_solver(config: CorrectionConfig) -> GaussNewtonConfig:
     )
 
 
+def registration_prior(config: CorrectionConfig) -> np.ndarray:
+    """(6, 6) the information of the registration's prior on the prediction: rotation (rad^-2), translation (m^-2)."""
+    return np.diag([config.registration_prior_rotation_rad**-2] * 3 + [config.registration_prior_translation_m**-2] * 3)
+
+
 def secant_scaling(
     surface: SurfaceCloud, normal: np.ndarray, points_object: np.ndarray, unit: np.ndarray, config: CorrectionConfig
 ) -> np.ndarray:
@@ -814,9 +819,7 @@ class _Corrector:
         if not gradient.any():
             return
         # the registration's own prior, in the units of these unweighted normal equations
-        prior = c.surface_noise_m**2 * np.diag(
-            [c.registration_prior_rotation_rad**-2] * 3 + [c.registration_prior_translation_m**-2] * 3
-        )
+        prior = c.surface_noise_m**2 * registration_prior(c)
         self.bias = self.bias - np.linalg.solve(normal + prior, gradient)
 
     def _left_rest(self, sensors: SensorPoses) -> bool:
@@ -873,8 +876,7 @@ class _Corrector:
             white = observed.T @ white @ observed  # the information of the correction's observed part alone
         covariance = self.covariance.copy()
         if self.bias_covariance is None:  # the bias's size in each direction, from the first contact's shape
-            weak = np.diag([c.registration_prior_rotation_rad**-2] * 3 + [c.registration_prior_translation_m**-2] * 3)
-            self.bias_covariance = np.linalg.inv(shared + weak)
+            self.bias_covariance = np.linalg.inv(shared + registration_prior(c))
             covariance[12:, 12:] = self.bias_covariance
         observe = np.hstack([np.eye(6), np.zeros((6, 6)), np.eye(6)])  # z = error + bias
         # A registration further from the prediction than the filter expects (normalized innovation squared above

@@ -275,7 +275,7 @@ def candidate_icp(
     start_rotations = np.ascontiguousarray(poses[:, :3, :3])
     pivot = np.ascontiguousarray(image.centre_sensor, dtype=np.float64)
     anchor_start = start_rotations @ pivot + poses[:, :3, 3]
-    prior = np.array([1.0 / config.prior_rotation_rad**2] * 3 + [1.0 / config.prior_translation_m**2] * 3)
+    prior = config.prior_information()
     facing = np.ascontiguousarray(image.normal_sensor, dtype=np.float64)
     samples = np.ascontiguousarray(samples, dtype=np.float64)
     active = np.arange(len(poses))
