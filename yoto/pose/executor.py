@@ -15,8 +15,8 @@ of its chunks, each chunk tested on its own: the same pairs in the same order; a
 its matches (`solver.closed_form_quaternions`, ~3 ms for 8,000 matches: every row on its own, numpy's and BLAS's
 arithmetic the same whatever rows share the call, checked bitwise on 120 cuts of 30 searches, docs/pose.md).
 
-Small batches stay in the calling process (`SplitConfig`): both halves pay a refinement's fixed cost (~2.5 ms in
-full, ~1.5 ms short: its numpy calls per iteration), and a round trip through the helper's pipe 60-80 us. Without a
+Small batches stay in the calling process (`SplitConfig`): both halves pay a refinement's fixed cost (~0.2 ms since
+its iterations run compiled), and a round trip through the helper's pipe 20-70 us. Without a
 helper (`LOCAL`) everything runs in the calling process, as it always did.
 
     with LocalizerProcess(localizer) as helper:
