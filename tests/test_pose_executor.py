@@ -16,6 +16,7 @@ from yoto.pose.field import FieldConfig, surface_field
 from yoto.pose.pipeline import PoseConfig, _pair_clouds, localize_contacts, pose_from_candidates
 from yoto.pose.refine import evaluate_offsets, refine_hypotheses
 from yoto.pose.search import KeyTest, key_matches, search_poses
+from yoto.pose.solver import closed_form_quaternions
 from yoto.registration import one_blas_thread
 from yoto.simulate.scenarios import PairSimulator
 
@@ -68,6 +69,7 @@ def test_the_split_pose_stage_gives_one_process_s_estimate_bitwise(builtin_model
         two = pose_from_candidates(pair, model, candidates, world, config, "match", helper=helper)
         assert calls.count("_counted_refine") >= 5 and calls.count("evaluate_offsets") >= 1
         assert calls.count("_remote_key_matches") == 1  # the search's key test, half its rows there
+        assert calls.count("_remote_closed_form") == 1  # and half of its matches' closed-form poses
         _bitwise_equal(one.hypotheses, two.hypotheses)
         assert one.T_world_object.tobytes() == two.T_world_object.tobytes()
         assert one.hypothesis_corrections.tobytes() == two.hypothesis_corrections.tobytes()
@@ -161,3 +163,40 @@ def test_the_search_s_key_test_split_between_two_processes_finds_the_same_pairs(
     assert len(alone[0]) > 1000
     for a, b in zip(alone, split):
         assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
+
+
+def test_the_search_s_closed_form_poses_split_between_two_processes_are_the_same(builtin_models, helper, monkeypatch):
+    """The closed-form poses of a search's matches, their rows cut in two and the second part posed in the helper,
+    are those of all rows at once, bit for bit (each row's arithmetic is its own); too few matches stay here."""
+    model = builtin_models["fruit"]
+    pair = PairSimulator(model).pair(seed=11, index=1).pair
+    candidates, world, _ = localize_contacts(pair, model, make_localizer("match"))
+    config = PoseConfig()
+    shapes = pipeline._contact_shapes(pair, world, config)
+    posed = []
+
+    def recorded(*arguments):
+        posed.append(arguments)
+        return closed_form_quaternions(*arguments)
+
+    search_poses(model, world, shapes, candidates, config.search_config, solver=recorded)
+    (arguments,) = posed
+    assert len(arguments[0]) > 4000  # thousands of matches: split
+    calls = []
+    call = LocalizerProcess.call
+
+    def counted(self, function, model, *rest):
+        calls.append(function.__name__)
+        return call(self, function, model, *rest)
+
+    monkeypatch.setattr(LocalizerProcess, "call", counted)
+    executor = AlwaysSplit(helper, model, COARSE)
+    few = tuple(rows[:100] for rows in arguments[:4]) + arguments[4:]
+    with one_blas_thread():
+        alone = closed_form_quaternions(*arguments)
+        split = executor.closed_form(*arguments)
+        assert calls == ["_remote_closed_form"]
+        assert executor.closed_form(*few)[0].tobytes() == closed_form_quaternions(*few)[0].tobytes()
+        assert calls == ["_remote_closed_form"]  # not split
+    for a, b in zip(alone, split):
+        assert a.shape == b.shape and a.tobytes() == b.tobytes()

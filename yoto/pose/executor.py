@@ -11,10 +11,12 @@ reads); when both ran as many the joined batch is what one process computes (eac
 iteration where all of its poses were below the tolerance, and none earlier, so the whole batch stops there too);
 otherwise the caller refines the whole batch again itself, which is rare (see docs/pose.md) and costs only time.
 The joint search's key test (`search.key_matches`) is split the same way, by rows of left locations cut between two
-of its chunks, each chunk tested on its own: the same pairs in the same order.
+of its chunks, each chunk tested on its own: the same pairs in the same order; and so are the closed-form poses of
+its matches (`solver.closed_form_quaternions`, ~3 ms for 8,000 matches: every row on its own, numpy's and BLAS's
+arithmetic the same whatever rows share the call, checked bitwise on 120 cuts of 30 searches, docs/pose.md).
 
-Small batches stay in the calling process (`SplitConfig`): both halves pay a refinement's fixed cost (~2.5 ms in
-full, ~1.5 ms short: its numpy calls per iteration), and a round trip through the helper's pipe 60-80 us. Without a
+Small batches stay in the calling process (`SplitConfig`): both halves pay a refinement's fixed cost (~0.2 ms since
+its iterations run compiled), and a round trip through the helper's pipe 20-70 us. Without a
 helper (`LOCAL`) everything runs in the calling process, as it always did.
 
     with LocalizerProcess(localizer) as helper:
@@ -31,11 +33,13 @@ from typing import Any
 
 import numpy as np
 
+from yoto.contacts import WorldContact
 from yoto.localize.helper import LocalizerProcess, Pending
 from yoto.objects.model import ObjectModel
 from yoto.pose.field import FieldConfig, SurfaceField, surface_field
 from yoto.pose.refine import CalibrationPrior, ContactPoints, RefineConfig, Refined, evaluate_offsets, refine_hypotheses
 from yoto.pose.search import KeyTest, Matched, key_matches
+from yoto.pose.solver import closed_form_quaternions
 from yoto.registration import one_blas_thread
 
 
@@ -46,6 +50,7 @@ class SplitConfig:
     min_poses: int = 16  # refinements of fewer poses stay in the calling process (see docs/pose.md) ...
     min_scored: int = 1000  # ... and cheap scores (`evaluate_offsets`, ~1 us a pose) of fewer ...
     min_key_pairs: int = 400_000  # ... and the search's key tests (`search.key_matches`) of fewer location pairs
+    min_closed_form: int = 2000  # ... and closed-form poses (~0.36 us each) of fewer matches
     helper_share: float = 0.5  # share of a split batch the helper computes
     max_wait_share: float = 0.5  # a split after which this process waited for the helper's half longer than this
     # share of the time its own half took finds no free core for the helper (it ran when this process waited) ...
@@ -80,6 +85,11 @@ class LocalExecutor:
     def key_matches(self, test: KeyTest) -> Matched:
         """`search.key_matches` on all of the search's location pairs."""
         return key_matches(test)
+
+    def closed_form(self, *arguments: Any) -> tuple[np.ndarray, np.ndarray]:
+        """`solver.closed_form_quaternions` (object-side (K, 3) points and normals of both contacts, the measured
+        pair) of all K matches."""
+        return closed_form_quaternions(*arguments)
 
 
 LOCAL = LocalExecutor()
@@ -156,6 +166,35 @@ class SplitExecutor(LocalExecutor):
             lambda: key_matches(test, 0, cut), _remote_key_matches, test, cut
         )
         return np.concatenate([i, i_there]), np.concatenate([j, j_there]), np.concatenate([mismatch, mismatch_there])
+
+    def closed_form(
+        self,
+        p_left_object: np.ndarray,
+        n_left_object: np.ndarray,
+        p_right_object: np.ndarray,
+        n_right_object: np.ndarray,
+        left_world: WorldContact,
+        right_world: WorldContact,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The matches' rows cut in two, the closed-form poses of the first part here and of the rest in the helper:
+        each row's pose is computed on its own, so the joined arrays are those of all rows at once."""
+        world = (left_world, right_world)
+        cut = self._cut(len(p_left_object), self.config.min_closed_form)
+        if cut is None:
+            return closed_form_quaternions(p_left_object, n_left_object, p_right_object, n_right_object, *world)
+        here, there = slice(None, cut), slice(cut, None)
+        (quaternions, translations), (quaternions_there, translations_there) = self._halves(
+            lambda: closed_form_quaternions(
+                p_left_object[here], n_left_object[here], p_right_object[here], n_right_object[here], *world
+            ),
+            _remote_closed_form,
+            p_left_object[there],
+            n_left_object[there],
+            p_right_object[there],
+            n_right_object[there],
+            *world,
+        )
+        return np.concatenate([quaternions, quaternions_there]), np.concatenate([translations, translations_there])
 
     def _field_halves(
         self,
@@ -250,6 +289,11 @@ def _remote_half(
 def _remote_key_matches(model: ObjectModel, test: KeyTest, first: int) -> tuple[Matched, float]:
     """The helper's rows of the search's key test (from `first` on), and its CPU time (ms)."""
     return _timed(lambda: key_matches(test, first))
+
+
+def _remote_closed_form(model: ObjectModel, *arguments: Any) -> tuple[tuple[np.ndarray, np.ndarray], float]:
+    """The helper's rows of the search's closed-form poses, and its CPU time (ms)."""
+    return _timed(lambda: closed_form_quaternions(*arguments))
 
 
 def _timed(work: Callable[[], Any]) -> tuple[Any, float]:

@@ -238,8 +238,11 @@ def _seeds(
 ) -> np.ndarray:
     """(K, 4, 4) closed-form poses of the candidate pairs whose key fits (and, with `search`, of the search's
     matches); the localizers' top pair is always among them, fitting or not, so there is a pose to verify. Of the
-    matches in one pose cell only the one whose key fits best is kept. `run` tests the search's location pairs."""
-    matches = search_poses(model, world, shapes, candidates, config.search_config, search, run.key_matches)
+    matches in one pose cell only the one whose key fits best is kept. `run` tests the search's location pairs and
+    poses its matches."""
+    matches = search_poses(
+        model, world, shapes, candidates, config.search_config, search, run.key_matches, run.closed_form
+    )
     best = _best_per_cell(matches.translations, matches.rotation_vectors, -matches.mismatch, config)
     matches_T = matches.subset(best).T_world_object
     left, right = candidates["left"][0], candidates["right"][0]

@@ -426,10 +426,13 @@ def search_poses(
     config: SearchConfig = SearchConfig(),
     samples: bool = True,
     matcher: Callable[[KeyTest], Matched] | None = None,
+    solver: Callable[..., tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> PairMatches:
     """Every pair of locations (localizers' candidates and, with `samples`, matching surface samples) whose key fits
     the measured pair, with its closed-form pose; at most `max_matches`, the best fitting keys first. `matcher`
-    tests the location pairs (`key_matches` on all rows; `executor.SplitExecutor.key_matches` on two cores)."""
+    tests the location pairs (`key_matches` on all rows; `executor.SplitExecutor.key_matches` on two cores),
+    `solver` poses the matches (`solver.closed_form_quaternions`; `executor.SplitExecutor.closed_form` on two
+    cores: row by row, the same numbers)."""
     surface = surface_samples(model, config.samples)
     left, right = (contact_locations(surface, shapes[side], candidates[side], config, samples) for side in SIDES)
     spacing = surface.spacing_m
@@ -444,7 +447,7 @@ def search_poses(
     if len(mismatch) > config.max_matches:
         best = np.argpartition(mismatch, config.max_matches - 1)[: config.max_matches]
         a, b, mismatch = a[best], b[best], mismatch[best]
-    quaternions, translations = closed_form_quaternions(
+    quaternions, translations = (closed_form_quaternions if solver is None else solver)(
         left.p_object[a],
         test.n_left_columns[:, a].T,
         right.p_object[b],
