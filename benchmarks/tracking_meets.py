@@ -9,7 +9,8 @@ object and length); seeds 23 and 37, held out of tuning (those 11 objects but th
 mug; 2 per object and length). Each trajectory is `yoto track-bench`'s (`TrackBenchConfig`'s scenario scaled to the
 path length, trajectory i of the seed) and its touch the pose stage's with the benchmark's localizer; both are
 simulated once and cached in `--cache` (pickles, ~60 MB a trajectory), so later runs only track. Tracking is done
-by the working tree's code (`yoto.tracking.track`, its default `TrackConfig`), BLAS on one thread.
+by the working tree's code (`yoto.tracking.track`, its default `TrackConfig`; `--correction NAME=VALUE` overrides a
+`CorrectionConfig` field), BLAS on one thread.
 
 Printed, over the trajectories whose touch was right (within 5 mm and 5 deg):
 - meets: settled drift under 0.5 mm and 0.5 deg (the issue's target: the drift is counted from the last frame
@@ -27,11 +28,16 @@ Printed, over the trajectories whose touch was right (within 5 mm and 5 deg):
 from __future__ import annotations
 
 import os
+import sys
 
 for _variable in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_variable, "1")
+# the working tree's `yoto`, whichever checkout the environment's editable install points at
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import argparse  # noqa: E402
+import ast  # noqa: E402
+import dataclasses  # noqa: E402
 import functools  # noqa: E402
 import json  # noqa: E402
 import pickle  # noqa: E402
@@ -127,9 +133,12 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
     seed, name, length, index = job
     model = _model(object_spec(name, args.meshes), args.workspace)
     touch = touch_from_pair(trajectory.touch.pair, T_touch, trajectory.touch_time_s, "simulated")
-    bench = TrackBenchConfig()
+    config = TrackBenchConfig().track
+    if args.correction:  # CorrectionConfig fields overridden, NAME=VALUE (a Python literal)
+        fields = {name: ast.literal_eval(value) for name, value in (item.split("=", 1) for item in args.correction)}
+        config = dataclasses.replace(config, correction=dataclasses.replace(config.correction, **fields))
     started = time.process_time()
-    result = track(touch, trajectory.streams, model, tactile_streams(trajectory), bench.track)
+    result = track(touch, trajectory.streams, model, tactile_streams(trajectory), config)
     cpu_s = time.process_time() - started
     truth, _ = trajectory.truth.interpolate(result.timestamps_s)
     motion = motion_interval(trajectory.streams, result.timestamps_s)
@@ -252,6 +261,7 @@ def main() -> None:
     parser.add_argument("--workspace", default="yoto_workspace", help="workspace holding the object models")
     parser.add_argument("--meshes", default=MESHES, help="folder of the shared meshes (NAME/NAME.ply)")
     parser.add_argument("--jobs", type=int, default=1, help="processes (each track's CPU time is its own)")
+    parser.add_argument("--correction", nargs="*", help="CorrectionConfig fields overridden: NAME=VALUE")
     parser.add_argument("--build-only", action="store_true", help="simulate and cache, do not track")
     parser.add_argument("--out", help="JSON of every track's figures")
     parser.add_argument("--compare", help="an earlier --out to compare with")
