@@ -10,8 +10,9 @@ bottle, tomato soup can, tool, fruit, figurine at 100 and 200 mm; 2 per object a
 is `yoto track-bench`'s (`TrackBenchConfig`'s scenario scaled to the path length, trajectory i of the seed) and its
 touch the pose stage's with the benchmark's localizer; both are simulated once and cached in `--cache` (pickles,
 ~60 MB a trajectory, ~5 CPU s each to simulate and localize), so later runs only track (~2 CPU s a trajectory).
-Tracking is done by the working tree's code (`yoto.tracking.track`, its default `TrackConfig`; `--correction
-NAME=VALUE` overrides a `CorrectionConfig` field), BLAS on one thread.
+The cache is not keyed by code: empty it when the simulator or the pose stage changes. Tracking is done by the
+working tree's code (`yoto.tracking.track`, its default `TrackConfig`; `--correction NAME=VALUE` overrides a
+`CorrectionConfig` field), BLAS on one thread.
 
 Printed, over the trajectories whose touch was right (within 5 mm and 5 deg):
 - meets: settled drift under 0.5 mm and 0.5 deg (the issue's target: the drift is counted from the last frame
