@@ -228,6 +228,20 @@ def test_benchmark_report_separates_right_touches():
     assert "| closed loop: drift under the target, all trajectories | 1 of 2 |" in text
 
 
+def test_benchmark_report_counts_settled_errors_within_the_touchs_own_beside_the_drift():
+    """A loop that ends nearer the truth than its touch (settled 0.2 mm against a 0.1 mm touch: within 0.5 mm of it)
+    counts beside the drift target; one that ends 0.8 mm further than its touch does not, whatever its drift."""
+    from yoto.tracking.bench import TrackBenchConfig, build_report, format_markdown
+
+    corrected, departed = _bench_record(0.1, 0.2, True), _bench_record(0.1, 0.9, True)
+    departed["closed_loop"] = {**departed["closed_loop"], "settled_drift": {"mm": 0.3, "deg": 0.1}}
+    report = build_report({"thing": {"100mm": [corrected, departed]}}, TrackBenchConfig(trajectories=2))
+    entry = report["results"]["thing"]["100mm"]["right_touch"]
+    assert entry["closed_loop_within_touch"] == 1 and entry["closed_loop_drift_met"] == 2
+    row = "settled error within the touch's own + 0.5 mm / 0.5 deg, right touches | 1 of 2 |"
+    assert row in format_markdown(report)
+
+
 class _Surface:
     """A sampled surface for registration: points, normals, and their k-d tree."""
 
