@@ -6,7 +6,8 @@ through rendered GelSight images (`--renderer`: a calibration file's optical mod
 the pose stage on the image pairs under each variant of its settings (`--variants`), and on the clean pairs under
 the defaults. It prints per object and variant: poses right (within 5 mm and 5 deg) of N, the difference to the
 clean clouds in percentage points, the truth among the hypotheses, the pairs gained and lost against the first
-variant, and the pose stage's CPU seconds (median and sum over the pairs: run it with one BLAS thread).
+variant, and the pose stage's CPU seconds (median and sum over the pairs: run it with one BLAS thread); with
+`--errors`, each row's pose error on every pair the rows disagree on.
 
 A variant is `name:key=value,key=value`; keys are `PoseConfig` fields (`screened=1000`), or `SearchConfig`,
 `RefineConfig` and `HypothesisConfig` fields with a `search.`, `refine.` or `hypotheses.` prefix
@@ -55,8 +56,9 @@ def parse_variant(text: str, base):
     return name, config
 
 
-def pose_outcome(pair, model, candidates, world, config) -> tuple[bool, bool, float]:
-    """(right, truth among the hypotheses, pose-stage CPU seconds) of one pair under `config`."""
+def pose_outcome(pair, model, candidates, world, config) -> tuple[bool, bool, float, str]:
+    """(right, truth among the hypotheses, pose-stage CPU seconds, "translation mm / rotation deg") of one pair
+    under `config`."""
     from yoto.errors import YotoError
     from yoto.evaluation.bench import RIGHT_DEG, RIGHT_MM, symmetric_errors
     from yoto.pose.hypotheses import pose_distances
@@ -67,7 +69,7 @@ def pose_outcome(pair, model, candidates, world, config) -> tuple[bool, bool, fl
         config = replace(config, suggest_next_touch=False)
         estimate = pose_from_candidates(pair, model, candidates, world, config, "match")
     except YotoError:
-        return False, False, time.process_time() - start
+        return False, False, time.process_time() - start, "failed"
     seconds = time.process_time() - start
     errors = symmetric_errors(model, estimate.T_world_mesh, pair.T_world_mesh_true)
     right = errors["translation_mm"] < RIGHT_MM and errors["rotation_deg"] < RIGHT_DEG
@@ -75,7 +77,7 @@ def pose_outcome(pair, model, candidates, world, config) -> tuple[bool, bool, fl
     T_hypotheses = estimate.hypotheses_mesh(model) @ model.T_mesh_object
     translation, rotation = pose_distances(T_hypotheses, T_true, model.symmetry)
     among = bool(np.any((translation < RIGHT_MM / 1000.0) & (rotation < np.radians(RIGHT_DEG))))
-    return bool(right), among, seconds
+    return bool(right), among, seconds, f"{errors['translation_mm']:.1f} mm / {errors['rotation_deg']:.1f} deg"
 
 
 def main() -> None:
@@ -84,6 +86,7 @@ def main() -> None:
     parser.add_argument("--objects", nargs="+", required=True)
     parser.add_argument("-n", type=int, default=40)
     parser.add_argument("--variants", nargs="+", default=["default", "images"])
+    parser.add_argument("--errors", action="store_true", help="print the pose errors of pairs the rows disagree on")
     args = parser.parse_args()
 
     from yoto.errors import YotoError
@@ -98,7 +101,7 @@ def main() -> None:
     for name in args.objects:
         model = resolve_object(name, None)
         simulated = simulate_benchmark_pairs(model, bench)
-        rows: dict[str, list[tuple[bool, bool, float]]] = {"clean": []}
+        rows: dict[str, list[tuple[bool, bool, float, str]]] = {"clean": []}
         rows.update({label: [] for label, _ in variants})
         for clean, image in zip(simulated, pairs_via_images(simulated, bench)):
             for pair, configs in ((clean.pair, [("clean", base)]), (image.pair, variants)):
@@ -106,25 +109,29 @@ def main() -> None:
                     candidates, world, _ = localize_contacts(pair, model, localizer)
                 except YotoError:
                     for row, _ in configs:
-                        rows[row].append((False, False, 0.0))
+                        rows[row].append((False, False, 0.0, "failed"))
                     continue
                 for row, config in configs:
                     rows[row].append(pose_outcome(pair, model, candidates, world, config))
-        clean_right = sum(r for r, _, _ in rows["clean"])
-        first = [r for r, _, _ in rows[variants[0][0]]]
+        clean_right = sum(outcome[0] for outcome in rows["clean"])
+        first = [outcome[0] for outcome in rows[variants[0][0]]]
         print(f"{model.name} ({args.renderer}, {args.n} pairs)")
         for row, outcomes in rows.items():
-            right = [r for r, _, _ in outcomes]
-            seconds = np.array([s for _, _, s in outcomes])
+            right, among = [outcome[0] for outcome in outcomes], sum(outcome[1] for outcome in outcomes)
+            seconds = np.array([outcome[2] for outcome in outcomes])
             gained = [i for i, (a, b) in enumerate(zip(first, right)) if b and not a]
             lost = [i for i, (a, b) in enumerate(zip(first, right)) if a and not b]
             points = 100.0 * (sum(right) - clean_right) / args.n
             print(
                 f"  {row:>12}: right {sum(right):2d} ({points:+.1f} points), truth among "
-                f"{sum(a for _, a, _ in outcomes):2d}, pose stage CPU median {1000 * np.median(seconds):.0f} ms, "
+                f"{among:2d}, pose stage CPU median {1000 * np.median(seconds):.0f} ms, "
                 f"sum {seconds.sum():.1f} s" + ("" if row == "clean" else f"; gained {gained} lost {lost}"),
                 flush=True,
             )
+        if args.errors:  # every pair whose outcome differs between the rows: each row's pose error
+            for i in range(args.n):
+                if len({outcomes[i][0] for outcomes in rows.values()}) > 1:
+                    print(f"    pair {i}: " + "; ".join(f"{row} {outcomes[i][3]}" for row, outcomes in rows.items()))
 
 
 if __name__ == "__main__":
