@@ -10,19 +10,15 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 
-from yoto.contacts import TactileImage
+from yoto.contacts import ContactPair, TactileImage
 from yoto.errors import InputError, NoContactError
 from yoto.sensor.calibration import SensorCalibration, load_calibration, with_background
 from yoto.sensor.presses import load_image
 from yoto.sensor.reconstruction import Reconstruction, reconstruct
-
-if TYPE_CHECKING:
-    from yoto.contacts import ContactPair
-    from yoto.pose.pipeline import PoseConfig
 
 # The pose stage's settings for a pair whose contacts come from images (docs/sensor.md "The pose stage's budget
 # for image contacts"). A reconstructed contact's shape is off where a clean cloud's is not (box edges and rims:
@@ -37,8 +33,9 @@ IMAGE_SCREEN_POINTS = 48
 IMAGE_SCREEN_ITERATIONS = 5
 
 
-def image_pose_config(config: PoseConfig) -> PoseConfig:
-    """`config` for a pair whose contacts were reconstructed from GelSight images: the search's pair budget and
+def image_pose_config(config: Any) -> Any:
+    """`config` (the pose stage's `PoseConfig`, typed loosely: the sensor stage sits below the pose stage and does
+    not import it) for a pair whose contacts were reconstructed from GelSight images: the search's pair budget and
     the screening raised to the image settings above (a setting already larger is kept)."""
     search, refine = config.search_config, config.refine_config
     return replace(
@@ -53,7 +50,7 @@ def image_pose_config(config: PoseConfig) -> PoseConfig:
     )
 
 
-def pose_config_for(pair: ContactPair, config: PoseConfig) -> PoseConfig:
+def pose_config_for(pair: ContactPair, config: Any) -> Any:
     """`image_pose_config(config)` when a side of `pair` was reconstructed from an image (its depth scale is
     uncertain: `TactileContact.depth_scale_sigma` > 0), else `config` unchanged."""
     reconstructed = any(pair.contact(side).depth_scale_sigma > 0.0 for side in ("left", "right"))
