@@ -438,3 +438,49 @@ def test_benchmark_image_rows_use_the_same_pairs(image_pair, builtin_models):
             assert np.array_equal(clean.pair.p_mesh_true[side], image.pair.p_mesh_true[side])
             points = image.pair.contact(side).points_sensor
             assert len(points) > 100 and not np.array_equal(points, clean.pair.contact(side).points_sensor)
+
+
+def test_image_pairs_search_and_screen_with_the_image_budget(image_pair, builtin_models, monkeypatch):
+    """A pair reconstructed from images gets the pose stage's image settings (`image_pose_config`: a larger search
+    budget and screening), in `yoto bench --via-images` as in `pose_config_for`; clean pairs keep the defaults."""
+    from dataclasses import replace
+
+    import yoto.evaluation.bench as bench
+    from yoto.errors import YotoError
+    from yoto.pose.pipeline import PoseConfig
+    from yoto.sensor import pair_images
+    from yoto.sensor.pair_images import image_pose_config, pose_config_for
+
+    default = PoseConfig()
+    imaged = image_pose_config(default)
+    assert imaged.search_config.pair_budget == pair_images.IMAGE_PAIR_BUDGET > default.search_config.pair_budget
+    assert imaged.screened == pair_images.IMAGE_SCREENED > default.screened
+    assert imaged.refine_config.screen_points == pair_images.IMAGE_SCREEN_POINTS > default.refine_config.screen_points
+    assert imaged.refine_config.screen_iterations == pair_images.IMAGE_SCREEN_ITERATIONS
+    assert imaged.refine_config.screen_iterations > default.refine_config.screen_iterations
+    # Everything else is the caller's, and a setting already above the image one is never lowered.
+    assert replace(imaged, search_config=default.search_config, screened=400, refine_config=default.refine_config) == (
+        default
+    )
+    larger = replace(default, screened=5000)
+    assert image_pose_config(larger).screened == 5000
+
+    config = bench.BenchConfig(num_pairs=1, seed=3, image_calibration=str(image_pair["calibration"]))
+    clean = bench.simulate_benchmark_pairs(builtin_models["fruit"], config)
+    through_images = bench.pairs_via_images(clean, config)
+    assert pose_config_for(clean[0].pair, default) is default
+    assert pose_config_for(through_images[0].pair, default) == imaged
+
+    seen = []
+
+    def record(pair, model, candidates, world, pose_config, method, helper=None):
+        seen.append(pose_config)
+        raise YotoError("recorded")
+
+    monkeypatch.setattr(bench, "localize_contacts", lambda *args: ({}, {}, {}))
+    monkeypatch.setattr(bench, "pose_from_candidates", record)
+    for pairs in (clean, through_images):
+        spec = bench.MethodSpec("match", "match", via_images=pairs is through_images)
+        model = builtin_models["fruit"]
+        bench._evaluate_pairs(spec, model, model, None, pairs, None, replace(config, pose_stages=("full",)), None)
+    assert seen == [config.pose_config("full"), image_pose_config(config.pose_config("full"))]

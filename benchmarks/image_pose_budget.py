@@ -1,0 +1,139 @@
+"""The pose stage's search budget for image contacts: poses right through images against clean clouds.
+
+For the benchmark's pairs (seed 7 unless `--seed`, the standard 1 mm / 1 deg calibration error, matched filter,
+full pose stage without re-touch, as `yoto bench --via-images` runs them), this localizes each pair once as clean
+clouds and once through rendered GelSight images (`--renderer`: a calibration file's optical model or
+`shading[:SEED]`), then runs the pose stage on the image pairs under each variant of its settings (`--variants`), and
+on the clean pairs under the defaults. It prints per object and variant: poses right (within 5 mm and 5 deg) of N,
+the difference to the clean clouds in percentage points, the truth among the hypotheses, the pairs gained and lost
+against the first variant, and the pose stage's CPU seconds (median and sum over the pairs: run it with one BLAS
+thread); with `--errors`, each row's pose error on every pair the rows disagree on.
+
+A variant is `name:key=value,key=value`; keys are `PoseConfig` fields (`screened=1000`), or `SearchConfig`,
+`RefineConfig` and `HypothesisConfig` fields with a `search.`, `refine.` or `hypotheses.` prefix
+(`search.pair_budget=10000000`); `default` is `PoseConfig` as `yoto bench` sets it;
+`images` is what the image rows use (`yoto.sensor.pair_images.image_pose_config`).
+
+    python benchmarks/image_pose_budget.py --renderer CAL_GAIN.npz -n 40 \\
+        --objects ../shared/data/meshes/mug/mug.ply ../shared/data/meshes/cracker_box/cracker_box.ply \\
+        --variants default images "b10:search.pair_budget=10000000"
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import fields, replace
+
+import numpy as np
+
+# Variant key prefixes -> the PoseConfig field holding that config.
+NESTED = {"search": "search_config", "refine": "refine_config", "hypotheses": "hypotheses"}
+
+
+def parse_variant(text: str, base):
+    """(name, PoseConfig) of a variant string over `base` (the benchmark's full-stage config)."""
+    from yoto.sensor.pair_images import image_pose_config
+
+    if text == "default":
+        return "default", base
+    if text == "images":
+        return "images", image_pose_config(base)
+    name, _, settings = text.partition(":")
+    config = base
+    pose_fields = {f.name: f for f in fields(config)}
+    for item in filter(None, settings.split(",")):
+        key, value = item.split("=")
+        group, _, leaf = key.rpartition(".")
+        if group and group in NESTED:
+            inner = getattr(config, NESTED[group])
+            inner = replace(inner, **{leaf: type(getattr(inner, leaf))(float(value))})
+            config = replace(config, **{NESTED[group]: inner})
+        elif not group and key in pose_fields:
+            config = replace(config, **{key: type(getattr(config, key))(float(value))})
+        else:
+            raise SystemExit(f"unknown setting {key!r} in variant {text!r}")
+    return name, config
+
+
+def pose_outcome(pair, model, candidates, world, config) -> tuple[bool, bool, float, str]:
+    """(right, truth among the hypotheses, pose-stage CPU seconds, "translation mm / rotation deg") of one pair
+    under `config`."""
+    from yoto.errors import YotoError
+    from yoto.evaluation.bench import RIGHT_DEG, RIGHT_MM, symmetric_errors
+    from yoto.pose.hypotheses import pose_distances
+    from yoto.pose.pipeline import pose_from_candidates
+
+    start = time.process_time()
+    try:
+        config = replace(config, suggest_next_touch=False)
+        estimate = pose_from_candidates(pair, model, candidates, world, config, "match")
+    except YotoError:
+        return False, False, time.process_time() - start, "failed"
+    seconds = time.process_time() - start
+    errors = symmetric_errors(model, estimate.T_world_mesh, pair.T_world_mesh_true)
+    right = errors["translation_mm"] < RIGHT_MM and errors["rotation_deg"] < RIGHT_DEG
+    T_true = pair.T_world_mesh_true @ model.T_mesh_object
+    T_hypotheses = estimate.hypotheses_mesh(model) @ model.T_mesh_object
+    translation, rotation = pose_distances(T_hypotheses, T_true, model.symmetry)
+    among = bool(np.any((translation < RIGHT_MM / 1000.0) & (rotation < np.radians(RIGHT_DEG))))
+    return bool(right), among, seconds, f"{errors['translation_mm']:.1f} mm / {errors['rotation_deg']:.1f} deg"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--renderer", required=True, help="calibration file or shading[:SEED]")
+    parser.add_argument("--objects", nargs="+", required=True)
+    parser.add_argument("-n", type=int, default=40)
+    parser.add_argument("--seed", type=int, default=7, help="the benchmark's evaluation seed (yoto bench --seed)")
+    parser.add_argument("--variants", nargs="+", default=["default", "images"])
+    parser.add_argument("--errors", action="store_true", help="print the pose errors of pairs the rows disagree on")
+    args = parser.parse_args()
+
+    from yoto.errors import YotoError
+    from yoto.evaluation.bench import BenchConfig, pairs_via_images, resolve_object, simulate_benchmark_pairs
+    from yoto.localize import make_localizer
+    from yoto.pose.pipeline import localize_contacts
+
+    bench = BenchConfig(num_pairs=args.n, seed=args.seed, image_calibration=args.renderer)
+    base = bench.pose_config("full")
+    variants = [parse_variant(text, base) for text in args.variants]
+    localizer = make_localizer("match")
+    for name in args.objects:
+        model = resolve_object(name, None)
+        simulated = simulate_benchmark_pairs(model, bench)
+        rows: dict[str, list[tuple[bool, bool, float, str]]] = {"clean": []}
+        rows.update({label: [] for label, _ in variants})
+        for clean, image in zip(simulated, pairs_via_images(simulated, bench)):
+            for pair, configs in ((clean.pair, [("clean", base)]), (image.pair, variants)):
+                try:
+                    candidates, world, _ = localize_contacts(pair, model, localizer)
+                except YotoError:
+                    for row, _ in configs:
+                        rows[row].append((False, False, 0.0, "failed"))
+                    continue
+                for row, config in configs:
+                    rows[row].append(pose_outcome(pair, model, candidates, world, config))
+        clean_right = sum(outcome[0] for outcome in rows["clean"])
+        first = [outcome[0] for outcome in rows[variants[0][0]]]
+        print(f"{model.name} ({args.renderer}, {args.n} pairs)")
+        for row, outcomes in rows.items():
+            right, among = [outcome[0] for outcome in outcomes], sum(outcome[1] for outcome in outcomes)
+            seconds = np.array([outcome[2] for outcome in outcomes])
+            gained = [i for i, (a, b) in enumerate(zip(first, right)) if b and not a]
+            lost = [i for i, (a, b) in enumerate(zip(first, right)) if a and not b]
+            points = 100.0 * (sum(right) - clean_right) / args.n
+            print(
+                f"  {row:>12}: right {sum(right):2d} ({points:+.1f} points), truth among "
+                f"{among:2d}, pose stage CPU median {1000 * np.median(seconds):.0f} ms, "
+                f"sum {seconds.sum():.1f} s" + ("" if row == "clean" else f"; gained {gained} lost {lost}"),
+                flush=True,
+            )
+        if args.errors:  # every pair whose outcome differs between the rows: each row's pose error
+            for i in range(args.n):
+                if len({outcomes[i][0] for outcomes in rows.values()}) > 1:
+                    print(f"    pair {i}: " + "; ".join(f"{row} {outcomes[i][3]}" for row, outcomes in rows.items()))
+
+
+if __name__ == "__main__":
+    main()
