@@ -103,9 +103,9 @@ class PoseConfig:
     # is decisive (decisive_probability and decisive_log_likelihood; skipping it saves ~35 ms there, docs/pose.md)
     rescue_log_likelihood: float = -12.0  # when, after the search and the family step, the most likely hypothesis
     # still explains the contacts worse than this (hypotheses.log_likelihoods: right poses mostly -2 to -12), the
-    # search's seeds are verified again more widely (`_rescue`): ...
-    rescue_screened: int = 2000  # ... this many by the cheap score get the short refinement ...
-    rescue_refined: int = 80  # ... and the best of this many distinct ones the full one (docs/pose.md, stop 11)
+    # search's seeds that the first pass did not screen are verified too (`_rescue`): ...
+    rescue_screened: int = 1600  # ... the best this many by the cheap score get the short refinement ...
+    rescue_refined: int = 40  # ... and the best of this many distinct ones the full one (docs/pose.md, stop 11)
     seed_distinct_m: float = 0.005  # seeds in one cell of this size (object centroid) ...
     seed_distinct_rad: float = float(np.radians(5.0))  # ... and of this (rotation vector) are screened as one
     search_config: SearchConfig = SearchConfig()
@@ -353,14 +353,16 @@ def _rescue(
     config: PoseConfig,
     run: LocalExecutor = LOCAL,
 ) -> tuple[Refined, Hypotheses]:
-    """The refined poses and their hypotheses, with the search's `seeds` verified again more widely: the best
-    `rescue_screened` by the cheap score get the short refinement and the best of `rescue_refined` distinct ones
-    the full one (with their neighbours, as the first pass), then the family step. For a pair that nothing found
-    so far explains well: the cheap score ranks the seeds near a truth at a rounded edge or rim below the 400
-    screened (their clouds touch the model's smoothed edge imperfectly until refined), and the refinement from
-    the few screened near it can stop short of it (docs/pose.md, stop 11)."""
+    """The refined poses and their hypotheses, with more of the search's `seeds` verified: of those the first pass
+    did not screen (all but the best `screened` by the cheap score), the best `rescue_screened` get the short
+    refinement and the best of `rescue_refined` distinct ones the full one (with their neighbours, as the first
+    pass); then the family step on the joined pool. For a pair that nothing found so far explains well: the cheap
+    score can rank the seeds near the truth below the screened ones (their clouds touch a rounded edge or a rim
+    imperfectly until refined), and the few screened near it can stop short of it (docs/pose.md, stop 11)."""
+    score = run.offsets(field, contacts, seeds, config.calibration, config.refine_config)
+    unscreened = np.sort(np.argsort(-score, kind="stable")[config.screened :])
     more = _verify_and_refine(
-        field, contacts, seeds, symmetry, config, config.rescue_screened, config.rescue_refined, True, run
+        field, contacts, seeds[unscreened], symmetry, config, config.rescue_screened, config.rescue_refined, True, run
     )
     refined = joined(refined, more)
     hypotheses = group_hypotheses(refined, symmetry, config.hypotheses)
