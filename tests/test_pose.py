@@ -326,3 +326,47 @@ def test_the_family_step_runs_only_when_the_search_left_the_first_hypothesis_und
     assert counts["decisive"] == []
     assert len(counts["undecided"]) == 1 and counts["undecided"][0] > 0
     assert counts["decisive, family anyway"] == counts["undecided"]
+
+
+def test_the_rescue_verifies_the_seeds_again_only_when_nothing_explains_the_contacts(builtin_models, monkeypatch):
+    """After the search (and the family step), a first hypothesis that explains the contacts worse than
+    `rescue_log_likelihood` sends the search's seeds through a wider verification (`_rescue`); its poses join the
+    pool, so the first hypothesis can only explain the contacts better. Above the threshold nothing changes."""
+    from yoto.localize import make_localizer
+    from yoto.pose import pipeline
+    from yoto.pose.field import FieldConfig
+    from yoto.simulate.scenarios import PairSimulator
+
+    model = builtin_models["fruit"]
+    pair = PairSimulator(model).pair(seed=11, index=0).pair
+    candidates, world, _ = pipeline.localize_contacts(pair, model, make_localizer("match"))
+    pools = []
+    rescue = pipeline._rescue
+
+    def recorded(field, contacts, seeds, refined, *arguments, **settings):
+        more, hypotheses = rescue(field, contacts, seeds, refined, *arguments, **settings)
+        pools.append((len(seeds), len(refined.T_world_object), len(more.T_world_object)))
+        return more, hypotheses
+
+    monkeypatch.setattr(pipeline, "_rescue", recorded)
+    # A narrow first pass, so that the wider one has something to add.
+    base = PoseConfig(
+        search="always",
+        suggest_next_touch=False,
+        field_config=FieldConfig(cell_m=0.002),
+        screened=8,
+        seeds_refined=2,
+        rescue_screened=60,
+        rescue_refined=12,
+    )
+    estimates = {}
+    for name, threshold in (("never", -np.inf), ("always", np.inf)):
+        pools.clear()
+        config = replace(base, rescue_log_likelihood=threshold)
+        estimates[name] = (pipeline.pose_from_candidates(pair, model, candidates, world, config, "match"), list(pools))
+    (never, never_pools), (always, always_pools) = estimates["never"], estimates["always"]
+    assert never_pools == []
+    assert len(always_pools) == 1
+    seeds, before, after = always_pools[0]
+    assert seeds > 60 and after >= before + 12  # every seed the search found, and at least the new full refinements
+    assert always.hypotheses.log_likelihood[0] >= never.hypotheses.log_likelihood[0] - 1e-9

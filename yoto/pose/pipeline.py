@@ -101,6 +101,11 @@ class PoseConfig:
     # (decisive_probability and decisive_log_likelihood; False saves ~10 ms there, see docs/pose.md)
     family_if_decisive: bool = False  # run the family step even when, after the search, the most likely hypothesis
     # is decisive (decisive_probability and decisive_log_likelihood; skipping it saves ~35 ms there, docs/pose.md)
+    rescue_log_likelihood: float = -12.0  # when, after the search and the family step, the most likely hypothesis
+    # still explains the contacts worse than this (hypotheses.log_likelihoods: right poses mostly -2 to -12), the
+    # search's seeds that the first pass did not screen are verified too (`_rescue`): ...
+    rescue_screened: int = 1600  # ... the best this many by the cheap score get the short refinement ...
+    rescue_refined: int = 40  # ... and the best of this many distinct ones the full one (docs/pose.md, stop 11)
     seed_distinct_m: float = 0.005  # seeds in one cell of this size (object centroid) ...
     seed_distinct_rad: float = float(np.radians(5.0))  # ... and of this (rotation vector) are screened as one
     search_config: SearchConfig = SearchConfig()
@@ -342,6 +347,33 @@ def _fill_family(
     return refined, group_hypotheses(refined, symmetry, config.hypotheses)
 
 
+def _rescue(
+    field: SurfaceField,
+    contacts: list[ContactPoints],
+    seeds: np.ndarray,
+    refined: Refined,
+    symmetry: Symmetry,
+    config: PoseConfig,
+    run: LocalExecutor = LOCAL,
+) -> tuple[Refined, Hypotheses]:
+    """The refined poses and their hypotheses, with more of the search's `seeds` verified: of those the first pass
+    did not screen (all but the best `screened` by the cheap score), the best `rescue_screened` get the short
+    refinement and the best of `rescue_refined` distinct ones the full one (with their neighbours, as the first
+    pass); then the family step on the joined pool. For a pair that nothing found so far explains well: the cheap
+    score can rank the seeds near the truth below the screened ones (their clouds touch a rounded edge or a rim
+    imperfectly until refined), and the few screened near it can stop short of it (docs/pose.md, stop 11)."""
+    score = run.offsets(field, contacts, seeds, config.calibration, config.refine_config)
+    unscreened = np.sort(np.argsort(-score, kind="stable")[config.screened :])
+    more = _verify_and_refine(
+        field, contacts, seeds[unscreened], symmetry, config, config.rescue_screened, config.rescue_refined, True, run
+    )
+    refined = joined(refined, more)
+    hypotheses = group_hypotheses(refined, symmetry, config.hypotheses)
+    if len(hypotheses) > 1:
+        refined, hypotheses = _fill_family(field, contacts, refined, hypotheses, symmetry, config, run)
+    return refined, hypotheses
+
+
 def _best_distinct(refined: Refined, symmetry: Symmetry, config: HypothesisConfig, count: int) -> np.ndarray:
     """Indices of the best pose of each of the `count` most likely distinct hypotheses (`group_hypotheses`).
 
@@ -452,6 +484,15 @@ def _pose_from_candidates(
         and (config.family_if_decisive or not _clear_first(hypotheses, config))
     ):
         refined, hypotheses = _fill_family(field, contacts, refined, hypotheses, model.symmetry, config, run)
+    if (
+        searched
+        and len(seeds)
+        and refined is not None
+        and hypotheses is not None
+        and len(hypotheses)
+        and hypotheses.log_likelihood[0] < config.rescue_log_likelihood
+    ):
+        refined, hypotheses = _rescue(field, contacts, seeds, refined, model.symmetry, config, run)
     if refined is None or hypotheses is None or not len(hypotheses):
         return _closed_form_estimate(pair, model, candidates, world, config, method, tick)
     estimate = _estimate(
