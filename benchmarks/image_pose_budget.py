@@ -12,7 +12,7 @@ thread); with `--errors`, each row's pose error on every pair the rows disagree 
 A variant is `name:key=value,key=value`; keys are `PoseConfig` fields (`screened=1000`), or `SearchConfig`,
 `RefineConfig` and `HypothesisConfig` fields with a `search.`, `refine.` or `hypotheses.` prefix
 (`search.pair_budget=10000000`); `default` is `PoseConfig` as `yoto bench` sets it;
-`images` is what the image rows use (`yoto.sensor.pair_images.image_pose_config`).
+`images` is what the image rows use (`PoseConfig.for_pair` on a pair reconstructed from images).
 
     python benchmarks/image_pose_budget.py --renderer CAL_GAIN.npz -n 40 \\
         --objects ../shared/data/meshes/mug/mug.ply ../shared/data/meshes/cracker_box/cracker_box.ply \\
@@ -32,13 +32,14 @@ NESTED = {"search": "search_config", "refine": "refine_config", "hypotheses": "h
 
 
 def parse_variant(text: str, base):
-    """(name, PoseConfig) of a variant string over `base` (the benchmark's full-stage config)."""
-    from yoto.sensor.pair_images import image_pose_config
-
+    """(name, PoseConfig) of a variant string over `base` (the benchmark's full-stage config). Every variant but
+    `images` runs as written on the image pairs: the pose stage's own image budget (`PoseConfig.image_budget`,
+    which `pose_from_candidates` applies to pairs reconstructed from images) is switched off for it."""
+    if text == "images":
+        return "images", base
+    base = replace(base, image_budget=None)
     if text == "default":
         return "default", base
-    if text == "images":
-        return "images", image_pose_config(base)
     name, _, settings = text.partition(":")
     config = base
     pose_fields = {f.name: f for f in fields(config)}

@@ -441,46 +441,53 @@ def test_benchmark_image_rows_use_the_same_pairs(image_pair, builtin_models):
 
 
 def test_image_pairs_search_and_screen_with_the_image_budget(image_pair, builtin_models, monkeypatch):
-    """A pair reconstructed from images gets the pose stage's image settings (`image_pose_config`: a larger search
-    budget and screening), in `yoto bench --via-images` as in `pose_config_for`; clean pairs keep the defaults."""
+    """A pair reconstructed from images gets the pose stage's image budget (`PoseConfig.for_pair`: a larger search
+    budget and screening), in the pose stage itself and in `yoto bench --via-images`; clean pairs keep the defaults."""
     from dataclasses import replace
 
     import yoto.evaluation.bench as bench
+    import yoto.pose.pipeline as pipeline
     from yoto.errors import YotoError
-    from yoto.pose.pipeline import PoseConfig
-    from yoto.sensor import pair_images
-    from yoto.sensor.pair_images import image_pose_config, pose_config_for
-
-    default = PoseConfig()
-    imaged = image_pose_config(default)
-    assert imaged.search_config.pair_budget == pair_images.IMAGE_PAIR_BUDGET > default.search_config.pair_budget
-    assert imaged.screened == pair_images.IMAGE_SCREENED > default.screened
-    assert imaged.refine_config.screen_points == pair_images.IMAGE_SCREEN_POINTS > default.refine_config.screen_points
-    assert imaged.refine_config.screen_iterations == pair_images.IMAGE_SCREEN_ITERATIONS
-    assert imaged.refine_config.screen_iterations > default.refine_config.screen_iterations
-    # Everything else is the caller's, and a setting already above the image one is never lowered.
-    assert replace(imaged, search_config=default.search_config, screened=400, refine_config=default.refine_config) == (
-        default
-    )
-    larger = replace(default, screened=5000)
-    assert image_pose_config(larger).screened == 5000
+    from yoto.pose.pipeline import ImageBudget, PoseConfig
 
     config = bench.BenchConfig(num_pairs=1, seed=3, image_calibration=str(image_pair["calibration"]))
     clean = bench.simulate_benchmark_pairs(builtin_models["fruit"], config)
     through_images = bench.pairs_via_images(clean, config)
-    assert pose_config_for(clean[0].pair, default) is default
-    assert pose_config_for(through_images[0].pair, default) == imaged
+    default, budget = PoseConfig(), ImageBudget()
+    assert default.for_pair(clean[0].pair) is default
+    imaged = default.for_pair(through_images[0].pair)
+    assert imaged.search_config.pair_budget == budget.pair_budget > default.search_config.pair_budget
+    assert imaged.screened == budget.screened > default.screened
+    assert imaged.refine_config.screen_points == budget.screen_points > default.refine_config.screen_points
+    assert imaged.refine_config.screen_iterations == budget.screen_iterations > default.refine_config.screen_iterations
+    # Everything else is the caller's, a setting already above the image one is never lowered, twice is once, and
+    # without a budget image pairs run as clean ones.
+    assert replace(imaged, search_config=default.search_config, screened=400, refine_config=default.refine_config) == (
+        default
+    )
+    assert replace(default, screened=5000).for_pair(through_images[0].pair).screened == 5000
+    assert imaged.for_pair(through_images[0].pair) == imaged
+    unbudgeted = replace(default, image_budget=None)
+    assert unbudgeted.for_pair(through_images[0].pair) is unbudgeted
 
+    # The pose stage applies it by itself (so `yoto pose` on image sides does), and the bench passes the same config.
     seen = []
 
-    def record(pair, model, candidates, world, pose_config, method, helper=None):
+    def record(pair, model, candidates, world, pose_config, *args, **kwargs):
         seen.append(pose_config)
         raise YotoError("recorded")
 
+    monkeypatch.setattr(pipeline, "_pose_from_candidates", record)
+    for pairs in (clean, through_images):
+        with pytest.raises(YotoError):
+            pipeline.pose_from_candidates(pairs[0].pair, builtin_models["fruit"], {}, {}, default)
+    assert seen == [default, imaged]
+    seen.clear()
     monkeypatch.setattr(bench, "localize_contacts", lambda *args: ({}, {}, {}))
     monkeypatch.setattr(bench, "pose_from_candidates", record)
     for pairs in (clean, through_images):
         spec = bench.MethodSpec("match", "match", via_images=pairs is through_images)
         model = builtin_models["fruit"]
         bench._evaluate_pairs(spec, model, model, None, pairs, None, replace(config, pose_stages=("full",)), None)
-    assert seen == [config.pose_config("full"), image_pose_config(config.pose_config("full"))]
+    full = config.pose_config("full")
+    assert seen == [full, full.for_pair(through_images[0].pair)] and seen[1] != full

@@ -51,7 +51,6 @@ from yoto.pose.pipeline import (
 )
 from yoto.pose.refine import CalibrationPrior
 from yoto.provenance import git_commit, run_info
-from yoto.sensor.pair_images import pose_config_for
 from yoto.workspace import object_model_path
 
 RIGHT_MM, RIGHT_DEG = 5.0, 5.0  # a pose is right within 5 mm and 5 deg (SPEC)
@@ -212,8 +211,9 @@ def _evaluate_pairs(
     for number, simulated in enumerate(tqdm(simulated_pairs, desc=f"{model.name}: {spec.label}", unit="pair")):
         pair = simulated.pair
         for stage, result in results.items():
-            # Pairs through images search with the image contacts' budget (`pose_config_for`), as `yoto pose` does.
-            pose_config = pose_config_for(pair, config.pose_config(stage))
+            # Pairs through images search with the image contacts' budget (`PoseConfig.for_pair`), as the pose stage
+            # does by itself; here too for the truth's refinement and the re-touch below.
+            pose_config = config.pose_config(stage).for_pair(pair)
             try:
                 if stage == config.pose_stages[0]:
                     candidates, world, latency = localize_contacts(pair, localize_model, localizer, helper)

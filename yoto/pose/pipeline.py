@@ -74,6 +74,20 @@ from yoto.registration import one_blas_thread
 
 
 @dataclass(frozen=True)
+class ImageBudget:
+    """The search and screening of a pair whose contacts were reconstructed from GelSight images (docs/sensor.md,
+    "The pose stage's budget for image contacts"). A reconstructed contact's shape is off where a clean cloud's is
+    not (box edges and rims: 46-110 um after a plane and a depth scale, against 23 um typical), so the truth's
+    location pairs often lie in the sets the clean budget thins, and its seeds rank low by the cheap score: more
+    location pairs, more seeds screened, on more points with more iterations. Settings already larger are kept."""
+
+    pair_budget: int = 10_000_000  # SearchConfig.pair_budget (clean: 4 M)
+    screened: int = 2000  # PoseConfig.screened (clean: 400)
+    screen_points: int = 48  # RefineConfig.screen_points (clean: 24)
+    screen_iterations: int = 5  # RefineConfig.screen_iterations (clean: 3)
+
+
+@dataclass(frozen=True)
 class PoseConfig:
     """How the pose stage turns ranked contact candidates into pose hypotheses."""
 
@@ -115,6 +129,27 @@ class PoseConfig:
     next_touch: NextTouchConfig = NextTouchConfig()
     suggest_next_touch: bool = True  # compute next_touch when the pose is ambiguous
     confidence_model: str | None = None  # confidence parameters file (None: the ones shipped with YOTO)
+    image_budget: ImageBudget | None = ImageBudget()  # pairs reconstructed from images search and screen wider
+    # (`for_pair`; None: as clean clouds)
+
+    def for_pair(self, pair: ContactPair) -> PoseConfig:
+        """This config for `pair`: with the search and screening raised to `image_budget` when a side was
+        reconstructed from a GelSight image (its depth scale is uncertain: `depth_scale_sigma` > 0), else itself.
+        Clean clouds keep the defaults and their speed; applying it twice changes nothing."""
+        budget = self.image_budget
+        if budget is None or not any(pair.contact(side).depth_scale_sigma > 0.0 for side in SIDES):
+            return self
+        search, refine = self.search_config, self.refine_config
+        return replace(
+            self,
+            search_config=replace(search, pair_budget=max(search.pair_budget, budget.pair_budget)),
+            screened=max(self.screened, budget.screened),
+            refine_config=replace(
+                refine,
+                screen_points=max(refine.screen_points, budget.screen_points),
+                screen_iterations=max(refine.screen_iterations, budget.screen_iterations),
+            ),
+        )
 
 
 PAPER = PoseConfig(joint_selection=False, verify=False, search="never", suggest_next_touch=False)
@@ -426,7 +461,8 @@ def pose_from_candidates(
     """The pose stage proper, from localized candidates. `latency_ms` holds `pose` (this stage's own time) and
     `next_touch` when one was computed. BLAS runs on one thread (`registration.one_blas_thread`). With `helper`
     (a `LocalizerProcess`), half of each large batch of poses is scored and refined there (`executor`): the same
-    numbers, bitwise, on two cores."""
+    numbers, bitwise, on two cores. A pair reconstructed from images runs with `config.for_pair(pair)`."""
+    config = config.for_pair(pair)
     run = LOCAL if helper is None else SplitExecutor(helper, model, config.field_config)
     with one_blas_thread():
         estimate = _pose_from_candidates(pair, model, candidates, world, config, method, confidence_model, run)
