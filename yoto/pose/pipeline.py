@@ -397,11 +397,12 @@ def _rescue(
     run: LocalExecutor = LOCAL,
 ) -> tuple[Refined, Hypotheses]:
     """The refined poses and their hypotheses, with more of the search's `seeds` verified: of those the first pass
-    did not screen (all but the best `screened` by the cheap score), the best `rescue_screened` get the short
-    refinement and the best of `rescue_refined` distinct ones the full one (with their neighbours, as the first
-    pass); then the family step on the joined pool. For a pair that nothing found so far explains well: the cheap
-    score can rank the seeds near the truth below the screened ones (their clouds touch a rounded edge or a rim
-    imperfectly until refined), and the few screened near it can stop short of it (docs/pose.md, stop 11)."""
+    did not screen (all but the best `screened` by the cheap `score`, the first pass's), the best `rescue_screened`
+    get the short refinement (on `rescue_screen_points` per contact) and the best of `rescue_refined` distinct ones
+    the full one (with their neighbours, as the first pass); then the family step on the joined pool. For a pair
+    that nothing found so far explains well: the cheap score can rank the seeds near the truth below the screened
+    ones (their clouds touch a rounded edge or a rim imperfectly until refined), and the few screened near it can
+    stop short of it (docs/pose.md, stop 11)."""
     unscreened = np.sort(np.argsort(-score, kind="stable")[config.screened :])
     screening = replace(config.refine_config, screen_points=config.rescue_screen_points)
     more = _verify_and_refine(
