@@ -343,12 +343,23 @@ def test_the_rescue_verifies_the_seeds_again_only_when_nothing_explains_the_cont
     pools = []
     rescue = pipeline._rescue
 
-    def recorded(field, contacts, seeds, refined, *arguments, **settings):
-        more, hypotheses = rescue(field, contacts, seeds, refined, *arguments, **settings)
+    def recorded(field, contacts, seeds, score, refined, symmetry, config, *arguments, **settings):
+        # The seeds' cheap scores come from the first pass, not computed again: they must be the seeds' own.
+        fresh = pipeline.LOCAL.offsets(field, contacts, seeds, config.calibration, config.refine_config)
+        assert np.array_equal(score, fresh)
+        more, hypotheses = rescue(field, contacts, seeds, score, refined, symmetry, config, *arguments, **settings)
         pools.append((len(seeds), len(refined.T_world_object), len(more.T_world_object)))
         return more, hypotheses
 
     monkeypatch.setattr(pipeline, "_rescue", recorded)
+    screens = []  # (seeds screened, points per contact of the short refinement) of each verification
+    verify = pipeline._verify_and_refine
+
+    def verified(field, contacts, seeds, symmetry, config, screened, *arguments, **settings):
+        screens.append((screened, config.refine_config.screen_points))
+        return verify(field, contacts, seeds, symmetry, config, screened, *arguments, **settings)
+
+    monkeypatch.setattr(pipeline, "_verify_and_refine", verified)
     # A narrow first pass, so that the wider one has something to add.
     base = PoseConfig(
         search="always",
@@ -358,6 +369,7 @@ def test_the_rescue_verifies_the_seeds_again_only_when_nothing_explains_the_cont
         seeds_refined=2,
         rescue_screened=60,
         rescue_refined=12,
+        rescue_screen_points=6,
     )
     estimates = {}
     for name, threshold in (("never", -np.inf), ("always", np.inf)):
@@ -370,3 +382,6 @@ def test_the_rescue_verifies_the_seeds_again_only_when_nothing_explains_the_cont
     seeds, before, after = always_pools[0]
     assert seeds > 60 and after >= before + 12  # every seed the search found, and at least the new full refinements
     assert always.hypotheses.log_likelihood[0] >= never.hypotheses.log_likelihood[0] - 1e-9
+    # Only the rescue's own verification screens on `rescue_screen_points`; the first pass keeps refine_config's.
+    assert (60, 6) in screens and (8, base.refine_config.screen_points) in screens
+    assert all(points == base.refine_config.screen_points for screened, points in screens if screened != 60)

@@ -115,10 +115,12 @@ class PoseConfig:
     # (decisive_probability and decisive_log_likelihood; False saves ~10 ms there, see docs/pose.md)
     family_if_decisive: bool = False  # run the family step even when, after the search, the most likely hypothesis
     # is decisive (decisive_probability and decisive_log_likelihood; skipping it saves ~35 ms there, docs/pose.md)
-    rescue_log_likelihood: float = -12.0  # when, after the search and the family step, the most likely hypothesis
+    rescue_log_likelihood: float = -14.0  # when, after the search and the family step, the most likely hypothesis
     # still explains the contacts worse than this (hypotheses.log_likelihoods: right poses mostly -2 to -12), the
     # search's seeds that the first pass did not screen are verified too (`_rescue`): ...
-    rescue_screened: int = 1600  # ... the best this many by the cheap score get the short refinement ...
+    rescue_screened: int = 1600  # ... the best this many by the cheap score (the first pass's) get the short
+    # refinement, on this many points per contact (half the first pass's refine_config.screen_points) ...
+    rescue_screen_points: int = 12
     rescue_refined: int = 40  # ... and the best of this many distinct ones the full one (docs/pose.md, stop 11)
     seed_distinct_m: float = 0.005  # seeds in one cell of this size (object centroid) ...
     seed_distinct_rad: float = float(np.radians(5.0))  # ... and of this (rotation vector) are screened as one
@@ -324,6 +326,7 @@ def _verify_and_refine(
     refined: int,
     neighbours: bool = False,
     run: LocalExecutor = LOCAL,
+    score: np.ndarray | None = None,
 ) -> Refined:
     """Screen the seeds and refine the best distinct ones.
 
@@ -332,10 +335,11 @@ def _verify_and_refine(
     most likely distinct hypotheses among those is refined in full; with `neighbours`, the neighbours of the most
     likely of them (`hypotheses.neighbour_poses`) are screened the same way (most land back on a hypothesis
     already found), and the best of `neighbours_refined` distinct ones refined in full. `run` computes the batches
-    (`executor.SplitExecutor`: half of each in a helper process).
+    (`executor.SplitExecutor`: half of each in a helper process). `score`: the seeds' cheap scores, when known.
     """
     refine = config.refine_config
-    score = run.offsets(field, contacts, seeds, config.calibration, refine)
+    if score is None:
+        score = run.offsets(field, contacts, seeds, config.calibration, refine)
     chosen = np.argsort(-score, kind="stable")[:screened]
     short = replace(refine, iterations=refine.screen_iterations)
     screening = thinned(contacts, refine.screen_points, refine.screen_free_points)
@@ -386,21 +390,32 @@ def _rescue(
     field: SurfaceField,
     contacts: list[ContactPoints],
     seeds: np.ndarray,
+    score: np.ndarray,
     refined: Refined,
     symmetry: Symmetry,
     config: PoseConfig,
     run: LocalExecutor = LOCAL,
 ) -> tuple[Refined, Hypotheses]:
     """The refined poses and their hypotheses, with more of the search's `seeds` verified: of those the first pass
-    did not screen (all but the best `screened` by the cheap score), the best `rescue_screened` get the short
-    refinement and the best of `rescue_refined` distinct ones the full one (with their neighbours, as the first
-    pass); then the family step on the joined pool. For a pair that nothing found so far explains well: the cheap
-    score can rank the seeds near the truth below the screened ones (their clouds touch a rounded edge or a rim
-    imperfectly until refined), and the few screened near it can stop short of it (docs/pose.md, stop 11)."""
-    score = run.offsets(field, contacts, seeds, config.calibration, config.refine_config)
+    did not screen (all but the best `screened` by the cheap `score`, the first pass's), the best `rescue_screened`
+    get the short refinement (on `rescue_screen_points` per contact) and the best of `rescue_refined` distinct ones
+    the full one (with their neighbours, as the first pass); then the family step on the joined pool. For a pair
+    that nothing found so far explains well: the cheap score can rank the seeds near the truth below the screened
+    ones (their clouds touch a rounded edge or a rim imperfectly until refined), and the few screened near it can
+    stop short of it (docs/pose.md, stop 11)."""
     unscreened = np.sort(np.argsort(-score, kind="stable")[config.screened :])
+    screening = replace(config.refine_config, screen_points=config.rescue_screen_points)
     more = _verify_and_refine(
-        field, contacts, seeds[unscreened], symmetry, config, config.rescue_screened, config.rescue_refined, True, run
+        field,
+        contacts,
+        seeds[unscreened],
+        symmetry,
+        replace(config, refine_config=screening),
+        config.rescue_screened,
+        config.rescue_refined,
+        True,
+        run,
+        score[unscreened],
     )
     refined = joined(refined, more)
     hypotheses = group_hypotheses(refined, symmetry, config.hypotheses)
@@ -502,14 +517,18 @@ def _pose_from_candidates(
                 if searched
                 else (config.candidates_screened, config.candidates_refined)
             )
-            refined = _verify_and_refine(field, contacts, seeds, model.symmetry, config, screened, kept, searched, run)
+            score = run.offsets(field, contacts, seeds, config.calibration, config.refine_config)
+            refined = _verify_and_refine(
+                field, contacts, seeds, model.symmetry, config, screened, kept, searched, run, score
+            )
     hypotheses = None if refined is None else group_hypotheses(refined, model.symmetry, config.hypotheses)
     if config.search == "auto" and not _decisive(hypotheses, shapes, config):
         searched = True
         seeds = _seeds(model, world, shapes, candidates, config, True, run)
         if len(seeds):
+            score = run.offsets(field, contacts, seeds, config.calibration, config.refine_config)
             refined = _verify_and_refine(
-                field, contacts, seeds, model.symmetry, config, config.screened, config.seeds_refined, True, run
+                field, contacts, seeds, model.symmetry, config, config.screened, config.seeds_refined, True, run, score
             )
             hypotheses = group_hypotheses(refined, model.symmetry, config.hypotheses)
     if (
@@ -528,7 +547,7 @@ def _pose_from_candidates(
         and len(hypotheses)
         and hypotheses.log_likelihood[0] < config.rescue_log_likelihood
     ):
-        refined, hypotheses = _rescue(field, contacts, seeds, refined, model.symmetry, config, run)
+        refined, hypotheses = _rescue(field, contacts, seeds, score, refined, model.symmetry, config, run)
     if refined is None or hypotheses is None or not len(hypotheses):
         return _closed_form_estimate(pair, model, candidates, world, config, method, tick)
     estimate = _estimate(
