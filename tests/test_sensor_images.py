@@ -482,6 +482,19 @@ def test_image_pairs_search_and_screen_with_the_image_budget(image_pair, builtin
         with pytest.raises(YotoError):
             pipeline.pose_from_candidates(pairs[0].pair, builtin_models["fruit"], {}, {}, default)
     assert seen == [default, imaged]
+    # ... and so does the re-touch's fusion (`fuse_next_touch`, `yoto pose`'s re-touch): its clouds' screening settings.
+    screening = []
+
+    def record_clouds(*args, **kwargs):
+        screening.append(args[4])  # contact_points' refine config
+        raise YotoError("recorded")
+
+    monkeypatch.setattr(pipeline, "contact_points", record_clouds)
+    for pairs in (clean, through_images):
+        pair = pairs[0].pair
+        with pytest.raises(YotoError):
+            pipeline.fuse_next_touch(pair, builtin_models["fruit"], None, pair.left, "left", default)
+    assert screening == [default.refine_config, imaged.refine_config]
     seen.clear()
     monkeypatch.setattr(bench, "localize_contacts", lambda *args: ({}, {}, {}))
     monkeypatch.setattr(bench, "pose_from_candidates", record)

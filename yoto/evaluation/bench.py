@@ -211,8 +211,8 @@ def _evaluate_pairs(
     for number, simulated in enumerate(tqdm(simulated_pairs, desc=f"{model.name}: {spec.label}", unit="pair")):
         pair = simulated.pair
         for stage, result in results.items():
-            # Pairs through images search with the image contacts' budget (`PoseConfig.for_pair`), as the pose stage
-            # does by itself; here too for the truth's refinement and the re-touch below.
+            # Pairs through images search with the image contacts' budget (`PoseConfig.for_pair`); the pose stage
+            # (first estimate and re-touch) applies it by itself, so this only keeps the recorded config the one run.
             pose_config = config.pose_config(stage).for_pair(pair)
             try:
                 if stage == config.pose_stages[0]:

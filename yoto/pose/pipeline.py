@@ -681,8 +681,10 @@ def fuse_next_touch(
     sensor's contacts share its calibration error) and regrouped. With a `localizer`, the new touch and the contact
     that stayed are also a pair of their own: the seeds of its joint search join the previous hypotheses and all
     are verified with all the clouds, so a truth that the first pair missed can be found. `earlier` holds the
-    touches (contact, sensor) fused into `estimate` before this one, in order: a sequence of touches."""
+    touches (contact, sensor) fused into `estimate` before this one, in order: a sequence of touches. A pair
+    reconstructed from images runs with `config.for_pair(pair)`, as its first estimate did."""
     tick = time.perf_counter()
+    config = config.for_pair(pair)
     field = surface_field(model, config.field_config)
     spacing = model.point_spacing_m
     touches = [*((pair.contact(side), side) for side in SIDES), *earlier, (touch, sensor)]
