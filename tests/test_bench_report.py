@@ -64,9 +64,14 @@ def test_both_cores_gives_the_same_poses_and_counts_both_contacts_at_once(tmp_pa
     # The same poses, hypotheses and confidences, bit for bit (the helper computes half of each large batch).
     for key in ("translation_mm", "rotation_deg", "confidence", "hypotheses", "truth_in_hypotheses"):
         assert results["both"][key] == results["one"][key]
-    # A pose's latency is both contacts at once plus the pose stage: less than the two contacts one after the
-    # other would add to it (each contact's own time is measured where it ran).
-    both = results["both"]
-    contacts, stage, pose = (np.array(both[k]) for k in ("contact_latency_ms", "pose_stage_ms", "pose_latency_ms"))
-    assert len(pose) == 2 and np.all(pose - stage < contacts[0::2] + contacts[1::2])
+    # A pose's latency is the pair's localization plus the pose stage: one core adds the two contacts' own times;
+    # with both cores it is the time of both at once, which encloses this process's (left) contact. (Not asserted:
+    # that at once is faster than the sum, a wall-time race a loaded machine can lose.)
+    for out, at_once in (("one", False), ("both", True)):
+        timed = results[out]
+        contacts, stage, pose = (np.array(timed[k]) for k in ("contact_latency_ms", "pose_stage_ms", "pose_latency_ms"))
+        localization, summed = pose - stage, contacts[0::2] + contacts[1::2]
+        assert len(pose) == 2
+        assert np.allclose(localization, summed, rtol=0, atol=1e-6) != at_once
+        assert np.all(localization >= contacts[0::2] - 1e-6)
     assert "both cores" in (tmp_path / "both" / "bench.md").read_text()
