@@ -7,12 +7,17 @@ clouds and once through rendered GelSight images (`--renderer`: a calibration fi
 on the clean pairs under the defaults. It prints per object and variant: poses right (within 5 mm and 5 deg) of N,
 the difference to the clean clouds in percentage points, the truth among the hypotheses, the pairs gained and lost
 against the first variant, and the pose stage's CPU seconds (median and sum over the pairs: run it with one BLAS
-thread); with `--errors`, each row's pose error on every pair the rows disagree on.
+thread); with `--errors`, each row's pose error on every pair the rows disagree on. With `--cache DIR`, each
+object's pairs and localizations (clean and through images) are kept in DIR as a pickle and reused by later runs
+(only the pose stage runs again: a variant costs seconds per object); `benchmarks/image_rescue.py` reads them.
+Run it from the repository root with `PYTHONPATH=$PWD` to measure the working tree's `yoto`.
 
 A variant is `name:key=value,key=value`; keys are `PoseConfig` fields (`screened=1000`), or `SearchConfig`,
-`RefineConfig` and `HypothesisConfig` fields with a `search.`, `refine.` or `hypotheses.` prefix
+`RefineConfig`, `HypothesisConfig` and `CalibrationPrior` fields with a `search.`, `refine.`, `hypotheses.` or
+`calibration.` prefix
 (`search.pair_budget=10000000`); `default` is `PoseConfig` as `yoto bench` sets it;
-`images` is what the image rows use (`PoseConfig.for_pair` on a pair reconstructed from images).
+`images` is what the image rows use (`PoseConfig.for_pair` on a pair reconstructed from images), and
+`images+NAME:key=value` that with settings changed (`images+r10:rescue_log_likelihood=-10`).
 
     python benchmarks/image_pose_budget.py --renderer CAL_GAIN.npz -n 40 \\
         --objects ../shared/data/meshes/mug/mug.ply ../shared/data/meshes/cracker_box/cracker_box.ply \\
@@ -22,25 +27,34 @@ A variant is `name:key=value,key=value`; keys are `PoseConfig` fields (`screened
 from __future__ import annotations
 
 import argparse
+import pickle
 import time
 from dataclasses import fields, replace
+from pathlib import Path
 
 import numpy as np
 
 # Variant key prefixes -> the PoseConfig field holding that config.
-NESTED = {"search": "search_config", "refine": "refine_config", "hypotheses": "hypotheses"}
+NESTED = {
+    "search": "search_config",
+    "refine": "refine_config",
+    "hypotheses": "hypotheses",
+    "calibration": "calibration",
+}
 
 
 def parse_variant(text: str, base):
-    """(name, PoseConfig) of a variant string over `base` (the benchmark's full-stage config). Every variant but
-    `images` runs as written on the image pairs: the pose stage's own image budget (`PoseConfig.image_budget`,
-    which `pose_from_candidates` applies to pairs reconstructed from images) is switched off for it."""
+    """(name, PoseConfig) of a variant string over `base` (the benchmark's full-stage config). A variant named
+    `images` or `images+...` keeps the pose stage's own image budget (`PoseConfig.image_budget`, which
+    `pose_from_candidates` applies to pairs reconstructed from images) under its settings; every other variant
+    runs as written on the image pairs, with that budget switched off."""
     if text == "images":
         return "images", base
-    base = replace(base, image_budget=None)
+    name, _, settings = text.partition(":")
+    if name != "images" and not name.startswith("images+"):
+        base = replace(base, image_budget=None)
     if text == "default":
         return "default", base
-    name, _, settings = text.partition(":")
     config = base
     pose_fields = {f.name: f for f in fields(config)}
     for item in filter(None, settings.split(",")):
@@ -89,6 +103,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=7, help="the benchmark's evaluation seed (yoto bench --seed)")
     parser.add_argument("--variants", nargs="+", default=["default", "images"])
     parser.add_argument("--errors", action="store_true", help="print the pose errors of pairs the rows disagree on")
+    parser.add_argument(
+        "--cache", help="folder to keep each object's pairs and localizations in (pickles; reused when present)"
+    )
     args = parser.parse_args()
 
     from yoto.errors import YotoError
@@ -100,21 +117,43 @@ def main() -> None:
     base = bench.pose_config("full")
     variants = [parse_variant(text, base) for text in args.variants]
     localizer = make_localizer("match")
+
+    def localized(pair, model):
+        """(pair, candidates, world) of one pair, or (pair, None, None) where the localizer refuses it."""
+        try:
+            candidates, world, _ = localize_contacts(pair, model, localizer)
+        except YotoError:
+            return pair, None, None
+        return pair, candidates, world
+
     for name in args.objects:
         model = resolve_object(name, None)
-        simulated = simulate_benchmark_pairs(model, bench)
+        cache = None
+        if args.cache:
+            renderer = Path(args.renderer).stem.replace(":", "_")
+            cache = Path(args.cache) / f"{model.name}_{renderer}_seed{args.seed}_n{args.n}.pkl"
+        if cache is not None and cache.exists():
+            with open(cache, "rb") as file:
+                cases = pickle.load(file)
+        else:
+            simulated = simulate_benchmark_pairs(model, bench)
+            cases = [
+                (localized(clean.pair, model), localized(image.pair, model))
+                for clean, image in zip(simulated, pairs_via_images(simulated, bench))
+            ]
+            if cache is not None:
+                cache.parent.mkdir(parents=True, exist_ok=True)
+                with open(cache, "wb") as file:
+                    pickle.dump(cases, file)
         rows: dict[str, list[tuple[bool, bool, float, str]]] = {"clean": []}
         rows.update({label: [] for label, _ in variants})
-        for clean, image in zip(simulated, pairs_via_images(simulated, bench)):
-            for pair, configs in ((clean.pair, [("clean", base)]), (image.pair, variants)):
-                try:
-                    candidates, world, _ = localize_contacts(pair, model, localizer)
-                except YotoError:
-                    for row, _ in configs:
-                        rows[row].append((False, False, 0.0, "failed"))
-                    continue
+        for clean_case, image_case in cases:
+            for (pair, candidates, world), configs in ((clean_case, [("clean", base)]), (image_case, variants)):
                 for row, config in configs:
-                    rows[row].append(pose_outcome(pair, model, candidates, world, config))
+                    if candidates is None:
+                        rows[row].append((False, False, 0.0, "failed"))
+                    else:
+                        rows[row].append(pose_outcome(pair, model, candidates, world, config))
         clean_right = sum(outcome[0] for outcome in rows["clean"])
         first = [outcome[0] for outcome in rows[variants[0][0]]]
         print(f"{model.name} ({args.renderer}, {args.n} pairs)")
