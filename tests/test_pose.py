@@ -17,6 +17,7 @@ from yoto.geometry import (
     random_rotations,
     rotation_about_axis,
     rotation_between,
+    se3_exp,
     transform_points,
 )
 from yoto.metrics import pose_errors
@@ -236,6 +237,32 @@ def test_refined_log_likelihood_tells_the_truth_from_a_wrong_pose(builtin_models
     assert found  # the oracle's pose is right on at least one of them
     assert np.all(np.abs(found) < 5.0)  # refining from the truth lands where the pose stage did
     assert np.all(np.array(away) < np.array(truth) - 100.0)
+
+
+def test_true_corrections_bring_the_reported_sensors_onto_the_true_ones(builtin_models):
+    """The benchmark refines a missing truth from its true sensor corrections: under them (and the true pose) both
+    clouds lie on the surface as the simulation pressed them, under none they sit off it by the calibration error."""
+    from yoto.pose.field import surface_field
+    from yoto.pose.pipeline import refined_log_likelihood, true_corrections
+    from yoto.pose.refine import evaluate_fit
+    from yoto.simulate.scenarios import PairSimulator, ScenarioConfig
+
+    model = builtin_models["figurine"]
+    scenario = ScenarioConfig(calibration_translation_m=0.001, calibration_rotation_rad=float(np.radians(1.0)))
+    simulated = PairSimulator(model, scenario).pair(seed=11, index=0)
+    pair, config = simulated.pair, PoseConfig(suggest_next_touch=False)
+    corrections = true_corrections(pair, simulated.T_world_sensor_true)
+    for side, correction in zip(("left", "right"), corrections):
+        moved = pair.contact(side).T_world_sensor @ se3_exp(correction)
+        assert np.allclose(moved, simulated.T_world_sensor_true[side], atol=1e-9)
+    contacts = _pair_clouds(pair, model, config)
+    T_true = simulated.T_world_object[None]
+    field = surface_field(model, config.field_config)
+    rms_true, _, _ = evaluate_fit(field, contacts, T_true, corrections[None], config.refine_config)
+    rms_none, _, _ = evaluate_fit(field, contacts, T_true, np.zeros((1, 2, 6)), config.refine_config)
+    assert rms_true.max() < 60e-6 < rms_none.max()
+    from_truth = refined_log_likelihood(pair, model, simulated.T_world_object, config, corrections)
+    assert from_truth > -15.0  # a right pose's log-likelihood (right poses mostly fit at -2 to -12)
 
 
 def test_strict_seed_score_counts_clouds_that_touch_nothing_as_the_worst_fit(builtin_models, tmp_path, rng):

@@ -392,10 +392,12 @@ def test_pose_cli_fuses_a_retouch_read_from_files(box, rng, tmp_path, capsys):
     assert "with the left sensor's touch" in capsys.readouterr().out
     result = json.loads((tmp_path / "out" / "pair_0000.retouch.pose.json").read_text())
     assert result["retouch"]["sensor"] == "left" and "error" in result
-    T_fused = np.array(result["T_world_object"]) @ box.T_mesh_object
+    # Among the result's hypotheses (y stays free); the box turned a quarter about z, the touch on a side face,
+    # explains the three contacts as well (a log-likelihood 0.1-0.9 apart), so the first may be either.
+    T_fused = np.array([h["T_world_object"] for h in result["hypotheses"]]) @ box.T_mesh_object
     relative = invert_transform(T) @ T_fused
-    _, rotation = pose_distances(T_fused[None], T, box.symmetry)
-    assert np.abs(relative[[0, 2], 3]).max() < 0.002 and rotation[0] < np.radians(1.0)  # y stays free
+    _, rotation = pose_distances(T_fused, T, box.symmetry)
+    assert np.any((np.abs(relative[:, [0, 2], 3]).max(axis=1) < 0.002) & (rotation < np.radians(1.0)))
     assert np.allclose(result["hypotheses"][0]["T_world_object"], result["T_world_object"])
 
 
@@ -414,7 +416,8 @@ def test_a_sequence_of_touches_resolves_what_one_leaves_free(box, rng):
     first = fuse_next_touch(pair, box, estimate, touch, "left", config)
     slid = invert_transform(T) @ first.hypotheses.T_world_object
     assert first.ambiguous and np.abs(slid[:, 0, 3]).max() < 0.002  # x fixed, y not
-    assert np.abs(slid[:, 1, 3]).max() > 0.008
+    assert np.abs(slid[:, 1, 3]).max() > 0.004  # a hypothesis slid along y remains (where along the free y the
+    # refinements leave it, 5-10 mm, moves with the field's interpolation: 0.5 mm cells 5.0 mm, 1 mm cells over 8)
     side, _ = _press(box, np.array([0.0, 0.04, 0.0]), np.array([0.0, 1.0, 0.0]), T, whole_pad=True)
     second = fuse_next_touch(pair, box, first, side, "right", config, earlier=((touch, "left"),))
     relative = invert_transform(T) @ second.T_world_object

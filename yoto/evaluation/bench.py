@@ -48,6 +48,7 @@ from yoto.pose.pipeline import (
     localize_contacts,
     pose_from_candidates,
     refined_log_likelihood,
+    true_corrections,
 )
 from yoto.pose.refine import CalibrationPrior
 from yoto.provenance import git_commit, run_info
@@ -248,7 +249,13 @@ def _evaluate_pairs(
             )
             if pose_config.verify and not result.truth_in_hypotheses[-1]:
                 T_true_localize = pair.T_world_mesh_true @ localize_model.T_mesh_object
-                truth = refined_log_likelihood(pair, localize_model, T_true_localize, pose_config)
+                truth = refined_log_likelihood(
+                    pair,
+                    localize_model,
+                    T_true_localize,
+                    pose_config,
+                    true_corrections(pair, simulated.T_world_sensor_true),
+                )
                 result.missed_truth_better.append(truth > float(estimate.hypotheses.log_likelihood[0]))
             status, after = "-", [right, right]
             if estimate.next_touch is not None and simulator is not None:
@@ -642,7 +649,8 @@ def format_markdown(report: dict[str, Any]) -> str:
     lines += table(full_labels, trust)
     lines += [
         "",
-        "Truth not among the hypotheses, why: the true pose, refined as a hypothesis would be, explains the contacts "
+        "Truth not among the hypotheses, why: the true pose, refined as a hypothesis would be (its sensor corrections "
+        "starting from the true ones), explains the contacts "
         "better than the first hypothesis (the verification never reached it) / worse (the score prefers a wrong "
         "pose: model and contacts disagree there).",
         "",
