@@ -151,12 +151,14 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
     if args.correction:  # CorrectionConfig fields overridden, NAME=VALUE (a Python literal; pad_error.NAME too)
         correction = config.correction
         for item in args.correction:
-            name, value = item.split("=", 1)
-            if name.startswith("pad_error."):
-                pad = dataclasses.replace(correction.pad_error, **{name.split(".", 1)[1]: ast.literal_eval(value)})
-                correction = dataclasses.replace(correction, pad_error=pad)
+            field_name, value = item.split("=", 1)
+            if field_name.startswith("pad_error."):
+                changed = {field_name.split(".", 1)[1]: ast.literal_eval(value)}
+                correction = dataclasses.replace(
+                    correction, pad_error=dataclasses.replace(correction.pad_error, **changed)
+                )
             else:
-                correction = dataclasses.replace(correction, **{name: ast.literal_eval(value)})
+                correction = dataclasses.replace(correction, **{field_name: ast.literal_eval(value)})
         config = dataclasses.replace(config, correction=correction)
     started = time.process_time()
     result = track(touch, trajectory.streams, model, tactile_streams(trajectory), config)
