@@ -328,3 +328,30 @@ def test_the_final_drift_is_the_offset_the_motion_left_without_the_outputs_jitte
     assert final_off[:, 0].max() < 0.07 and final_off[:, 1].max() < 0.04
     assert per_frame_off.mean(axis=0)[0] > 2 * final_off.mean(axis=0)[0]
     assert per_frame_off.mean(axis=0)[1] > 2 * final_off.mean(axis=0)[1]
+
+
+def test_benchmark_report_gives_the_drifts_growth_with_path_length_and_its_standard_error():
+    """Two touches tracked at 100 and 200 mm: their final drifts grow by 0.1 and 0.3 deg, so the growth per 100 mm is
+    0.2 +- 0.1 deg (mean, standard error); a pair with a wrong touch at either length is left out."""
+    from yoto.tracking.bench import TrackBenchConfig, build_report, format_markdown
+
+    def record(final_deg: float, right: bool = True) -> dict:
+        entry = _bench_record(0.1, 0.2, right)
+        entry["closed_loop"] = {**entry["closed_loop"], "final_drift": {"mm": 0.1, "deg": final_deg}}
+        return entry
+
+    records = {
+        "thing": {
+            "100mm": [record(0.2), record(0.4), record(0.3)],
+            "200mm": [record(0.3), record(0.7), record(2.0, right=False)],
+        }
+    }
+    config = TrackBenchConfig(trajectories=3, path_lengths_m=(0.1, 0.2))
+    report = build_report(records, config)
+    growth = report["growth"]["all"]
+    assert growth["pairs"] == 2
+    assert growth["final_drift_deg"]["mean"] == pytest.approx(0.2)
+    assert growth["final_drift_deg"]["standard_error"] == pytest.approx(0.1)
+    assert growth["final_drift_mm"]["mean"] == pytest.approx(0.0)
+    assert "| thing | 2 | +0.200 +- 0.100 |" in format_markdown(report)
+    assert build_report(records, TrackBenchConfig(trajectories=3))["growth"] == {}

@@ -237,8 +237,9 @@ def run_track_benchmark(
                 records[model.name][key] = []
                 for index in range(config.trajectories):
                     path = cache / f"{model.name}_{key}_{config.method}_{config.seed}_{index:03d}.json"
-                    if path.exists() and not overwrite:
-                        records[model.name][key].append(read_json(path))
+                    kept = read_json(path) if path.exists() and not overwrite else None
+                    if kept is not None and "final_drift" in kept.get("closed_loop", {}):  # older records: redone
+                        records[model.name][key].append(kept)
                     else:
                         simulator = simulator or TrajectorySimulator(model, scenario)
                         trajectory = simulator.trajectory(config.seed, index)
@@ -290,6 +291,43 @@ def _stats(values: list[float]) -> dict[str, float]:
     if len(array) == 0:
         return {"mean": float("nan"), "std": float("nan"), "max": float("nan")}
     return {"mean": float(np.nanmean(array)), "std": float(np.nanstd(array)), "max": float(np.nanmax(array))}
+
+
+def drift_growth(records: dict[str, dict[str, list[dict[str, Any]]]], config: TrackBenchConfig) -> dict[str, Any]:
+    """The closed loop's drift against the path length (the issue's "no growth with path length"): per object and over
+    all, the change of each drift figure from the first to the last path length per extra 100 mm, paired by trajectory
+    (trajectory i at every length starts from the same touch), over the trajectories whose touch was right at both;
+    mean and its standard error (a growth within about two standard errors of zero is not shown by these pairs).
+    Empty with a single path length."""
+    lengths = config.path_lengths_m
+    if len(lengths) < 2:
+        return {}
+    first, last = (f"{1e3 * length:.0f}mm" for length in (lengths[0], lengths[-1]))
+    per_100mm = 0.1 / (lengths[-1] - lengths[0])
+    changes: dict[str, list[dict[str, float]]] = {}
+    for name, by_length in records.items():
+        pairs = zip(by_length.get(first, []), by_length.get(last, []), strict=False)
+        changes[name] = [
+            {
+                f"{figure}_{unit}": per_100mm * (long["closed_loop"][figure][unit] - short["closed_loop"][figure][unit])
+                for figure in ("settled_drift", "final_drift")
+                for unit in ("mm", "deg")
+            }
+            for short, long in pairs
+            if short["right_touch"] and long["right_touch"]
+        ]
+    changes["all"] = [change for name in records for change in changes[name]]
+
+    def mean_and_error(values: list[float]) -> dict[str, float]:
+        array = np.asarray(values, dtype=np.float64)
+        error = float(np.std(array, ddof=1) / np.sqrt(len(array))) if len(array) > 1 else float("nan")
+        return {"mean": float(np.mean(array)) if len(array) else float("nan"), "standard_error": error}
+
+    keys = [f"{figure}_{unit}" for figure in ("settled_drift", "final_drift") for unit in ("mm", "deg")]
+    return {
+        name: {"pairs": len(rows), **{key: mean_and_error([row[key] for row in rows]) for key in keys}}
+        for name, rows in changes.items()
+    }
 
 
 def build_report(records: dict[str, dict[str, list[dict[str, Any]]]], config: TrackBenchConfig) -> dict[str, Any]:
@@ -373,6 +411,7 @@ def build_report(records: dict[str, dict[str, list[dict[str, Any]]]], config: Tr
             table[name][key] = entry
     return {
         "run": run_info(),
+        "growth": drift_growth(records, config),
         "config": {
             "trajectories": config.trajectories,
             "seed": config.seed,
@@ -519,6 +558,23 @@ def format_markdown(report: dict[str, Any]) -> str:
                     + " | ".join(cell(results[name][key]["right_touch"][f"{field_name}_change"]) for key in lengths)
                     + " |"
                 )
+        growth = report.get("growth") or {}
+        if growth:
+            lines += [
+                "",
+                f"Closed loop: growth per extra 100 mm of path ({lengths[0]} to {lengths[-1]}, the same touches, "
+                "right at both), mean +- standard error; 'no growth with path length' reads as within about two "
+                "standard errors of zero.",
+                "",
+                "| object | pairs | final drift, deg | final drift, mm | settled drift, deg | settled drift, mm |",
+                "|---|---|---|---|---|---|",
+            ]
+            for name, entry in growth.items():
+                cells = [
+                    f"{entry[key]['mean']:+.3f} +- {entry[key]['standard_error']:.3f}"
+                    for key in ("final_drift_deg", "final_drift_mm", "settled_drift_deg", "settled_drift_mm")
+                ]
+                lines.append(f"| {name} | {entry['pairs']} | " + " | ".join(cells) + " |")
         lines += [
             "",
             "Registration at the truth: each instant's two frames registered starting from the true pose (the "
