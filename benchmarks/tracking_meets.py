@@ -12,16 +12,23 @@ touch the pose stage's with the benchmark's localizer; both are simulated once a
 ~60 MB a trajectory, ~5 CPU s each to simulate and localize), so later runs only track (~2 CPU s a trajectory).
 The cache is not keyed by code: empty it when the simulator or the pose stage changes. Tracking is done by the
 working tree's code (`yoto.tracking.track`, its default `TrackConfig`; `--correction NAME=VALUE` overrides a
-`CorrectionConfig` field), BLAS on one thread.
+`CorrectionConfig` field, `pad_error.NAME=VALUE` a `PadErrorConfig` one), BLAS on one thread.
 
 Printed, over the trajectories whose touch was right (within 5 mm and 5 deg):
 - meets: settled drift under 0.5 mm and 0.5 deg (the issue's target: the drift is counted from the last frame
   before the motion, `evaluate.summarize_errors`);
 - per path length, how many meet and the mean settled rotation / translation drift;
-- growth: the mean of (200 mm drift - 100 mm drift) over the touches right at both lengths (rotation / translation);
+- growth: the mean of (200 mm drift - 100 mm drift) over the touches right at both lengths (rotation / translation)
+  +- its standard error (the paired differences' spread over the square root of their number);
 - beside the drift, the settled error against the touch's own error: `settled - touch` (mean, mm / deg: negative
   where the closed loop ended nearer the truth than its touch) and how many end within the touch's own error plus
   0.5 mm / 0.5 deg (not the issue's target; it tells a loop that corrects its touch from one that drifts);
+- the final drift (`evaluate.summarize_errors`' `final_drift`): the mean error over the settled tail against the mean
+  error over the last 0.2 s before the motion; the per-frame drift above averages each frame's size and counts
+  the one reference frame's jitter in every frame, this is the offset the motion left. How many meet 0.5 mm / 0.5
+  deg on it, its mean, and its growth (rotation) as above;
+- the share of the slip the closed loop leaves along it (its final drift projected on the open loop's), per path
+  length: near 0 where the drift is the frames' own, positive where the loop corrects the slip only in part;
 - frames per CPU second: tactile frames over the `process_time` of whole `track` calls (open and closed loop);
 - one row per object, and every miss. `--compare OLD.json` (this script's `--out` of another code) lists the tracks
   that changed in meeting the target and those whose rotation drift moved by more than 0.05 deg.
@@ -61,7 +68,12 @@ from yoto.tracking.bench import (  # noqa: E402
     tactile_streams,
     touch_estimate,
 )
-from yoto.tracking.evaluate import motion_interval, summarize_errors, tracking_errors  # noqa: E402
+from yoto.tracking.evaluate import (  # noqa: E402
+    final_drift_twist,
+    motion_interval,
+    summarize_errors,
+    tracking_errors,
+)
 from yoto.tracking.track import touch_from_pair, track  # noqa: E402
 
 MESHES = "../shared/data/meshes"
@@ -136,9 +148,18 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
     model = _model(object_spec(name, args.meshes), args.workspace)
     touch = touch_from_pair(trajectory.touch.pair, T_touch, trajectory.touch_time_s, "simulated")
     config = TrackBenchConfig().track
-    if args.correction:  # CorrectionConfig fields overridden, NAME=VALUE (a Python literal)
-        fields = {name: ast.literal_eval(value) for name, value in (item.split("=", 1) for item in args.correction)}
-        config = dataclasses.replace(config, correction=dataclasses.replace(config.correction, **fields))
+    if args.correction:  # CorrectionConfig fields overridden, NAME=VALUE (a Python literal; pad_error.NAME too)
+        correction = config.correction
+        for item in args.correction:
+            field_name, value = item.split("=", 1)
+            if field_name.startswith("pad_error."):
+                changed = {field_name.split(".", 1)[1]: ast.literal_eval(value)}
+                correction = dataclasses.replace(
+                    correction, pad_error=dataclasses.replace(correction.pad_error, **changed)
+                )
+            else:
+                correction = dataclasses.replace(correction, **{field_name: ast.literal_eval(value)})
+        config = dataclasses.replace(config, correction=correction)
     started = time.process_time()
     result = track(touch, trajectory.streams, model, tactile_streams(trajectory), config)
     cpu_s = time.process_time() - started
@@ -148,7 +169,8 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
     for loop, poses in (("open", result.T_world_object_open_loop), ("closed", result.T_world_object)):
         errors = tracking_errors(result.timestamps_s, poses, truth, T_touch, trajectory.touch.T_world_object)
         summary = summarize_errors(errors, motion)
-        record[loop] = {key: summary[key] for key in ("touch", "settled", "settled_drift")}
+        record[loop] = {key: summary[key] for key in ("touch", "settled", "settled_drift", "final_drift")}
+        record[loop]["final_drift_twist"] = final_drift_twist(errors, motion).tolist()
     touch_error = record["open"]["touch"]
     record["right_touch"] = bool(
         touch_error["mm"] <= 1e3 * RIGHT_TOUCH_M and touch_error["deg"] <= np.degrees(RIGHT_TOUCH_RAD)
@@ -172,9 +194,23 @@ def meets(record: dict[str, Any]) -> bool:
     return bool(drift["mm"] < DRIFT_TARGET_MM and drift["deg"] < DRIFT_TARGET_DEG)
 
 
+def meets_final(record: dict[str, Any]) -> bool:
+    """The same target on the final drift (mean error settled against the mean error just before the motion)."""
+    drift = record["closed"]["final_drift"]
+    return bool(drift["mm"] < DRIFT_TARGET_MM and drift["deg"] < DRIFT_TARGET_DEG)
+
+
 def within_touch(record: dict[str, Any]) -> bool:
     settled, touch = record["closed"]["settled"], record["closed"]["touch"]
     return bool(settled["mm"] < touch["mm"] + DRIFT_TARGET_MM and settled["deg"] < touch["deg"] + DRIFT_TARGET_DEG)
+
+
+def growth_estimate(differences: list[float]) -> tuple[float, float]:
+    """The mean of the paired differences (200 mm drift - 100 mm drift of the same touch) and its standard error:
+    "no growth with path length" reads as a mean within about two standard errors of zero."""
+    values = np.asarray(differences, dtype=np.float64)
+    error = float(np.std(values, ddof=1) / np.sqrt(len(values))) if len(values) > 1 else float("nan")
+    return float(np.mean(values)), error
 
 
 def summary_row(label: str, records: list[dict[str, Any]]) -> str:
@@ -196,14 +232,32 @@ def summary_row(label: str, records: list[dict[str, Any]]) -> str:
         by_touch.setdefault((r["seed"], r["object"], r["index"]), {})[r["length_mm"]] = r["closed"]["settled_drift"]
     pairs = [d for d in by_touch.values() if 100 in d and 200 in d]
     if pairs:
-        growth_deg = np.mean([d[200]["deg"] - d[100]["deg"] for d in pairs])
-        growth_mm = np.mean([d[200]["mm"] - d[100]["mm"] for d in pairs])
-        cells.append(f"{growth_deg:+.3f} deg / {growth_mm:+.3f} mm ({len(pairs)})")
+        growth = {unit: growth_estimate([d[200][unit] - d[100][unit] for d in pairs]) for unit in ("deg", "mm")}
+        cells.append(
+            f"{growth['deg'][0]:+.3f} +- {growth['deg'][1]:.3f} deg / "
+            f"{growth['mm'][0]:+.3f} +- {growth['mm'][1]:.3f} mm ({len(pairs)})"
+        )
     else:
         cells.append("-")
     excess_mm = np.mean([r["closed"]["settled"]["mm"] - r["closed"]["touch"]["mm"] for r in right]) if right else 0
     excess_deg = np.mean([r["closed"]["settled"]["deg"] - r["closed"]["touch"]["deg"] for r in right]) if right else 0
     cells.append(f"{sum(map(within_touch, right))} of {len(right)}, {excess_deg:+.3f} deg / {excess_mm:+.3f} mm")
+    final = [r["closed"]["final_drift"] for r in right]
+    means = "-"
+    if right:
+        means = f"{np.mean([d['deg'] for d in final]):.3f} deg / {np.mean([d['mm'] for d in final]):.3f} mm"
+    cells.append(f"{sum(map(meets_final, right))} of {len(right)}, {means}")
+    if pairs:
+        finals = {(r["seed"], r["object"], r["index"], r["length_mm"]): r["closed"]["final_drift"] for r in right}
+        differences = [
+            finals[key + (200,)]["deg"] - finals[key + (100,)]["deg"]
+            for key in by_touch
+            if key + (100,) in finals and key + (200,) in finals
+        ]
+        mean, error = growth_estimate(differences)
+        cells.append(f"{mean:+.3f} +- {error:.3f} deg")
+    else:
+        cells.append("-")
     cpu = sum(r["cpu_s"] for r in records)
     cells.append(f"{sum(r['frames'] for r in records) / max(cpu, 1e-9):.0f}")
     return "| " + " | ".join(cells) + " |"
@@ -211,24 +265,53 @@ def summary_row(label: str, records: list[dict[str, Any]]) -> str:
 
 HEADER = (
     "| set | meets (right touches) | 100 mm: meets, rotation / translation drift | 200 mm | growth per 100 mm "
-    "(touches at both) | settled error within touch + 0.5: count, mean settled - touch | frames per CPU s |\n"
-    "|---|---|---|---|---|---|---|"
+    "(touches at both) | settled error within touch + 0.5: count, mean settled - touch | final drift (mean error "
+    "settled against just before the motion): meets, mean | its growth | frames per CPU s |\n"
+    "|---|---|---|---|---|---|---|---|---|"
 )
+
+
+def slip_left(records: list[dict[str, Any]]) -> str:
+    """How much of the slip the closed loop leaves, along it: per right touch, the closed loop's final drift
+    projected on the open loop's (the slip), over the slip's size squared; rotation and translation, mean +- its
+    standard error per path length. A loop that corrects the slip only in part leaves a positive share growing
+    with the path; drift that only the frames' own errors make is unrelated to the slip's direction (share near 0)."""
+    cells = []
+    for length in (100, 200):
+        chosen = [r for r in records if r["right_touch"] and r["length_mm"] == length]
+        if not chosen:
+            continue
+        parts = []
+        for name, part in (("rotation", slice(0, 3)), ("translation", slice(3, 6))):
+            shares = []
+            for r in chosen:
+                closed = np.asarray(r["closed"]["final_drift_twist"])[part]
+                slip = np.asarray(r["open"]["final_drift_twist"])[part]
+                shares.append(float(closed @ slip / max(float(slip @ slip), 1e-18)))
+            mean, error = growth_estimate(shares)
+            parts.append(f"{name} {mean:+.3f} +- {error:.3f}")
+        cells.append(f"{length} mm: " + ", ".join(parts))
+    return "slip left by the closed loop (share of the slip along it, mean +- standard error): " + "; ".join(cells)
 
 
 def report(records: list[dict[str, Any]], label: str) -> str:
     lines = [HEADER, summary_row(label, records)]
     for name in dict.fromkeys(r["object"] for r in records):
         lines.append(summary_row(f"  {name}", [r for r in records if r["object"] == name]))
+    lines.append("")
+    lines.append(slip_left(records))
     misses = [r for r in records if r["right_touch"] and not meets(r)]
     lines.append("")
-    lines.append(f"misses ({len(misses)}): settled drift mm / deg [settled error; touch error; open-loop drift]")
+    lines.append(
+        f"misses ({len(misses)}): settled drift mm / deg [settled error; touch error; open-loop drift; final drift]"
+    )
     for r in misses:
         c, o = r["closed"], r["open"]
         lines.append(
             f"  {key_of(r)}: {c['settled_drift']['mm']:.2f} / {c['settled_drift']['deg']:.2f} "
             f"[{c['settled']['mm']:.2f} / {c['settled']['deg']:.2f}; {c['touch']['mm']:.2f} / {c['touch']['deg']:.2f}; "
-            f"{o['settled_drift']['mm']:.2f} / {o['settled_drift']['deg']:.2f}]"
+            f"{o['settled_drift']['mm']:.2f} / {o['settled_drift']['deg']:.2f}; final drift "
+            f"{c['final_drift']['mm']:.2f} / {c['final_drift']['deg']:.2f}]"
         )
     wrong = [key_of(r) for r in records if not r["right_touch"]]
     lines.append(f"wrong touches ({len(wrong)}, not counted): {', '.join(wrong)}")

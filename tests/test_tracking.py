@@ -201,6 +201,7 @@ def test_tactile_frames_of_both_sensors_are_paired_in_time():
 def _bench_record(touch_mm: float, drift_mm: float, right: bool) -> dict:
     figures = {figure: {"mm": drift_mm, "deg": 0.1} for figure in ("motion_mean", "motion_peak", "settled")}
     loop = {**figures, "settled_drift": {"mm": drift_mm, "deg": 0.1}, "touch": {"mm": touch_mm, "deg": 0.2}}
+    loop["final_drift"] = {"mm": 0.5 * drift_mm, "deg": 0.05}
     speed = {"latency_median_ms": 10.0, "latency_p90_ms": 20.0, "instants_per_s": 100.0, "frames_per_s": 150.0}
     return {
         "open_loop": loop,
@@ -240,6 +241,11 @@ def test_benchmark_report_counts_settled_errors_within_the_touchs_own_beside_the
     assert entry["closed_loop_within_touch"] == 1 and entry["closed_loop_drift_met"] == 2
     row = "settled error within the touch's own + 0.5 mm / 0.5 deg, right touches | 1 of 2 |"
     assert row in format_markdown(report)
+    # the final drift counts apart from the per-frame one: 0.1 and 0.45 mm meet it, a 1.2 mm one would not
+    departed["closed_loop"]["final_drift"] = {"mm": 1.2, "deg": 0.05}
+    report = build_report({"thing": {"100mm": [corrected, departed]}}, TrackBenchConfig(trajectories=2))
+    assert report["results"]["thing"]["100mm"]["right_touch"]["closed_loop_final_drift_met"] == 1
+    assert "just before the motion) under the target, right touches | 1 of 2 |" in format_markdown(report)
 
 
 class _Surface:
@@ -300,3 +306,52 @@ def test_information_a_scanned_surface_of_revolution_does_not_give_is_taken_back
     # off: the normal matrix as it was
     off = secant_scaling(surface, normal, points, unit, dataclasses.replace(config, secant_directions=0))
     np.testing.assert_array_equal(off, np.eye(6))
+
+
+def test_the_final_drift_is_the_offset_the_motion_left_without_the_outputs_jitter(rng):
+    """Errors that jitter frame to frame (0.1 mm, 0.05 deg per axis) about an offset that the motion moved by 0.3 mm
+    / 0.2 deg: the final drift (mean error settled against the mean just before the motion) finds that change; the
+    per-frame drift, from one reference frame, carries that frame's jitter and is several times further off."""
+    from yoto.geometry import pose_from_twist
+    from yoto.tracking.evaluate import TrackingErrors, summarize_errors
+
+    times = np.arange(0.0, 5.0, 0.01)
+    final, per_frame = [], []
+    for _ in range(10):
+        twists = np.hstack([rng.normal(0.0, np.radians(0.05), (len(times), 3)), rng.normal(0.0, 1e-4, (len(times), 3))])
+        twists += [np.radians(0.5), 0.0, 0.0, 0.0, 2e-4, 0.0]  # the touch's error, the same before and after
+        twists[times > 3.0] += [0.0, np.radians(0.2), 0.0, 3e-4, 0.0, 0.0]
+        summary = summarize_errors(TrackingErrors(times, pose_from_twist(twists), np.eye(4)), (1.0, 3.0))
+        final.append([summary["final_drift"]["mm"] - 0.3, summary["final_drift"]["deg"] - 0.2])
+        per_frame.append([summary["settled_drift"]["mm"] - 0.3, summary["settled_drift"]["deg"] - 0.2])
+    final_off, per_frame_off = np.abs(final), np.abs(per_frame)
+    assert final_off[:, 0].max() < 0.07 and final_off[:, 1].max() < 0.04
+    assert per_frame_off.mean(axis=0)[0] > 2 * final_off.mean(axis=0)[0]
+    assert per_frame_off.mean(axis=0)[1] > 2 * final_off.mean(axis=0)[1]
+
+
+def test_benchmark_report_gives_the_drifts_growth_with_path_length_and_its_standard_error():
+    """Two touches tracked at 100 and 200 mm: their final drifts grow by 0.1 and 0.3 deg, so the growth per 100 mm is
+    0.2 +- 0.1 deg (mean, standard error); a pair with a wrong touch at either length is left out."""
+    from yoto.tracking.bench import TrackBenchConfig, build_report, format_markdown
+
+    def record(final_deg: float, right: bool = True) -> dict:
+        entry = _bench_record(0.1, 0.2, right)
+        entry["closed_loop"] = {**entry["closed_loop"], "final_drift": {"mm": 0.1, "deg": final_deg}}
+        return entry
+
+    records = {
+        "thing": {
+            "100mm": [record(0.2), record(0.4), record(0.3)],
+            "200mm": [record(0.3), record(0.7), record(2.0, right=False)],
+        }
+    }
+    config = TrackBenchConfig(trajectories=3, path_lengths_m=(0.1, 0.2))
+    report = build_report(records, config)
+    growth = report["growth"]["all"]
+    assert growth["pairs"] == 2
+    assert growth["final_drift_deg"]["mean"] == pytest.approx(0.2)
+    assert growth["final_drift_deg"]["standard_error"] == pytest.approx(0.1)
+    assert growth["final_drift_mm"]["mean"] == pytest.approx(0.0)
+    assert "| thing | 2 | +0.200 +- 0.100 |" in format_markdown(report)
+    assert build_report(records, TrackBenchConfig(trajectories=3))["growth"] == {}

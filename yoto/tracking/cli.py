@@ -144,7 +144,8 @@ def run(args: argparse.Namespace) -> int:
             f"{summary['motion_mean']['deg']:.2f} deg, peak {summary['motion_peak']['mm']:.2f} / "
             f"{summary['motion_peak']['deg']:.2f}, settled {summary['settled']['mm']:.2f} / "
             f"{summary['settled']['deg']:.2f}, settled drift {summary['settled_drift']['mm']:.2f} / "
-            f"{summary['settled_drift']['deg']:.2f} "
+            f"{summary['settled_drift']['deg']:.2f}, final drift {summary['final_drift']['mm']:.2f} / "
+            f"{summary['final_drift']['deg']:.2f} "
             f"(touch {summary['touch']['mm']:.2f} / {summary['touch']['deg']:.2f})"
         )
     for warning in outcome.warnings:

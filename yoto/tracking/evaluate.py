@@ -8,7 +8,12 @@ Per frame: the translation error of the object's centroid and the rotation error
 - `settled`: mean error after the motion (Fig. 4's shaded tail);
 - `settled_drift`: how much the motion changed the error, `E(before)^-1 @ E(t)` averaged over the settled tail, with
   `before` the last frame before the motion. Open loop this is the slip (the error the touch left stays as it was);
-  closed loop it leaves out how the tracker settled on the touch while the sensors rested.
+  closed loop it leaves out how the tracker settled on the touch while the sensors rested. Each frame's size is
+  averaged, so the output's frame-to-frame jitter (the arms' smoothed pose noise) adds to it, and the single frame
+  `before` carries its own jitter into every frame of the tail;
+- `final_drift`: the change of the mean error, `mean(E at rest)^-1 @ mean(E settled)`, the means over the last
+  `MotionConfig.window_s` before the motion and over the settled tail (twists averaged): the offset the motion left,
+  without the output's jitter on either side.
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ import numpy as np
 
 from yoto.contacts import SIDES
 from yoto.errors import InputError
-from yoto.geometry import invert_transform, so3_log
+from yoto.geometry import invert_transform, pose_from_twist, so3_log, twist_of_pose
 from yoto.io import write_bytes_atomic
 from yoto.trajectory import PoseStream
 
@@ -128,6 +133,23 @@ def truth_at(truth_mesh: PoseStream, timestamps_s: np.ndarray, T_mesh_object: np
     return poses @ T_mesh_object, covered
 
 
+def final_drift_twist(
+    errors: TrackingErrors, motion: tuple[float, float] | None, window_s: float = MotionConfig().window_s
+) -> np.ndarray:
+    """(6,) the final drift as a twist (rotation vector in rad, then translation in m; object frame): the mean error
+    over the settled tail against the mean error over the last `window_s` before the motion (the frame before it
+    where none is that close). NaN without a motion or a settled tail."""
+    times = errors.timestamps_s
+    if motion is None or not (times > motion[1]).any():
+        return np.full(6, np.nan)
+    resting = (times < motion[0]) & (times >= motion[0] - window_s)
+    if not resting.any():
+        resting = np.arange(len(times)) == max(int(np.searchsorted(times, motion[0])) - 1, 0)
+    mean_rest = pose_from_twist(twist_of_pose(errors.errors[resting]).mean(axis=0))
+    mean_settled = pose_from_twist(twist_of_pose(errors.errors[times > motion[1]]).mean(axis=0))
+    return twist_of_pose(invert_transform(mean_rest) @ mean_settled)
+
+
 def summarize_errors(errors: TrackingErrors, motion: tuple[float, float] | None) -> dict[str, Any]:
     """Table-3 figures of one tracked trajectory, in millimetres and degrees (see the module docstring)."""
     times = errors.timestamps_s
@@ -141,6 +163,8 @@ def summarize_errors(errors: TrackingErrors, motion: tuple[float, float] | None)
     reference = max(int(np.searchsorted(times, motion[0])) - 1, 0) if motion is not None else 0
     translation, rotation = errors.translation_m, errors.rotation_rad
     drift_translation, drift_rotation = errors.drift(reference)
+    change = final_drift_twist(errors, motion)
+    final = {"mm": 1e3 * float(np.linalg.norm(change[3:])), "deg": float(np.degrees(np.linalg.norm(change[:3])))}
     touch_translation = float(np.linalg.norm(errors.touch_error[:3, 3]))
     touch_rotation = float(np.linalg.norm(so3_log(errors.touch_error[:3, :3])))
 
@@ -155,6 +179,7 @@ def summarize_errors(errors: TrackingErrors, motion: tuple[float, float] | None)
         "motion_peak": pair(translation, rotation, during, np.max),
         "settled": pair(translation, rotation, after),
         "settled_drift": pair(drift_translation, drift_rotation, after),
+        "final_drift": final,
         "frames": int(len(times)),
         "motion_s": None if motion is None else [float(motion[0]), float(motion[1])],  # clock times
     }
