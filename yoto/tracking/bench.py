@@ -304,14 +304,14 @@ def drift_growth(records: dict[str, dict[str, list[dict[str, Any]]]], config: Tr
         return {}
     first, last = (f"{1e3 * length:.0f}mm" for length in (lengths[0], lengths[-1]))
     per_100mm = 0.1 / (lengths[-1] - lengths[0])
+    keys = {f"{figure}_{unit}": (figure, unit) for figure in ("settled_drift", "final_drift") for unit in ("mm", "deg")}
     changes: dict[str, list[dict[str, float]]] = {}
     for name, by_length in records.items():
         pairs = zip(by_length.get(first, []), by_length.get(last, []), strict=False)
         changes[name] = [
             {
-                f"{figure}_{unit}": per_100mm * (long["closed_loop"][figure][unit] - short["closed_loop"][figure][unit])
-                for figure in ("settled_drift", "final_drift")
-                for unit in ("mm", "deg")
+                key: per_100mm * (long["closed_loop"][figure][unit] - short["closed_loop"][figure][unit])
+                for key, (figure, unit) in keys.items()
             }
             for short, long in pairs
             if short["right_touch"] and long["right_touch"]
@@ -323,7 +323,6 @@ def drift_growth(records: dict[str, dict[str, list[dict[str, Any]]]], config: Tr
         error = float(np.std(array, ddof=1) / np.sqrt(len(array))) if len(array) > 1 else float("nan")
         return {"mean": float(np.mean(array)) if len(array) else float("nan"), "standard_error": error}
 
-    keys = [f"{figure}_{unit}" for figure in ("settled_drift", "final_drift") for unit in ("mm", "deg")]
     return {
         name: {"pairs": len(rows), **{key: mean_and_error([row[key] for row in rows]) for key in keys}}
         for name, rows in changes.items()
