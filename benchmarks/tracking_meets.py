@@ -2,6 +2,7 @@
 
     python benchmarks/tracking_meets.py --seeds 11 --cache /tmp/tracks --out seed11.json
     python benchmarks/tracking_meets.py --seeds 23 37 --cache /tmp/tracks --out heldout.json --compare main.json
+    python benchmarks/tracking_meets.py --records seed11.json --cache /tmp/tracks  # report an earlier run again
 
 Each seed has its set of trajectories (`SETS`): seed 11, the tuning set (tool, fruit, figurine, bunny, drill, monkey
 at 100 and 200 mm, and avocado, banana, lemon, cow, mustard bottle, cracker box, tomato soup can at 100 mm; 3 per
@@ -30,6 +31,11 @@ Printed, over the trajectories whose touch was right (within 5 mm and 5 deg):
 - the share of the slip the closed loop leaves along it (its final drift projected on the open loop's), per path
   length: near 0 where the drift is the frames' own, positive where the loop corrects the slip only in part;
 - frames per CPU second: tactile frames over the `process_time` of whole `track` calls (open and closed loop);
+- the final drift split by how well the touch's two contacts pin each direction (`track.touch_pinning`: the spread
+  a reconstruction's smooth error gives their registration along the eigen-directions of their shared information,
+  in observable units of 2 deg / 2 mm): the part along directions pinned to within 1 unit (and, second row, within
+  0.25 unit: the 0.5 deg / 0.5 mm target) and the part along the weaker ones, each with its meets, mean at 100 / 200
+  mm (beside the open loop's slip along the same part) and growth;
 - one row per object, and every miss. `--compare OLD.json` (this script's `--out` of another code) lists the tracks
   that changed in meeting the target and those whose rotation drift moved by more than 0.05 deg.
 """
@@ -74,7 +80,7 @@ from yoto.tracking.evaluate import (  # noqa: E402
     summarize_errors,
     tracking_errors,
 )
-from yoto.tracking.track import touch_from_pair, track  # noqa: E402
+from yoto.tracking.track import Pinning, touch_from_pair, touch_pinning, track  # noqa: E402
 
 MESHES = "../shared/data/meshes"
 TUNED = ("tool", "fruit", "figurine", "bunny", "drill", "monkey")
@@ -177,6 +183,27 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
     )
     record["frames"] = result.correction_summary()["frames"]
     record["cpu_s"] = cpu_s
+    used = [c for c in result.corrections if c.used]
+    if used:  # the filter's own 1-sigma after its last applied instant (its least certain turn and shift)
+        record["sigma"] = {"deg": float(np.degrees(used[-1].sigma_rad)), "mm": 1e3 * used[-1].sigma_m}
+    record["pinning"] = pinning_of(trajectory, T_touch, model)
+    return record
+
+
+def pinning_of(trajectory: Any, T_touch: np.ndarray, model: Any) -> dict[str, list]:
+    """How well the touch's contacts pin each direction (`touch_pinning` at the touch's estimate), as JSON."""
+    pinning = touch_pinning(model, trajectory.touch.pair, T_touch)
+    return {"directions": pinning.directions.tolist(), "spread": pinning.spread.tolist(), "unit": pinning.unit.tolist()}
+
+
+def with_pinning(record: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
+    """An earlier run's record with its touch's pinning added (from the cache; no tracking)."""
+    if "pinning" not in record:
+        job = (record["seed"], record["object"], record["length_mm"], record["index"])
+        trajectory, T_touch = cached(job, args)
+        record["pinning"] = pinning_of(
+            trajectory, T_touch, _model(object_spec(record["object"], args.meshes), args.workspace)
+        )
     return record
 
 
@@ -294,12 +321,132 @@ def slip_left(records: list[dict[str, Any]]) -> str:
     return "slip left by the closed loop (share of the slip along it, mean +- standard error): " + "; ".join(cells)
 
 
+WEAK_ABOVE = (1.0, 0.25)  # a direction is weakly pinned where the smooth error moves the fit by more than this
+# many observable units (1: 2 deg / 2 mm, the tracker's own rule for a lone contact; 0.25: 0.5 deg / 0.5 mm, the
+# drift target)
+
+
+def split_drift(record: dict[str, Any], loop: str, weak_above: float) -> tuple[np.ndarray, np.ndarray]:
+    """The final drift twist (rad, m) of `loop` split into its pinned and weakly pinned parts (`Pinning.split`)."""
+    p = record["pinning"]
+    pinning = Pinning(np.asarray(p["directions"]), np.asarray(p["spread"]), np.asarray(p["unit"]))
+    return pinning.split(np.asarray(record[loop]["final_drift_twist"]), weak_above)
+
+
+def split_rows(records: list[dict[str, Any]], label: str) -> list[str]:
+    """The final drift split by how well the touch's contacts pin each direction: per threshold, how many tracks
+    have a weakly pinned direction, and for the pinned and the weak part the meets, the mean (deg / mm) at 100 and
+    200 mm, the growth per 100 mm (rotation, paired by touch, +- standard error), and the open loop's (the slip's)
+    mean along the same part."""
+    right = [r for r in records if r["right_touch"] and "pinning" in r]
+    rows = []
+    for weak_above in WEAK_ABOVE:
+        cells = [
+            label,
+            f"{weak_above:g}",
+            f"{sum(max(r['pinning']['spread']) > weak_above for r in right)} of {len(right)}",
+        ]
+        for part in (0, 1):
+            drift = {key_of(r): split_drift(r, "closed", weak_above)[part] for r in right}
+            slip = {key_of(r): split_drift(r, "open", weak_above)[part] for r in right}
+            deg = {k: float(np.degrees(np.linalg.norm(t[:3]))) for k, t in drift.items()}
+            mm = {k: float(1e3 * np.linalg.norm(t[3:])) for k, t in drift.items()}
+            cells.append(f"{sum(deg[k] < DRIFT_TARGET_DEG and mm[k] < DRIFT_TARGET_MM for k in deg)}")
+            for length in (100, 200):
+                keys = [key_of(r) for r in right if r["length_mm"] == length]
+                if keys:
+                    slip_deg = np.mean([np.degrees(np.linalg.norm(slip[k][:3])) for k in keys])
+                    cells.append(
+                        f"{np.mean([deg[k] for k in keys]):.3f} / {np.mean([mm[k] for k in keys]):.3f} "
+                        f"(slip {slip_deg:.2f} deg)"
+                    )
+                else:
+                    cells.append("-")
+            differences = []
+            for r in right:
+                if r["length_mm"] == 200:
+                    short = f"s{r['seed']} {r['object']} 100 mm #{r['index']}"
+                    if short in deg:
+                        differences.append(deg[key_of(r)] - deg[short])
+            if len(differences) > 1:
+                mean, error = growth_estimate(differences)
+                cells.append(f"{mean:+.3f} +- {error:.3f} ({len(differences)})")
+            else:
+                cells.append("-")
+        rows.append("| " + " | ".join(cells) + " |")
+    return rows
+
+
+SPREAD_BINS = (0.0, 0.05, 0.125, 0.25, 0.5, 1.0, np.inf)  # observable units (1: 2 deg / 2 mm)
+
+
+def by_pinning(records: list[dict[str, Any]]) -> list[str]:
+    """Over all right touches' eigen-directions (`Pinning`), binned by their spread: how much of the slip the closed
+    loop leaves along them (the closed loop's final drift component regressed on the open loop's, through the origin,
+    +- its standard error: a loop bias, the registration's pull towards the prediction or a filter lagging behind the
+    slip, leaves a positive share), the root mean square of the closed and the open loop's final drift along them,
+    and the growth of the drift's size within the bin per extra 100 mm (paired by touch, +- standard error); sizes
+    in deg-equivalent (1 unit = 2 deg, 2 mm)."""
+    components: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    for r in records:
+        if r["right_touch"] and "pinning" in r:
+            p = r["pinning"]
+            directions, unit = np.asarray(p["directions"]), np.asarray(p["unit"])
+            closed = directions @ (np.asarray(r["closed"]["final_drift_twist"]) / unit)
+            opened = directions @ (np.asarray(r["open"]["final_drift_twist"]) / unit)
+            components[(r["seed"], r["object"], r["index"], r["length_mm"])] = (np.asarray(p["spread"]), closed, opened)
+    lines = [
+        "| spread (deg-eq) | directions | slip left along them | closed loop rms | open loop rms | growth per 100 mm |",
+        "|---|---|---|---|---|---|",
+    ]
+    for low, high in zip(SPREAD_BINS[:-1], SPREAD_BINS[1:], strict=True):
+        closed_all, open_all = [], []
+        for spread, closed, opened in components.values():
+            chosen = (spread > low) & (spread <= high)
+            closed_all += list(closed[chosen])
+            open_all += list(opened[chosen])
+        if len(closed_all) < 2:
+            continue
+        c, o = np.asarray(closed_all), np.asarray(open_all)
+        share = float(c @ o / (o @ o))
+        residual = c - share * o
+        error = float(np.sqrt(residual @ residual / (len(c) - 1) / (o @ o)))
+        differences = []
+        for (seed, name, index, length), (spread, closed, _) in components.items():
+            shorter = components.get((seed, name, index, 100))
+            if length == 200 and shorter is not None:
+                size = np.linalg.norm(closed[(spread > low) & (spread <= high)])
+                shorter_size = np.linalg.norm(shorter[1][(shorter[0] > low) & (shorter[0] <= high)])
+                differences.append(2.0 * (size - shorter_size))
+        growth = "-"
+        if len(differences) > 1:
+            mean, growth_error = growth_estimate(differences)
+            growth = f"{mean:+.3f} +- {growth_error:.3f} ({len(differences)})"
+        lines.append(
+            f"| {2 * low:.2f}-{2 * high:.2f} | {len(c)} | {share:+.3f} +- {error:.3f} | "
+            f"{2 * np.sqrt(np.mean(c**2)):.3f} | {2 * np.sqrt(np.mean(o**2)):.3f} | {growth} |"
+        )
+    return lines
+
+
+SPLIT_HEADER = (
+    "| set | weak above (units) | tracks with a weak direction | pinned part: meets | 100 mm deg / mm | 200 mm | "
+    "growth deg per 100 mm | weak part: meets | 100 mm | 200 mm | growth |\n"
+    "|---|---|---|---|---|---|---|---|---|---|---|"
+)
+
+
 def report(records: list[dict[str, Any]], label: str) -> str:
     lines = [HEADER, summary_row(label, records)]
     for name in dict.fromkeys(r["object"] for r in records):
         lines.append(summary_row(f"  {name}", [r for r in records if r["object"] == name]))
     lines.append("")
     lines.append(slip_left(records))
+    if any("pinning" in r for r in records):
+        lines += ["", "final drift split by how well the touch's contacts pin each direction:", SPLIT_HEADER]
+        lines += split_rows(records, label)
+        lines += ["", "the final drift along the touch's eigen-directions, by how well each is pinned:"]
+        lines += by_pinning(records)
     misses = [r for r in records if r["right_touch"] and not meets(r)]
     lines.append("")
     lines.append(
@@ -350,7 +497,20 @@ def main() -> None:
     parser.add_argument("--build-only", action="store_true", help="simulate and cache, do not track")
     parser.add_argument("--out", help="JSON of every track's figures")
     parser.add_argument("--compare", help="an earlier --out to compare with")
+    parser.add_argument(
+        "--records", nargs="+", help="report earlier --out files again, together (the touches' pinning from the cache)"
+    )
     args = parser.parse_args()
+
+    if args.records:
+        records = [
+            with_pinning(r, args) for path in args.records for r in json.loads(Path(path).read_text())["records"]
+        ]
+        records = [r for r in records if not args.objects or r["object"] in args.objects]
+        print(report(records, "seeds " + " / ".join(str(seed) for seed in dict.fromkeys(r["seed"] for r in records))))
+        if args.out:
+            Path(args.out).write_text(json.dumps({"seeds": args.seeds, "records": records}, indent=1))
+        return
 
     jobs = jobs_of(args.seeds, args.objects)
     worker = _build if args.build_only else tracked

@@ -308,6 +308,38 @@ def test_information_a_scanned_surface_of_revolution_does_not_give_is_taken_back
     np.testing.assert_array_equal(off, np.eye(6))
 
 
+def test_the_pinning_names_the_directions_two_contacts_leave_free_and_splits_a_drift_along_them(rng):
+    """Two opposite contacts on a cylinder pin the push along their normal, not the spin about the axis nor the slide
+    along it, and the turn about the line through them only by the surface's curvature: spreads weakest first, and a
+    drift split by the pinning puts its spin and slide in the weak part, its push in the pinned part."""
+    from yoto.tracking.track import CorrectionConfig, Pinning, contact_information, observable_unit
+
+    radius, config = 0.03, CorrectionConfig()
+    points = _two_contacts(radius)
+    surface = _cylinder(radius, 0.0, rng)  # exact normals: the check against the surface changes nothing
+    sides = {"left": points[: len(points) // 2], "right": points[len(points) // 2 :]}
+    information = contact_information(surface, sides, config)
+    pinning = Pinning.of(sum(bias for _, bias in information.values()), observable_unit(config))
+    spin, slide_z, push_x = np.eye(6)[2], np.eye(6)[5], np.eye(6)[3]
+    free = pinning.directions[:2]  # the two weakest, orthonormal in observable units
+    assert np.linalg.norm(free @ spin) > 0.99 and np.linalg.norm(free @ slide_z) > 0.99
+    assert pinning.spread[1] > 10.0 and np.all(np.diff(pinning.spread) <= 0.0)  # free: 20 deg and more
+    line = int(np.argmax(np.abs(pinning.directions @ np.eye(6)[0])))  # the turn about the line through both
+    assert line == 2 and 1.0 < pinning.spread[line] < 5.0  # weakly pinned, as the figurine's grasp
+    # each contact's shared error counts as `bias_points` points of `bias_noise_m`: the push's spread
+    normal = sum(per_frame for per_frame, _ in information.values()) * config.pixel_noise_m**2
+    expected = config.bias_noise_m / np.sqrt(config.bias_points * normal[3, 3] / len(sides["left"])) / 0.002
+    assert pinning.spread[np.argmax(np.abs(pinning.directions @ push_x))] == pytest.approx(expected, rel=0.05)
+    drift = np.radians(1.0) * spin + 0.0002 * slide_z + 0.0003 * push_x + np.radians(0.1) * np.eye(6)[0]
+    pinned, weak = pinning.split(drift)
+    np.testing.assert_allclose(pinned + weak, drift, atol=1e-15)
+    turn_x = np.radians(0.1) * np.eye(6)[0]  # weak beyond 1 unit, pinned within 5
+    np.testing.assert_allclose(weak, np.radians(1.0) * spin + 0.0002 * slide_z + turn_x, atol=2e-6)
+    pinned, weak = pinning.split(drift, weak_above=5.0)
+    np.testing.assert_allclose(pinned, 0.0003 * push_x + turn_x, atol=2e-6)
+    assert "pinned to" in pinning.describe(0)
+
+
 def test_the_final_drift_is_the_offset_the_motion_left_without_the_outputs_jitter(rng):
     """Errors that jitter frame to frame (0.1 mm, 0.05 deg per axis) about an offset that the motion moved by 0.3 mm
     / 0.2 deg: the final drift (mean error settled against the mean just before the motion) finds that change; the

@@ -94,6 +94,13 @@ def test_closed_loop_corrects_the_slip_the_open_loop_keeps(builtin_models, fruit
     speed = result.correction_summary()
     assert speed["frames_used"] >= 0.9 * speed["frames"]
     assert result.corrections[-1].slip_m * 1e3 == pytest.approx(2.0, abs=0.6)  # the slip it detected
+    # what the track says of its own certainty: the filter's spread has shrunk from the touch's (2 deg / 1 mm), the
+    # translation's most, and the contacts' pinning spans all six directions, weakest first, the strongest pinned to
+    # a few hundredths
+    last = result.corrections[-1]
+    assert last.sigma_rad < np.radians(2.0) and last.sigma_m < 0.0005
+    assert result.pinning is not None and np.all(np.diff(result.pinning.spread) <= 0.0)
+    assert result.pinning.spread[-1] < 0.05 < result.pinning.spread[0]
 
 
 @pytest.mark.parametrize("noise_scale", [0.7, 1.5])
@@ -171,6 +178,8 @@ def test_track_command_on_written_files(builtin_models, fruit_trajectory, tmp_pa
     assert np.array_equal(tracked.timestamps_s, stamps[stamps >= fruit_trajectory.touch_time_s])
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["mode"] == "closed loop" and report["errors"]["closed_loop"]["settled"]["mm"] < 0.5
+    assert "pinned by the contacts" in out and len(report["pinning"]["directions"]) == 6
+    assert all("sigma_deg" in c for c in report["corrections"] if c["used"])
     assert (tmp_path / "error.png").stat().st_size > 10_000
     # The tracked poses are in the mesh file's frame, as the truth file's (a frame mix-up would be centimetres off).
     assert rotation_angle_rad(tracked.T_world_frame[-1], truth.T_world_frame[-1]) < np.radians(3.0)

@@ -98,6 +98,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    import numpy as np
+
     from yoto.tracking.job import Source, TrackJob, run_track_job
 
     tactile = {}
@@ -137,6 +139,12 @@ def run(args: argparse.Namespace) -> int:
             f"closed loop: {speed['frames_used']} of {speed['frames']} tactile frames used (unusable: {unusable}); "
             f"divergence guard: {speed['guard_checks']} checks, {speed['reanchored']} re-anchored; "
             f"{speed['latency_median_ms']:.1f} ms per instant (median), {speed['instants_per_s']:.0f} instants/s"
+        )
+    if result.pinning is not None:
+        spread = result.pinning.spread
+        print(
+            f"  pinned by the contacts: {np.sum(spread <= 0.25)} of 6 directions to within 0.5 deg / 0.5 mm; weakest: "
+            f"{result.pinning.describe(0)}"
         )
     for name, summary in outcome.errors.items():
         print(

@@ -146,6 +146,14 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
             f"T_world_object of {model.name}, the mesh file's frame; yoto track, {mode}; touch at {time_s:.6f} s",
         )
     )
+    pinning = result.pinning
+    if pinning is not None and pinning.spread[0] > config.weak_pinning_warning:
+        warnings.append(
+            "the two contacts barely pin one direction of the object's pose: "
+            f"{pinning.describe(0)} (a reconstruction's smooth error moves the registration that far along it); slip "
+            "along it is not observable from the contacts, the closed loop corrects it only as far as the slip's "
+            "history along the path shows it"
+        )
     if result.skipped_times:
         warnings.append(f"{result.skipped_times} stream timestamps had no pose of either sensor (dropouts): skipped")
     truth_stream = None
@@ -230,10 +238,24 @@ def report_payload(job: TrackJob, model: ObjectModel, outcome: TrackOutcome) -> 
                 "slip_mm": 1e3 * c.slip_m,
                 "slip_deg": float(np.degrees(c.slip_rad)),
                 "guard": c.guard,
+                "sigma_deg": float(np.degrees(c.sigma_rad)),
+                "sigma_mm": 1e3 * c.sigma_m,
                 "latency_ms": c.latency_ms,
             }
             for c in result.corrections
         ],
+        "pinning": None
+        if result.pinning is None
+        else {
+            "about": "the directions of the pose (turn in deg, shift in mm; object frame about its centroid), weakest "
+            "first, and how far a reconstruction's smooth error moves the two contacts' registration along each "
+            "(spread, in units of the direction)",
+            "directions": [
+                np.concatenate([np.degrees(twist[:3]), 1e3 * twist[3:]]).tolist()
+                for twist in map(result.pinning.twist, range(6))
+            ],
+            "spread": result.pinning.spread.tolist(),
+        },
         "errors": outcome.errors or None,
         "warnings": outcome.warnings,
     }

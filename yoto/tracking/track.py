@@ -157,6 +157,8 @@ class TrackConfig:
     correction: CorrectionConfig = CorrectionConfig()
     touch_mismatch_warning_m: float = 0.005  # warn when the streams never come this close to the pair's sensor poses
     min_touch_confidence: float = 0.5  # warn when the touch's pose is less likely than this to be right
+    weak_pinning_warning: float = 1.0  # warn when the two contacts pin a direction of the pose only this loosely
+    # (`Pinning.spread`, observable units: 1 is 2 deg / 2 mm): slip along it is not observable from the contacts
 
 
 @dataclass
@@ -230,6 +232,8 @@ class Correction:
     latency_ms: float = 0.0  # loading, registering and updating, this instant
     guard: str = ""  # the divergence guard's check this instant: "" (none), "kept" (the frames see the departure),
     # "re-anchored" (they fit as well from open loop: the loop moved back onto that fit)
+    sigma_rad: float = 0.0  # the filter's 1-sigma of the object's pose after the instant, along its least certain
+    sigma_m: float = 0.0  # turn and shift (what it believes; the weakly pinned directions of `TrackResult.pinning`)
 
 
 @dataclass
@@ -246,6 +250,8 @@ class TrackResult:
     corrections: list[Correction] = field(default_factory=list)
     skipped_times: int = 0  # stream timestamps after the touch where neither sensor had a pose (dropouts)
     pad_errors: dict[str, PadError] = field(default_factory=dict)  # side -> the pad's error the closed loop learnt
+    pinning: Pinning | None = None  # how well the two contacts pinned each direction (their shared-error information
+    # averaged over the instants both corrected); None without such an instant
 
     def T_world_mesh(self, model: ObjectModel, open_loop: bool = False) -> np.ndarray:
         """The tracked poses in the mesh file's frame."""
@@ -336,6 +342,8 @@ def track(
         closed[begin:] = fuse_object_poses(sensors, corrector.grasps, slice(begin, None))[0]
     result.T_world_object = closed
     result.pad_errors = corrector.pads
+    if corrector.pair_instants:
+        result.pinning = Pinning.of(corrector.pair_shared / corrector.pair_instants, corrector.unit)
     return result
 
 
@@ -495,6 +503,96 @@ def secant_scaling(
     return (1.0 / unit)[:, None] * shrink * unit[None, :]
 
 
+def contact_information(
+    model: ObjectModel, points_object: dict[str, np.ndarray], config: CorrectionConfig, check_surface: bool = True
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per side, the Gauss-Newton normal matrices (6, 6) of its contact's registered points (object frame, rotation
+    about the origin): for the noise new in every frame (all points, `pixel_noise_m`) and for the error the contact's
+    points share (`bias_points` points of `bias_noise_m`: a reconstruction's smooth error), checked against the
+    surface (`secant_scaling`, over all sides together) when `check_surface`."""
+    normals, counts = {}, {}
+    for side, side_points in points_object.items():
+        _, matched, _, surface_normals = plane_distances(model, side_points, config.max_distance_m)
+        jacobian = point_to_plane_jacobian(side_points, surface_normals)[matched]
+        normals[side], counts[side] = jacobian.T @ jacobian, len(jacobian)
+    unit = observable_unit(config)
+    scaling = (
+        secant_scaling(model, sum(normals.values()), np.vstack(list(points_object.values())), unit, config)
+        if check_surface
+        else np.eye(6)
+    )
+    information = {}
+    for side, normal in normals.items():
+        normal = scaling @ normal @ scaling.T
+        bias_share = config.bias_points / max(counts[side], 1)
+        information[side] = (normal / config.pixel_noise_m**2, normal * bias_share / config.bias_noise_m**2)
+    return information
+
+
+def observable_unit(config: CorrectionConfig) -> np.ndarray:
+    """(6,) one observable unit of each twist component (rad, m): where rotation and translation meet."""
+    return np.array([config.observable_rotation_rad] * 3 + [config.observable_translation_m] * 3)
+
+
+@dataclass(frozen=True)
+class Pinning:
+    """How well the contacts' geometry pins each direction of the object's pose: the spread a reconstruction's
+    smooth error (`CorrectionConfig.bias_points` points of `bias_noise_m` per contact) gives a registration along
+    the eigen-directions of the contacts' shared information. A frame's error of that kind is fixed to the pad and
+    changes as the contact slides, so along a direction it moves the fit by more than the drift target no
+    registration can hold the object to the target, whatever the filter does: the slip there is not observable
+    from contact geometry."""
+
+    directions: np.ndarray  # (6, 6) rows: orthonormal directions in observable units (`observable_unit`), weakest
+    # first
+    spread: np.ndarray  # (6,) 1-sigma of the fit's offset along each direction, observable units
+    unit: np.ndarray  # (6,) the observable unit (rad, m)
+
+    @classmethod
+    def of(cls, shared: np.ndarray, unit: np.ndarray) -> Pinning:
+        """From the contacts' shared-error information (6, 6; rad, m), summed over the contacts."""
+        values, vectors = np.linalg.eigh(shared * np.outer(unit, unit))
+        spread = 1.0 / np.sqrt(np.maximum(values, 1e-12))
+        return cls(vectors.T, spread, unit)
+
+    def twist(self, index: int) -> np.ndarray:
+        """(6,) direction `index` as a twist (rad, m) of unit size in observable units."""
+        return self.directions[index] * self.unit
+
+    def split(self, twist: np.ndarray, weak_above: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """A twist (rad, m) as (pinned part, weakly pinned part): its components along the directions whose spread is
+        at most / more than `weak_above` observable units (orthogonal in those units)."""
+        weak = self.directions[self.spread > weak_above]
+        along = (weak.T @ (weak @ (twist / self.unit))) * self.unit
+        return twist - along, along
+
+    def describe(self, index: int = 0) -> str:
+        """Direction `index` (default the weakest) in words: its turn and shift per observable unit, and its spread."""
+        twist = self.twist(index)
+        turn, shift = np.degrees(twist[:3]), 1e3 * twist[3:]
+        return (
+            f"turn ({turn[0]:+.2f}, {turn[1]:+.2f}, {turn[2]:+.2f}) deg with shift ({shift[0]:+.2f}, {shift[1]:+.2f}, "
+            f"{shift[2]:+.2f}) mm (object frame, about the centroid), pinned to {self.spread[index]:.2f} of that"
+        )
+
+
+def touch_pinning(
+    model: ObjectModel, pair: ContactPair, T_world_object: np.ndarray, config: CorrectionConfig = CorrectionConfig()
+) -> Pinning:
+    """How well the touch's two contacts pin the object at `T_world_object` (canonical frame): their clouds sampled
+    as the closed loop samples its frames (`contact_samples`), placed on the object through the pair's sensor
+    poses, their shared-error information checked against the surface."""
+    points = {
+        side: transform_points(
+            invert_transform(T_world_object) @ pair.contact(side).T_world_sensor,
+            contact_samples(pair.contact(side).points_sensor, config),
+        )
+        for side in SIDES
+    }
+    shared = np.sum([bias for _, bias in contact_information(model, points, config).values()], axis=0)
+    return Pinning.of(shared, observable_unit(config))
+
+
 class _Corrector:
     """The closed loop's state: the grasps, and a Kalman filter on (error, slip rate, measurement bias).
 
@@ -516,8 +614,7 @@ class _Corrector:
         c = config.correction
         self.grasps = dict(touch.T_sensor_object)
         self.open_grasps = dict(touch.T_sensor_object)  # the open loop's grasps (the divergence guard's anchor)
-        # one observable unit of each twist component (rad, m): where rotation and translation meet
-        self.unit = np.array([c.observable_rotation_rad] * 3 + [c.observable_translation_m] * 3)
+        self.unit = observable_unit(c)
         self.rate = np.zeros(6)  # slip per metre of travel (rad/m, m/m), object frame
         self.bias = np.zeros(6)  # the registrations' bias (rad, m)
         self.bias_covariance: np.ndarray | None = None  # its size, from the first registered contact's shape
@@ -535,6 +632,8 @@ class _Corrector:
         self.rest_reference: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self.travel_m = 0.0  # the sensors' travel since the touch (rotation counted at `turn_radius_m`)
         self.guard_wait = 0  # instants until the divergence guard may check again
+        self.pair_shared, self.pair_instants = np.zeros((6, 6)), 0  # the shared-error information summed over the
+        # applied two-contact instants, and their count (`TrackResult.pinning`)
         self.unpinned: np.ndarray | None = None  # (K, 6) orthonormal directions (observable units) the guard found
         # the frames leave free: the departures it undid; the prediction stands along them from then on
 
@@ -660,27 +759,10 @@ class _Corrector:
         self.last_time, self.last_sensors = now_s, sensors
 
     def _information(self, points_object: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """Gauss-Newton normal matrices (6, 6) of each contact's registered points (object frame, rotation about the
-        origin), for the noise new in every frame (all points, `pixel_noise_m`) and for the shared bias
-        (`bias_points` points of `bias_noise_m`), checked against the surface (`secant_scaling`) where more than
+        """Each contact's information (`contact_information`), the surface check where more than
         `observable_max_contacts` contacts register together."""
-        c = self.config.correction
-        normals, counts = {}, {}
-        for side, side_points in points_object.items():
-            _, matched, _, surface_normals = plane_distances(self.model, side_points, c.max_distance_m)
-            jacobian = point_to_plane_jacobian(side_points, surface_normals)[matched]
-            normals[side], counts[side] = jacobian.T @ jacobian, len(jacobian)
-        scaling = (
-            secant_scaling(self.model, sum(normals.values()), np.vstack(list(points_object.values())), self.unit, c)
-            if len(points_object) > c.observable_max_contacts
-            else np.eye(6)
-        )
-        information = {}
-        for side, normal in normals.items():
-            normal = scaling @ normal @ scaling.T
-            bias_share = c.bias_points / max(counts[side], 1)
-            information[side] = (normal / c.pixel_noise_m**2, normal * bias_share / c.bias_noise_m**2)
-        return information
+        check = len(points_object) > self.config.correction.observable_max_contacts
+        return contact_information(self.model, points_object, self.config.correction, check)
 
     def _register(
         self, points: dict[str, np.ndarray], sensors: dict[str, np.ndarray]
@@ -775,6 +857,9 @@ class _Corrector:
                     record.used = tuple(points_predicted)
                     record.inlier_fraction = float(np.mean(list(fractions.values())))
                     record.correction_m, record.correction_rad = self.last_correction
+                    error = self.covariance[:6, :6]
+                    record.sigma_rad = float(np.sqrt(np.linalg.eigvalsh(error[:3, :3])[-1]))
+                    record.sigma_m = float(np.sqrt(np.linalg.eigvalsh(error[3:, 3:])[-1]))
                     record.guard = self._guard(
                         sensors, rows, {side: points_sensor[side] for side in record.used}, fractions
                     )
@@ -897,6 +982,9 @@ class _Corrector:
         if moved_m > c.max_correction_m or turned_rad > c.max_correction_rad:
             return f"jump ({moved_m * 1e3:.1f} mm, {np.degrees(turned_rad):.1f} deg)"
         self.covariance = np.linalg.inv(precision)
+        if len(points_predicted) == 2:
+            self.pair_shared += shared
+            self.pair_instants += 1
         self._apply(mean[:6])
         self.rate, self.bias = mean[6:12], mean[12:]
         self.last_correction = (moved_m, turned_rad)
