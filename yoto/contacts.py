@@ -318,7 +318,9 @@ def read_contact_pair(
     if truth is not None:
         if not isinstance(truth, dict):
             raise InputError("'ground_truth' must be an object", path)
-        pair.T_world_mesh_true = _read_matrix(truth, "T_world_object", "ground_truth", path)
+        # Partial truth is kept: a labelling tool may know the contacts (p_object) and not the pose, or the reverse.
+        if "T_world_object" in truth:
+            pair.T_world_mesh_true = _read_matrix(truth, "T_world_object", "ground_truth", path)
         for side in SIDES:
             if f"{side}_p_object" in truth:
                 pair.p_mesh_true[side] = _read_point(truth, f"{side}_p_object", "ground_truth", path)
@@ -423,8 +425,8 @@ def write_contact_pair(path: str | Path, pair: ContactPair) -> Path:
                 file = getattr(contact.image, key)
                 if file is not None:
                     payload[side][key] = os.path.relpath(Path(file).resolve(), path.parent.resolve())
-    if pair.T_world_mesh_true is not None:
-        truth: dict[str, Any] = {"T_world_object": pair.T_world_mesh_true}
+    if pair.T_world_mesh_true is not None or pair.p_mesh_true:
+        truth: dict[str, Any] = {} if pair.T_world_mesh_true is None else {"T_world_object": pair.T_world_mesh_true}
         for side in SIDES:
             if side in pair.p_mesh_true:
                 truth[f"{side}_p_object"] = pair.p_mesh_true[side]

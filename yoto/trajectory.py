@@ -54,6 +54,13 @@ class PoseStream:
     def end_s(self) -> float:
         return float(self.timestamps_s[-1])
 
+    def dropout_gap_s(self, floor_s: float) -> float:
+        """The longest gap between two samples that is still the stream's own rhythm rather than a dropout:
+        `floor_s`, or 1.5 sample periods (median) of a slower stream (a 5 Hz robot stream is not all dropouts)."""
+        if len(self) < 2:
+            return floor_s
+        return max(floor_s, 1.5 * float(np.median(np.diff(self.timestamps_s))))
+
     def interpolate(self, timestamps_s: np.ndarray, max_gap_s: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         """Poses at arbitrary times: (M, 4, 4) poses and an (M,) mask of the times the stream covers.
 

@@ -203,9 +203,9 @@ def run(args: argparse.Namespace) -> int:
                 estimate = estimate_pose(pair, model, localizer, pose_config, helper)
                 result = estimate.to_json(model)
                 line = _describe(estimate, model, pair, result)
+                write_json_atomic(pose_result_path(path, args.out), result)
                 if "error" in result:
                     errors.append(result["error"])
-                write_json_atomic(pose_result_path(path, args.out), result)
                 print(f"{path.name}: {line}")
             except NoContactError as exc:
                 no_contact += 1

@@ -120,6 +120,11 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
     model = load_object_model(job.model or pair.object_name, job.workspace)
     streams = read_streams(job)
     tactile = read_tactile(job)
+    # Every input is read (and the truth checked against the track) before anything is written: a failing
+    # command writes nothing.
+    truth_stream = None
+    if job.truth is not None:
+        truth_stream = read_sensor_stream(job.truth.path, job.truth.topic, "object ground truth")
     warnings = []
     time_s, time_source, mismatch = touch_time_of(pair, streams, job.touch_time_s, config)
     if time_source.startswith("matched") and mismatch > config.touch_mismatch_warning_m:
@@ -138,6 +143,9 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
     warnings += tactile_timing_warnings(tactile, streams, time_s) if tactile else []
     result = track(touch, streams, model, tactile or None, config)
     outcome = TrackOutcome(result, pose_source, warnings=warnings)
+    curves = None
+    if truth_stream is not None:
+        outcome.errors, curves = evaluate_against_truth(result, truth_stream, streams, model)
     mode = "closed loop (corrected by tactile frames)" if result.closed_loop else "open loop"
     outcome.written.append(
         write_tum(
@@ -148,10 +156,7 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
     )
     if result.skipped_times:
         warnings.append(f"{result.skipped_times} stream timestamps had no pose of either sensor (dropouts): skipped")
-    truth_stream = None
-    if job.truth is not None:
-        truth_stream = read_sensor_stream(job.truth.path, job.truth.topic, "object ground truth")
-        outcome.errors, curves = evaluate_against_truth(result, truth_stream, streams, model)
+    if curves is not None:
         if job.figure is not None:
             motion = outcome.errors["open_loop"]["motion_s"]
             panels = [(f"{model.name}: tracking error", curves, None if motion is None else tuple(motion))]
