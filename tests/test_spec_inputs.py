@@ -82,6 +82,27 @@ def test_a_mesh_with_vertices_no_face_uses_is_sized_by_its_faces(tmp_path):
         load_mesh(_ply_mesh(tmp_path / "broken.ply", vertices, broken))
 
 
+def test_obj_faces_with_relative_indices_and_ngons(tmp_path):
+    """OBJ's relative indices (`f -4 -3 -2 -1`: the last four vertices defined so far), written by exporters that emit
+    each face after its own vertices, and a pentagon: the 60 x 40 x 20 mm box (fails on the old loader: trimesh counts
+    from the file's last vertex, and the box came out 'flat')."""
+    from yoto.objects.mesh import load_mesh
+
+    lines = ["# relative indices, a vertex colour", "mtllib box.mtl", "o box"]
+    for quad in BOX_QUADS:
+        lines += [f"v {x} {y} {z} 0.5 0.5 0.5" for x, y, z in BOX_MM[list(quad)]]
+        lines += ["vt 0 0", "vn 0 0 1", "f -4/-1/-1 -3/-1/-1 -2/-1/-1 -1/-1/-1"]
+    (tmp_path / "relative.obj").write_text("\n".join(lines) + "\n")
+    corners = [f"v {x} {y} {z}" for x, y, z in BOX_MM] + ["v 30 0 20"]  # 9: a point on the top's front edge
+    faces = [f"f {' '.join(str(i + 1) for i in quad)}" for quad in BOX_QUADS[:1] + BOX_QUADS[2:]]
+    (tmp_path / "ngon.obj").write_text("\n".join([*corners, "l 1 2", *faces, "f 5 9 6 7 8"]) + "\n")
+    for name in ("relative.obj", "ngon.obj"):
+        mesh, _, _ = load_mesh(tmp_path / name, "mm")
+        assert mesh.is_watertight, name
+        assert mesh.area == pytest.approx(8800e-6, rel=1e-9), name
+        assert mesh.volume == pytest.approx(48000e-9, rel=1e-9), name
+
+
 def test_bead_vertex_ids_are_the_mesh_files_own(tmp_path, rng):
     """A mesh viewer numbers a PLY's vertices in file order; the object model's mesh is repaired (a duplicate vertex
     merged, an unused one dropped), so its order differs. `yoto rig calibrate-object` reads the ids against the file

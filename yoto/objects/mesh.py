@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import io
 import logging
+import re
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import cast
@@ -79,7 +81,11 @@ def load_mesh(path: str | Path, units: str = "m") -> tuple[trimesh.Trimesh, Repa
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise InputError(f"unsupported mesh format '{path.suffix}' (use one of {', '.join(MESH_SUFFIXES)})", path)
     try:
-        loaded = trimesh.load(path, force="mesh", process=False)
+        relative = _obj_with_absolute_indices(path) if path.suffix.lower() == ".obj" else None
+        if relative is not None:
+            loaded = trimesh.load(io.StringIO(relative), file_type="obj", force="mesh", process=False)
+        else:
+            loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many unrelated types for broken files
         raise InputError(f"could not read the mesh ({type(exc).__name__}: {exc})", path) from exc
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0 or len(loaded.vertices) == 0:
@@ -98,6 +104,32 @@ def load_mesh(path: str | Path, units: str = "m") -> tuple[trimesh.Trimesh, Repa
     mesh = trimesh.Trimesh(vertices=vertices * scale, faces=faces, process=False)
     mesh, report = repair_mesh(mesh, path)
     return mesh, report, scale
+
+
+def _obj_with_absolute_indices(path: Path) -> str | None:
+    """An OBJ file's text with its relative face indices (`f -4 -3 -2 -1`: counted back from the vertices defined so
+    far, as the OBJ format says) made absolute, or None when it has none. trimesh counts them from the file's last
+    vertex instead, which silently scrambles a file that defines vertices between faces."""
+    text = path.read_text(encoding="utf-8", errors="replace")
+    if not re.search(r"^[ \t]*[fl][ \t].*[ \t/]-\d", text, re.MULTILINE):
+        return None
+    defined = {"v": 0, "vt": 0, "vn": 0}
+    lines = []
+    for line in text.splitlines():
+        words = line.split()
+        if words and words[0] in defined:
+            defined[words[0]] += 1
+        elif words and words[0] in ("f", "l"):
+            references = []
+            for reference in words[1:]:
+                parts = reference.split("/")
+                for k, (part, kind) in enumerate(zip(parts, ("v", "vt", "vn"))):
+                    if part.startswith("-"):
+                        parts[k] = str(defined[kind] + 1 + int(part))
+                references.append("/".join(parts))
+            line = " ".join([words[0], *references])
+        lines.append(line)
+    return "\n".join(lines) + "\n"
 
 
 def mesh_file_vertices(path: str | Path, scale_to_m: float = 1.0) -> np.ndarray:
