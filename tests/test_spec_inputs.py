@@ -219,3 +219,19 @@ def test_track_with_an_unreadable_truth_writes_nothing(builtin_models, tmp_path,
     # The object rides with both sensors: +1 cm in x per second from the touch on.
     np.testing.assert_allclose(tracked[:, 0], np.arange(10.0, 10.95, 0.1), atol=1e-9)
     np.testing.assert_allclose(tracked[:, 1], 0.05 + 0.01 * (tracked[:, 0] - 10), atol=1e-8)
+
+
+def test_pose_results_that_would_overwrite_each_other_are_refused(tmp_path, rng, capsys):
+    """`yoto pose a/ b/ --out res` with a pair_0000.json in each: refused naming both before anything is written (the
+    old code wrote res/pair_0000.pose.json twice, the second over the first); a pair named twice (its file and its
+    folder) is estimated once."""
+    from yoto.pose.cli import _pairs_and_results
+
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        hand_written_pair(tmp_path / folder, rng).rename(tmp_path / folder / "pair_0000.json")
+    out = tmp_path / "res"
+    assert main(["pose", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(out)]) == 2
+    assert "a/pair_0000.json and " in capsys.readouterr().err and not out.exists()
+    pairs = _pairs_and_results([tmp_path / "a" / "pair_0000.json", tmp_path / "a"], str(out))
+    assert pairs == [(tmp_path / "a" / "pair_0000.json", out / "pair_0000.pose.json")]
