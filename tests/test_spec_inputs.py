@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_spec_files import hand_written_pair
+from test_spec_files import foreign_ply, hand_written_pair
 
 from yoto.cli import main
 from yoto.contacts import read_contact_pair, write_contact_pair
@@ -235,3 +235,31 @@ def test_pose_results_that_would_overwrite_each_other_are_refused(tmp_path, rng,
     assert "a/pair_0000.json and " in capsys.readouterr().err and not out.exists()
     pairs = _pairs_and_results([tmp_path / "a" / "pair_0000.json", tmp_path / "a"], str(out))
     assert pairs == [(tmp_path / "a" / "pair_0000.json", out / "pair_0000.pose.json")]
+
+
+def test_a_cloud_of_the_whole_pad_reads_as_its_contact(tmp_path, rng):
+    """A reconstruction program may write a point per pixel: the contact and the untouched gel around it (z = 0 within
+    a few micrometres of noise). Read as the contact alone, in pair files and tactile frame folders, so the poses
+    are those of the contact-only cloud (the old reader took the flat gel for contact surface: the contact's centre
+    moved to the pad's and all four poses of a simulated fruit set came out 90-176 deg wrong)."""
+    from yoto.contacts import contact_in_sensor
+    from yoto.tracking.streams import read_tactile_folder
+
+    path = hand_written_pair(tmp_path, rng)
+    contact = read_contact_pair(path).left.points_sensor
+    pixel = 0.0634e-3
+    columns, rows = np.meshgrid((np.arange(320) - 159.5) * pixel, (np.arange(240) - 119.5) * pixel)
+    pad = np.column_stack([columns.ravel(), rows.ravel()])
+    gel = pad[np.abs(pad).max(axis=1) > 0.0045]  # around the 8 mm contact square
+    whole = np.vstack([np.column_stack([gel, rng.normal(0.0, 5e-6, len(gel))]), contact])
+    foreign_ply(tmp_path / "left.ply", rng.permutation(whole), "binary_little_endian", "float")
+    read_back = read_contact_pair(path).left.points_sensor
+    np.testing.assert_allclose(np.sort(read_back, axis=0), np.sort(contact, axis=0), atol=1e-9)  # float32 file
+    centre, normal = contact_in_sensor(read_back)
+    expected_centre, expected_normal = contact_in_sensor(contact)
+    np.testing.assert_allclose(centre, expected_centre, atol=1e-6)
+    np.testing.assert_allclose(normal, expected_normal, atol=1e-4)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (tmp_path / "left.ply").rename(frames / "1700000000.25.ply")
+    assert len(read_tactile_folder(frames).load(0)) == len(contact)

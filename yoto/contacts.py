@@ -262,7 +262,25 @@ def validate_tactile_points(points: np.ndarray, source: str | Path | None) -> np
             f"gel){hint}",
             source,
         )
+    points = without_untouched_gel(points, floor)
+    if len(points) < MIN_TACTILE_POINTS:
+        raise InputError(
+            f"tactile cloud has only {len(points)} points pressed deeper than the {floor * 1e3:.3f} mm noise floor; at "
+            f"least {MIN_TACTILE_POINTS} are needed to localize a contact",
+            source,
+        )
     return points
+
+
+def without_untouched_gel(points_sensor: np.ndarray, floor_m: float | None = None) -> np.ndarray:
+    """The cloud without its points on the undeformed gel: those less deep than the indentation noise floor
+    (`indentation_m`). A cloud of the whole pad (a point per pixel, as a reconstructed height map gives it) holds the
+    untouched gel around the contact, z = 0 within the noise; it is not contact surface, and taken for it, it drags
+    the contact's centre and normal to the pad's. A cloud of contact points alone is returned as it is."""
+    if floor_m is None:
+        floor_m = indentation_m(points_sensor)[1]
+    pressed = points_sensor[:, 2] <= -floor_m
+    return points_sensor if pressed.all() else points_sensor[pressed]
 
 
 def indentation_m(points_sensor: np.ndarray) -> tuple[float, float]:
@@ -476,5 +494,6 @@ __all__ = [
     "indentation_m",
     "read_contact_pair",
     "validate_tactile_points",
+    "without_untouched_gel",
     "write_contact_pair",
 ]
