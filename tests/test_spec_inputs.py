@@ -263,3 +263,14 @@ def test_a_cloud_of_the_whole_pad_reads_as_its_contact(tmp_path, rng):
     frames.mkdir()
     (tmp_path / "left.ply").rename(frames / "1700000000.25.ply")
     assert len(read_tactile_folder(frames).load(0)) == len(contact)
+
+
+def test_a_column_major_matrix_is_refused_with_the_reason(tmp_path, rng):
+    """A sensor pose written column-major (as Eigen or OpenGL store it): its translation lands in the last row, which
+    is refused naming the likely cause."""
+    path = hand_written_pair(tmp_path, rng)
+    payload = json.loads(path.read_text())
+    payload["right"]["T_world_sensor"] = np.asarray(payload["right"]["T_world_sensor"]).T.tolist()
+    path.write_text(json.dumps(payload))
+    with pytest.raises(InputError, match=r"pair.json: right.T_world_sensor has last row .* written column-major"):
+        read_contact_pair(path)
