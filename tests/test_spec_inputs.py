@@ -274,3 +274,117 @@ def test_a_column_major_matrix_is_refused_with_the_reason(tmp_path, rng):
     path.write_text(json.dumps(payload))
     with pytest.raises(InputError, match=r"pair.json: right.T_world_sensor has last row .* written column-major"):
         read_contact_pair(path)
+
+
+def _motive_take(path: Path, times: np.ndarray, bodies: dict[str, np.ndarray]) -> Path:
+    """A Motive 1.2x export of rigid bodies in millimetres (quaternion x y z w, then position), from its layout."""
+    from yoto.geometry import rotation_to_quaternion_xyzw
+
+    header = (
+        "Format Version,1.23,Take Name,t,Capture Frame Rate,10.000000,Export Frame Rate,10.000000,"
+        "Capture Start Time,2024-05-01 03.12.44.118 PM,Total Exported Frames,"
+        f"{len(times)},Rotation Type,Quaternion,Length Units,Millimeters,Coordinate Space,Global"
+    )
+    names = [name for name in bodies for _ in range(7)]
+    lines = [header, "", ",Type," + ",".join(["Rigid Body"] * len(names)), ",Name," + ",".join(names)]
+    lines += [",ID," + ",".join(str(1 + k // 7) for k in range(len(names)))]
+    lines += [",," + ",".join((["Rotation"] * 4 + ["Position"] * 3) * len(bodies))]
+    lines += ["Frame,Time (Seconds)," + ",".join(["X", "Y", "Z", "W", "X", "Y", "Z"] * len(bodies))]
+    for frame, t in enumerate(times):
+        cells = []
+        for poses in bodies.values():
+            cells += [f"{v:.9f}" for v in rotation_to_quaternion_xyzw(poses[frame][:3, :3])]
+            cells += [f"{v * 1000:.6f}" for v in poses[frame][:3, 3]]
+        lines.append(f"{frame},{t:.6f}," + ",".join(cells))
+    path.write_text("\r\n".join(lines) + "\r\n", encoding="utf-8-sig")
+    return path
+
+
+def test_track_from_rig_bodies_with_their_calibrations(builtin_models, tmp_path, rng, capsys):
+    """`yoto track` on a Motive take of the two rigs' bodies and the object's: with the rig calibrations (--left-rig,
+    --right-rig) and the object calibration (--truth-calibration) the same track, and errors, as from the GelSight
+    and mesh poses themselves; without them, a warning that the streams are far from the pair's sensor poses at the
+    touch (the body is not the GelSight), where the old code said nothing."""
+    model_path = builtin_models["tool"].save(tmp_path / "tool.npz")
+    touch = hand_written_pair(tmp_path, rng)
+    payload = json.loads(touch.read_text())
+    payload["timestamp"] = 10.0
+    touch.write_text(json.dumps(payload))
+    T_world_mesh = make_transform(np.eye(3), [0.05, 0.0, 0.03])
+    (tmp_path / "pose.json").write_text(json.dumps({"T_world_object": T_world_mesh.tolist()}))
+    times = np.arange(9.5, 11.0, 0.1)
+    move = np.array(
+        [make_transform(random_rotations(rng, 1)[0] if t > 10.2 else np.eye(3), [0.01 * t, 0, 0]) for t in times]
+    )
+    # Both sensors (and the object) move together; at the touch (10.0 s, sample 5) they are where the pair says.
+    sensors = {
+        side: np.linalg.inv(move[5]) @ move @ np.asarray(payload[side]["T_world_sensor"]) for side in ("left", "right")
+    }
+    T_rig_sensor = {side: make_transform(random_rotations(rng, 1)[0], rng.uniform(-0.05, 0.05, 3)) for side in sensors}
+    T_objectbody_mesh = make_transform(random_rotations(rng, 1)[0], [0.01, -0.02, 0.03])
+    truth_mesh = np.linalg.inv(move[5]) @ move @ T_world_mesh
+    bodies = {f"Rig{side.title()}": sensors[side] @ np.linalg.inv(T_rig_sensor[side]) for side in sensors}
+    bodies["Tool"] = truth_mesh @ np.linalg.inv(T_objectbody_mesh)
+    take = _motive_take(tmp_path / "take.csv", times, bodies)
+    for side in sensors:
+        rig = {"format": "yoto-rig-calibration", "format_version": 1, "name": side, "rig_body": f"Rig{side.title()}"}
+        (tmp_path / f"{side}.rig.json").write_text(json.dumps({**rig, "T_rig_sensor": T_rig_sensor[side].tolist()}))
+        lines = [f"{t:.2f} " + " ".join(f"{v:.12f}" for v in _tum_row(T)) for t, T in zip(times, sensors[side])]
+        (tmp_path / f"{side}.tum").write_text("\n".join(lines) + "\n")
+    calibration = {"format": "yoto-object-calibration", "format_version": 1, "object": "tool", "object_body": "Tool"}
+    calibration["T_objectbody_mesh"] = T_objectbody_mesh.tolist()
+    (tmp_path / "tool.object.json").write_text(json.dumps(calibration))
+    common = ["track", str(touch), "--model", str(model_path), "--pose", str(tmp_path / "pose.json"), "--open-loop"]
+    assert (
+        main(
+            [
+                *common,
+                "--left",
+                str(tmp_path / "left.tum"),
+                "--right",
+                str(tmp_path / "right.tum"),
+                "--out",
+                str(tmp_path / "tum.tum"),
+            ]
+        )
+        == 0
+    )
+    mocap = ["--left", str(take), "--left-topic", "RigLeft", "--right", str(take), "--right-topic", "RigRight"]
+    mocap += ["--truth", str(take), "--truth-topic", "Tool"]
+    calibrated = [
+        *mocap,
+        "--left-rig",
+        str(tmp_path / "left.rig.json"),
+        "--right-rig",
+        str(tmp_path / "right.rig.json"),
+    ]
+    report = tmp_path / "report.json"
+    capsys.readouterr()
+    assert (
+        main(
+            [
+                *common,
+                *calibrated,
+                "--truth-calibration",
+                str(tmp_path / "tool.object.json"),
+                "--out",
+                str(tmp_path / "mocap.tum"),
+                "--report",
+                str(report),
+            ]
+        )
+        == 0
+    )
+    assert "from the pair file's sensor poses" not in capsys.readouterr().out
+    ours, theirs = np.loadtxt(tmp_path / "tum.tum"), np.loadtxt(tmp_path / "mocap.tum")
+    np.testing.assert_allclose(theirs, ours, atol=2e-6)  # millimetres with 6 decimals, quaternions with 9
+    errors = json.loads(report.read_text())["errors"]["open_loop"]
+    assert errors["motion_mean"]["mm"] < 0.01 and errors["motion_mean"]["deg"] < 0.01
+    assert main([*common, *mocap, "--out", str(tmp_path / "bodies.tum")]) == 0
+    assert "from the pair file's sensor poses" in capsys.readouterr().out
+
+
+def _tum_row(T: np.ndarray) -> np.ndarray:
+    from yoto.geometry import rotation_to_quaternion_xyzw
+
+    return np.concatenate([T[:3, 3], rotation_to_quaternion_xyzw(T[:3, :3])])

@@ -49,6 +49,7 @@ RECENT_CLOUDS = 4  # contact_in_sensor keeps its answers for this many clouds
 NO_INDENTATION_M = 5e-5
 NOISE_MARGIN = 5.0
 INDENTATION_POINTS = 20
+HALF_NORMAL_MEDIAN = 0.6745  # the median of |x| for x ~ N(0, 1): noise sigma from the median of its positive half
 
 
 @dataclass(frozen=True)
@@ -262,25 +263,34 @@ def validate_tactile_points(points: np.ndarray, source: str | Path | None) -> np
             f"gel){hint}",
             source,
         )
-    points = without_untouched_gel(points, floor)
+    points = without_untouched_gel(points)
     if len(points) < MIN_TACTILE_POINTS:
         raise InputError(
-            f"tactile cloud has only {len(points)} points pressed deeper than the {floor * 1e3:.3f} mm noise floor; at "
-            f"least {MIN_TACTILE_POINTS} are needed to localize a contact",
+            f"tactile cloud has only {len(points)} points pressed into the gel (the rest lie on the undeformed gel); "
+            f"at least {MIN_TACTILE_POINTS} are needed to localize a contact",
             source,
         )
     return points
 
 
-def without_untouched_gel(points_sensor: np.ndarray, floor_m: float | None = None) -> np.ndarray:
-    """The cloud without its points on the undeformed gel: those less deep than the indentation noise floor
-    (`indentation_m`). A cloud of the whole pad (a point per pixel, as a reconstructed height map gives it) holds the
-    untouched gel around the contact, z = 0 within the noise; it is not contact surface, and taken for it, it drags
-    the contact's centre and normal to the pad's. A cloud of contact points alone is returned as it is."""
-    if floor_m is None:
-        floor_m = indentation_m(points_sensor)[1]
-    pressed = points_sensor[:, 2] <= -floor_m
-    return points_sensor if pressed.all() else points_sensor[pressed]
+def without_untouched_gel(points_sensor: np.ndarray) -> np.ndarray:
+    """The cloud without its points on the undeformed gel. A cloud of the whole pad (a point per pixel, as a
+    reconstructed height map gives it) holds the untouched gel around the contact, z = 0 within the reconstruction's
+    noise: not contact surface, and taken for it, it drags the contact's centre and normal to the pad's. Those are the
+    points less deep than NO_INDENTATION_M or 5 sigma of that noise (read off the points above the gel, z > 0, which
+    only noise puts there: robustly, from at least INDENTATION_POINTS of them, so a few spikes do not count). A cloud
+    of contact points alone, or one not pressed into the gel (`indentation_m`), is returned as it is."""
+    depth, contact_floor = indentation_m(points_sensor)
+    if depth <= contact_floor:
+        return points_sensor
+    z = points_sensor[:, 2]
+    above = z[z > 0]
+    noise = float(np.median(above)) / HALF_NORMAL_MEDIAN if len(above) >= INDENTATION_POINTS else 0.0
+    floor = max(NO_INDENTATION_M, NOISE_MARGIN * noise)
+    pressed = z <= -floor
+    if pressed.all() or pressed.sum() < INDENTATION_POINTS:
+        return points_sensor
+    return points_sensor[pressed]
 
 
 def indentation_m(points_sensor: np.ndarray) -> tuple[float, float]:
