@@ -388,3 +388,17 @@ def _tum_row(T: np.ndarray) -> np.ndarray:
     from yoto.geometry import rotation_to_quaternion_xyzw
 
     return np.concatenate([T[:3, 3], rotation_to_quaternion_xyzw(T[:3, :3])])
+
+
+def test_a_sensor_pose_in_millimetres_is_refused(tmp_path, rng):
+    """A pair whose sensor poses are in millimetres (a mocap tool's default unit): refused naming the key and the
+    likely unit, where the old reader passed them to the pose stage as metres."""
+    path = hand_written_pair(tmp_path, rng)
+    payload = json.loads(path.read_text())
+    for side in ("left", "right"):
+        T = np.asarray(payload[side]["T_world_sensor"])
+        T[:3, 3] = [437.1, 58.4 + (side == "right") * 30.0, 1200.0]
+        payload[side]["T_world_sensor"] = T.tolist()
+    path.write_text(json.dumps(payload))
+    with pytest.raises(InputError, match=r"pair.json: left.T_world_sensor is 1278 from the world origin.*millimetres"):
+        read_contact_pair(path)

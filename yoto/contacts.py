@@ -308,10 +308,20 @@ def indentation_m(points_sensor: np.ndarray) -> tuple[float, float]:
     return depth, max(NO_INDENTATION_M, NOISE_MARGIN * noise)
 
 
+LARGEST_PLAUSIBLE_POSITION_M = 50.0  # a pose further from the world origin is most likely in millimetres
+
+
 def _read_matrix(record: dict, key: str, what: str, path: Path) -> np.ndarray:
     if key not in record:
         raise InputError(f"missing key '{key}' in {what}", path)
-    return validate_transform(record[key], f"{what}.{key}", path)
+    transform = validate_transform(record[key], f"{what}.{key}", path)
+    distance = float(np.linalg.norm(transform[:3, 3]))
+    if distance > LARGEST_PLAUSIBLE_POSITION_M:
+        raise InputError(
+            f"{what}.{key} is {distance:.0f} from the world origin: matrices are in metres (is it in millimetres?)",
+            path,
+        )
+    return transform
 
 
 def _read_point(record: dict, key: str, what: str, path: Path) -> np.ndarray:
