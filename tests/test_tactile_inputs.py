@@ -17,7 +17,7 @@ def _grid(z: float | np.ndarray, count: int = 60) -> np.ndarray:
 
 def test_a_cloud_not_pressed_into_the_gel_is_no_contact(rng):
     """Flat on the gel plane (exactly, or with noise) is no contact; flipped z gets a hint; a flat face pressed
-    0.3 mm deep, or a small dent in an otherwise flat dense height map, is a contact (the dent)."""
+    0.3 mm deep, or a small dent in an otherwise flat dense height map, is a contact."""
     for flat in (_grid(0.0), _grid(rng.normal(0.0, 2e-5, (60, 60)))):
         with pytest.raises(NoContactError, match="no contact: the tactile cloud is not pressed into the gel"):
             validate_tactile_points(flat, "flat.ply")
@@ -30,9 +30,7 @@ def test_a_cloud_not_pressed_into_the_gel_is_no_contact(rng):
     dense = _grid(rng.normal(0.0, 1e-5, (60, 60)))
     dense[dent, 2] -= 0.4e-3
     depth, floor = indentation_m(dense)
-    # ... read as its contact: the dent's points, not the untouched gel around it (within its noise floor)
-    assert depth > 0.3e-3 > floor
-    np.testing.assert_array_equal(validate_tactile_points(dense, None), dense[dent])
+    assert depth > 0.3e-3 > floor and len(validate_tactile_points(dense, None)) == len(dense)
 
 
 def test_pose_says_a_pair_with_a_flat_side_has_no_contact(builtin_models, tmp_path, capsys):

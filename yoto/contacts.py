@@ -263,12 +263,18 @@ def validate_tactile_points(points: np.ndarray, source: str | Path | None) -> np
             f"gel){hint}",
             source,
         )
-    points = without_untouched_gel(points)
+    return points
+
+
+def read_tactile_cloud(path: Path) -> np.ndarray:
+    """A tactile cloud file (PLY, sensor frame, metres), validated, and read as its contact when it covers the whole
+    pad (`without_untouched_gel`). Errors name the file."""
+    points = without_untouched_gel(validate_tactile_points(read_ply_points(path)[0], path))
     if len(points) < MIN_TACTILE_POINTS:
         raise InputError(
             f"tactile cloud has only {len(points)} points pressed into the gel (the rest lie on the undeformed gel); "
             f"at least {MIN_TACTILE_POINTS} are needed to localize a contact",
-            source,
+            path,
         )
     return points
 
@@ -279,11 +285,14 @@ def without_untouched_gel(points_sensor: np.ndarray) -> np.ndarray:
     noise: not contact surface, and taken for it, it drags the contact's centre and normal to the pad's. Those are the
     points less deep than NO_INDENTATION_M or 5 sigma of that noise (read off the points above the gel, z > 0, which
     only noise puts there: robustly, from at least INDENTATION_POINTS of them, so a few spikes do not count). A cloud
-    of contact points alone, or one not pressed into the gel (`indentation_m`), is returned as it is."""
+    of contact points alone (fewer than INDENTATION_POINTS points on or above the gel plane, z >= 0), or one not
+    pressed into the gel (`indentation_m`), is returned as it is."""
+    z = points_sensor[:, 2]
+    if int((z >= 0.0).sum()) < INDENTATION_POINTS:
+        return points_sensor
     depth, contact_floor = indentation_m(points_sensor)
     if depth <= contact_floor:
         return points_sensor
-    z = points_sensor[:, 2]
     above = z[z > 0]
     noise = float(np.median(above)) / HALF_NORMAL_MEDIAN if len(above) >= INDENTATION_POINTS else 0.0
     floor = max(NO_INDENTATION_M, NOISE_MARGIN * noise)
@@ -404,9 +413,8 @@ def _read_side(
         image = TactileImage(_side_file(record, "image", side, path), **optional)
     if "points" in record and not (from_images and image is not None):
         cloud_path = _side_file(record, "points", side, path)
-        points, _ = read_ply_points(cloud_path)
         sigma = _read_depth_scale_sigma(record, side, path)
-        return TactileContact(validate_tactile_points(points, cloud_path), T_world_sensor, cloud_path, image, sigma)
+        return TactileContact(read_tactile_cloud(cloud_path), T_world_sensor, cloud_path, image, sigma)
     assert image is not None
     if images is None:
         raise InputError(
@@ -513,6 +521,7 @@ __all__ = [
     "find_pair_files",
     "indentation_m",
     "read_contact_pair",
+    "read_tactile_cloud",
     "validate_tactile_points",
     "without_untouched_gel",
     "write_contact_pair",
