@@ -402,3 +402,18 @@ def test_a_sensor_pose_in_millimetres_is_refused(tmp_path, rng):
     path.write_text(json.dumps(payload))
     with pytest.raises(InputError, match=r"pair.json: left.T_world_sensor is 1278 from the world origin.*millimetres"):
         read_contact_pair(path)
+
+
+def test_a_tum_file_with_a_row_of_column_names(tmp_path):
+    """A CSV-style export whose first row names the columns (no '#'): read (the old reader refused line 1 as not
+    numeric); a non-numeric row among the poses is still refused naming its line."""
+    from yoto.trajectory import read_tum
+
+    rows = ["timestamp,tx,ty,tz,qx,qy,qz,qw", "1.0,0.1,0.2,0.3,0,0,0,1", "2.0,0.2,0.2,0.3,0,0,0.7071068,0.7071068"]
+    (tmp_path / "named.tum").write_text("\n".join(rows) + "\n")
+    stream = read_tum(tmp_path / "named.tum")
+    np.testing.assert_array_equal(stream.timestamps_s, [1.0, 2.0])
+    np.testing.assert_allclose(stream.T_world_frame[1, :3, 0], [0.0, 1.0, 0.0], atol=1e-7)
+    (tmp_path / "bad.tum").write_text("\n".join([*rows, "3.0,x,0,0,0,0,0,1"]) + "\n")
+    with pytest.raises(InputError, match="bad.tum: line 4 is not numeric"):
+        read_tum(tmp_path / "bad.tum")
