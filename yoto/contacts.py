@@ -49,6 +49,7 @@ RECENT_CLOUDS = 4  # contact_in_sensor keeps its answers for this many clouds
 NO_INDENTATION_M = 5e-5
 NOISE_MARGIN = 5.0
 INDENTATION_POINTS = 20
+HALF_NORMAL_MEDIAN = 0.6745  # the median of |x| for x ~ N(0, 1): noise sigma from the median of its positive half
 
 
 @dataclass(frozen=True)
@@ -265,6 +266,42 @@ def validate_tactile_points(points: np.ndarray, source: str | Path | None) -> np
     return points
 
 
+def read_tactile_cloud(path: Path) -> np.ndarray:
+    """A tactile cloud file (PLY, sensor frame, metres), validated, and read as its contact when it covers the whole
+    pad (`without_untouched_gel`). Errors name the file."""
+    points = without_untouched_gel(validate_tactile_points(read_ply_points(path)[0], path))
+    if len(points) < MIN_TACTILE_POINTS:
+        raise InputError(
+            f"tactile cloud has only {len(points)} points pressed into the gel (the rest lie on the undeformed gel); "
+            f"at least {MIN_TACTILE_POINTS} are needed to localize a contact",
+            path,
+        )
+    return points
+
+
+def without_untouched_gel(points_sensor: np.ndarray) -> np.ndarray:
+    """The cloud without its points on the undeformed gel. A cloud of the whole pad (a point per pixel, as a
+    reconstructed height map gives it) holds the untouched gel around the contact, z = 0 within the reconstruction's
+    noise: not contact surface, and taken for it, it drags the contact's centre and normal to the pad's. Those are the
+    points less deep than NO_INDENTATION_M or 5 sigma of that noise (read off the points above the gel, z > 0, which
+    only noise puts there: robustly, from at least INDENTATION_POINTS of them, so a few spikes do not count). A cloud
+    of contact points alone (fewer than INDENTATION_POINTS points on or above the gel plane, z >= 0), or one not
+    pressed into the gel (`indentation_m`), is returned as it is."""
+    z = points_sensor[:, 2]
+    if int((z >= 0.0).sum()) < INDENTATION_POINTS:
+        return points_sensor
+    depth, contact_floor = indentation_m(points_sensor)
+    if depth <= contact_floor:
+        return points_sensor
+    above = z[z > 0]
+    noise = float(np.median(above)) / HALF_NORMAL_MEDIAN if len(above) >= INDENTATION_POINTS else 0.0
+    floor = max(NO_INDENTATION_M, NOISE_MARGIN * noise)
+    pressed = z <= -floor
+    if pressed.all() or pressed.sum() < INDENTATION_POINTS:
+        return points_sensor
+    return points_sensor[pressed]
+
+
 def indentation_m(points_sensor: np.ndarray) -> tuple[float, float]:
     """(depth, floor): how deep a tactile cloud's deepest points are pressed, and the depth below which that is noise.
 
@@ -280,10 +317,20 @@ def indentation_m(points_sensor: np.ndarray) -> tuple[float, float]:
     return depth, max(NO_INDENTATION_M, NOISE_MARGIN * noise)
 
 
+LARGEST_PLAUSIBLE_POSITION_M = 50.0  # a pose further from the world origin is most likely in millimetres
+
+
 def _read_matrix(record: dict, key: str, what: str, path: Path) -> np.ndarray:
     if key not in record:
         raise InputError(f"missing key '{key}' in {what}", path)
-    return validate_transform(record[key], f"{what}.{key}", path)
+    transform = validate_transform(record[key], f"{what}.{key}", path)
+    distance = float(np.linalg.norm(transform[:3, 3]))
+    if distance > LARGEST_PLAUSIBLE_POSITION_M:
+        raise InputError(
+            f"{what}.{key} is {distance:.0f} from the world origin: matrices are in metres (is it in millimetres?)",
+            path,
+        )
+    return transform
 
 
 def _read_point(record: dict, key: str, what: str, path: Path) -> np.ndarray:
@@ -318,7 +365,9 @@ def read_contact_pair(
     if truth is not None:
         if not isinstance(truth, dict):
             raise InputError("'ground_truth' must be an object", path)
-        pair.T_world_mesh_true = _read_matrix(truth, "T_world_object", "ground_truth", path)
+        # Partial truth is kept: a labelling tool may know the contacts (p_object) and not the pose, or the reverse.
+        if "T_world_object" in truth:
+            pair.T_world_mesh_true = _read_matrix(truth, "T_world_object", "ground_truth", path)
         for side in SIDES:
             if f"{side}_p_object" in truth:
                 pair.p_mesh_true[side] = _read_point(truth, f"{side}_p_object", "ground_truth", path)
@@ -364,9 +413,8 @@ def _read_side(
         image = TactileImage(_side_file(record, "image", side, path), **optional)
     if "points" in record and not (from_images and image is not None):
         cloud_path = _side_file(record, "points", side, path)
-        points, _ = read_ply_points(cloud_path)
         sigma = _read_depth_scale_sigma(record, side, path)
-        return TactileContact(validate_tactile_points(points, cloud_path), T_world_sensor, cloud_path, image, sigma)
+        return TactileContact(read_tactile_cloud(cloud_path), T_world_sensor, cloud_path, image, sigma)
     assert image is not None
     if images is None:
         raise InputError(
@@ -423,8 +471,8 @@ def write_contact_pair(path: str | Path, pair: ContactPair) -> Path:
                 file = getattr(contact.image, key)
                 if file is not None:
                     payload[side][key] = os.path.relpath(Path(file).resolve(), path.parent.resolve())
-    if pair.T_world_mesh_true is not None:
-        truth: dict[str, Any] = {"T_world_object": pair.T_world_mesh_true}
+    if pair.T_world_mesh_true is not None or pair.p_mesh_true:
+        truth: dict[str, Any] = {} if pair.T_world_mesh_true is None else {"T_world_object": pair.T_world_mesh_true}
         for side in SIDES:
             if side in pair.p_mesh_true:
                 truth[f"{side}_p_object"] = pair.p_mesh_true[side]
@@ -473,6 +521,8 @@ __all__ = [
     "find_pair_files",
     "indentation_m",
     "read_contact_pair",
+    "read_tactile_cloud",
     "validate_tactile_points",
+    "without_untouched_gel",
     "write_contact_pair",
 ]

@@ -341,7 +341,9 @@ def validate_transform(matrix: object, what: str, path: str | Path | None = None
     if not np.all(np.isfinite(transform)):
         raise InputError(f"{what} contains NaN or infinite values", path)
     if not np.allclose(transform[3], [0.0, 0.0, 0.0, 1.0], atol=tol):
-        raise InputError(f"{what} has last row {transform[3].tolist()}, expected [0, 0, 0, 1]", path)
+        transposed = np.allclose(transform[:, 3], [0.0, 0.0, 0.0, 1.0], atol=tol)
+        hint = " (its last column is: written column-major? the matrices are row-major)" if transposed else ""
+        raise InputError(f"{what} has last row {transform[3].tolist()}, expected [0, 0, 0, 1]{hint}", path)
     rotation = transform[:3, :3]
     orthogonality_error = np.abs(rotation.T @ rotation - np.eye(3)).max()
     if orthogonality_error > tol or np.linalg.det(rotation) < 0:

@@ -32,8 +32,13 @@ os.umask(_UMASK)
 def atomic_open(path: str | Path, mode: str = "wb") -> Iterator[Any]:
     """Open a temporary file next to `path`; on success it replaces `path`, on error it is removed."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    if path.is_dir():
+        raise InputError("this output is a folder; give the file to write (a name inside it)", path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:  # a read-only folder, a file where a folder should be, a full disk
+        raise InputError(f"cannot write here ({exc.strerror or exc})", path) from exc
     os.chmod(tmp_name, 0o666 & ~_UMASK)  # mkstemp creates 0600; give the file the mode open() would
     try:
         with os.fdopen(fd, mode) as handle:

@@ -54,6 +54,13 @@ class PoseStream:
     def end_s(self) -> float:
         return float(self.timestamps_s[-1])
 
+    def dropout_gap_s(self, floor_s: float) -> float:
+        """The longest gap between two samples that is still the stream's own rhythm rather than a dropout:
+        `floor_s`, or 1.5 sample periods (median) of a slower stream (a 5 Hz robot stream is not all dropouts)."""
+        if len(self) < 2:
+            return floor_s
+        return max(floor_s, 1.5 * float(np.median(np.diff(self.timestamps_s))))
+
     def interpolate(self, timestamps_s: np.ndarray, max_gap_s: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         """Poses at arbitrary times: (M, 4, 4) poses and an (M,) mask of the times the stream covers.
 
@@ -111,12 +118,20 @@ def write_tum(path: str | Path, stream: PoseStream, comment: str | None = None) 
     return write_text_atomic(path, header + body)
 
 
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def read_tum(path: str | Path, name: str | None = None) -> PoseStream:
     """Read a TUM trajectory file. Errors name the file, the line and the problem.
 
-    Accepts blank lines, `#` comments and commas between values. Samples out of time order are sorted;
-    repeated timestamps are dropped when they repeat the pose and refused when they disagree. Quaternions
-    are normalised when within 1% of unit norm and refused otherwise (a wrong column order, most often).
+    Accepts blank lines, `#` comments, commas between values and a first row of column names. Samples out of time
+    order are sorted; repeated timestamps are dropped when they repeat the pose and refused when they disagree.
+    Quaternions are normalised when within 1% of unit norm and refused otherwise (a wrong column order, most often).
     """
     path = Path(path)
     if not path.is_file():
@@ -125,7 +140,9 @@ def read_tum(path: str | Path, name: str | None = None) -> PoseStream:
         text = path.read_text(encoding="utf-8-sig")  # -sig: a byte-order mark (Windows tools) is skipped
     except UnicodeDecodeError as exc:
         raise InputError(f"not a text file ({exc}); a TUM trajectory is text, '{TUM_COLUMNS}' a line", path) from exc
-    rows, lines = [], []
+    rows: list[list[float]] = []
+    lines: list[int] = []
+    header_seen = False
     for number, line in enumerate(text.splitlines(), start=1):
         content = line.split("#", 1)[0].replace(",", " ").split()
         if not content:
@@ -135,6 +152,9 @@ def read_tum(path: str | Path, name: str | None = None) -> PoseStream:
         try:
             values = [float(value) for value in content]
         except ValueError as exc:
+            if not rows and not header_seen and not any(_is_number(value) for value in content):
+                header_seen = True
+                continue  # a header row of column names without '#' (a CSV export): "timestamp,tx,ty,tz,qx,qy,qz,qw"
             raise InputError(f"line {number} is not numeric ({exc})", path) from exc
         rows.append(values)
         lines.append(number)

@@ -71,14 +71,12 @@ def read_tactile_input(path: str, images: ImageSides) -> np.ndarray:
     """The tactile cloud of a PLY file, or of a GelSight image reconstructed by `images` (ImageSides)."""
     from pathlib import Path
 
-    from yoto.contacts import TactileImage, validate_tactile_points
-    from yoto.io import read_ply_points
+    from yoto.contacts import TactileImage, read_tactile_cloud, validate_tactile_points
     from yoto.sensor.presses import IMAGE_SUFFIXES
 
     if Path(path).suffix.lower() in IMAGE_SUFFIXES:
         return validate_tactile_points(images(TactileImage(Path(path), images.background))[0], path)
-    points, _ = read_ply_points(path)
-    return validate_tactile_points(points, path)
+    return read_tactile_cloud(Path(path))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -45,6 +45,8 @@ def build_object(
             raise InputError(f"no mesh given and {name!r} is not a built-in object ({', '.join(BUILTIN_OBJECTS)})")
         source = {"builtin": name, "description": BUILTIN_OBJECTS[name][3]}
     else:
+        if not Path(mesh_path).is_file():
+            raise InputError("mesh file not found", mesh_path)
         source = {"mesh": str(Path(mesh_path).resolve()), "sha256": sha256_of_file(mesh_path), "units": units}
 
     if out_path.exists() and not overwrite:

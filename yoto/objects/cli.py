@@ -49,8 +49,10 @@ def _run_build(args: argparse.Namespace) -> int:
         if args.mesh:
             raise InputError("give either a mesh file or --builtin, not both")
         names = list(BUILTIN_OBJECTS) if args.builtin == "all" else [args.builtin]
+        if args.out and len(names) > 1:
+            raise InputError("--out names one model file: build the built-ins one at a time, or into the workspace")
         for name in names:
-            build_object(None, name, config, workspace=args.workspace, overwrite=args.overwrite)
+            build_object(None, name, config, workspace=args.workspace, out=args.out, overwrite=args.overwrite)
         return 0
     if not args.mesh:
         raise InputError("give a mesh file, or --builtin NAME")

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import io
 import logging
+import re
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import cast
@@ -79,19 +81,93 @@ def load_mesh(path: str | Path, units: str = "m") -> tuple[trimesh.Trimesh, Repa
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise InputError(f"unsupported mesh format '{path.suffix}' (use one of {', '.join(MESH_SUFFIXES)})", path)
     try:
-        loaded = trimesh.load(path, force="mesh", process=False)
+        relative = _obj_with_absolute_indices(path) if path.suffix.lower() == ".obj" else None
+        if relative is not None:
+            loaded = trimesh.load(io.StringIO(relative), file_type="obj", force="mesh", process=False)
+        else:
+            loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many unrelated types for broken files
         raise InputError(f"could not read the mesh ({type(exc).__name__}: {exc})", path) from exc
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0 or len(loaded.vertices) == 0:
         raise InputError("the file holds no triangles (empty mesh, or a point cloud rather than a mesh)", path)
-    vertices = np.asarray(loaded.vertices, dtype=np.float64)
+    faces = np.asarray(loaded.faces)
+    if faces.min() < 0 or faces.max() >= len(loaded.vertices):
+        raise InputError(f"mesh faces index vertices that do not exist ({len(loaded.vertices)} vertices)", path)
+    # Vertices no face uses (an exporter's leftovers, a scan's stray points) take no part: not in the size check,
+    # not in the model.
+    vertices = np.asarray(loaded.vertices, dtype=np.float64)[np.unique(faces)]
+    faces = np.searchsorted(np.unique(faces), faces)
     if not np.all(np.isfinite(vertices)):
         raise InputError(f"mesh has {int((~np.isfinite(vertices)).any(axis=1).sum())} vertices with NaN or inf", path)
     scale = _unit_scale(path, float(np.ptp(vertices, axis=0).max()), units)
     require_thickness(vertices * scale, path)
-    mesh = trimesh.Trimesh(vertices=vertices * scale, faces=np.asarray(loaded.faces), process=False)
+    mesh = trimesh.Trimesh(vertices=vertices * scale, faces=faces, process=False)
     mesh, report = repair_mesh(mesh, path)
     return mesh, report, scale
+
+
+def _obj_with_absolute_indices(path: Path) -> str | None:
+    """An OBJ file's text with its relative face indices (`f -4 -3 -2 -1`: counted back from the vertices defined so
+    far, as the OBJ format says) made absolute, or None when it has none. trimesh counts them from the file's last
+    vertex instead, which silently scrambles a file that defines vertices between faces."""
+    text = path.read_text(encoding="utf-8", errors="replace")
+    if not re.search(r"^[ \t]*[fl][ \t].*[ \t/]-\d", text, re.MULTILINE):
+        return None
+    defined = {"v": 0, "vt": 0, "vn": 0}
+    lines = []
+    for line in text.splitlines():
+        words = line.split()
+        if words and words[0] in defined:
+            defined[words[0]] += 1
+        elif words and words[0] in ("f", "l"):
+            references = []
+            for reference in words[1:]:
+                parts = reference.split("/")
+                for k, (part, kind) in enumerate(zip(parts, ("v", "vt", "vn"))):
+                    if part.startswith("-"):
+                        parts[k] = str(defined[kind] + 1 + int(part))
+                references.append("/".join(parts))
+            line = " ".join([words[0], *references])
+        lines.append(line)
+    return "\n".join(lines) + "\n"
+
+
+def mesh_file_vertices(path: str | Path, scale_to_m: float = 1.0) -> np.ndarray:
+    """The vertices of a mesh file in the file's own order (what a mesh viewer's vertex index counts), metres.
+
+    PLY: its vertex element; OBJ: its `v` lines; OFF, GLB, glTF: as trimesh reads them unprocessed. The object
+    model's mesh is repaired (duplicate vertices merged, unused ones dropped), so its vertex order is not the file's.
+    An STL file lists each triangle's corners rather than shared vertices: it has no vertex ids (InputError).
+    """
+    from yoto.io import read_ply_points
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("mesh file not found", path)
+    suffix = path.suffix.lower()
+    if suffix == ".stl":
+        raise InputError("an STL file has no vertex ids (it lists triangle corners): give points, not vertices", path)
+    if suffix == ".ply":
+        vertices, _ = read_ply_points(path)
+    elif suffix == ".obj":
+        rows = []
+        for number, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), start=1):
+            words = line.split()
+            if words and words[0] == "v":
+                try:
+                    rows.append([float(value) for value in words[1:4]])
+                except ValueError as exc:
+                    raise InputError(f"line {number}: vertex is not numeric ({exc})", path) from exc
+                if len(rows[-1]) != 3:
+                    raise InputError(f"line {number}: a vertex needs x y z", path)
+        vertices = np.asarray(rows, dtype=np.float64).reshape(-1, 3)
+    else:
+        try:
+            loaded = cast(trimesh.Trimesh, trimesh.load(path, force="mesh", process=False))  # force="mesh": a mesh
+            vertices = np.asarray(loaded.vertices, dtype=np.float64)
+        except Exception as exc:  # trimesh raises many unrelated types for broken files
+            raise InputError(f"could not read the mesh ({type(exc).__name__}: {exc})", path) from exc
+    return vertices * scale_to_m
 
 
 def _unit_scale(path: Path, extent: float, units: str) -> float:

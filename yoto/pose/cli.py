@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from contextlib import nullcontext
+from pathlib import Path
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -168,10 +169,30 @@ def run_retouch(args: argparse.Namespace) -> int:
     return 0
 
 
+def _pairs_and_results(inputs: list[str | Path], out: str | None) -> list[tuple[Path, Path]]:
+    """(pair file, its pose result path) for every pair the inputs name; a pair named twice (a file and its folder)
+    counts once, and two pairs whose results would overwrite each other (`a/pair_0000.json`, `b/pair_0000.json`
+    with one --out) are refused before anything is written."""
+    from yoto.contacts import find_pair_files
+    from yoto.errors import InputError
+    from yoto.pose.pipeline import pose_result_path
+
+    writers: dict[Path, tuple[Path, Path]] = {}  # resolved result path -> (pair file, result path)
+    for path in find_pair_files(inputs):
+        result = pose_result_path(path, out)
+        other, _ = writers.setdefault(result.resolve(), (path, result))
+        if other.resolve() != path.resolve():
+            raise InputError(
+                f"{other} and {path} would both write {result}: give them separate --out folders (or no --out: "
+                "each result goes next to its pair)"
+            )
+    return list(writers.values())
+
+
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from yoto.contacts import find_pair_files, read_contact_pair
+    from yoto.contacts import read_contact_pair
     from yoto.errors import NoContactError, YotoError
     from yoto.io import write_json_atomic
     from yoto.localize import make_localizer
@@ -179,11 +200,12 @@ def run(args: argparse.Namespace) -> int:
     from yoto.objects.build import load_object_model
     from yoto.objects.model import ObjectModel
     from yoto.pose.executor import prepare_pose_helper
-    from yoto.pose.pipeline import estimate_pose, pose_result_path
+    from yoto.pose.pipeline import estimate_pose
     from yoto.sensor.pair_images import ImageSides
 
     if args.retouch:
         return run_retouch(args)
+    pairs = _pairs_and_results(args.pairs, args.out)
     method = "oracle" if args.oracle else args.method
     pose_config = _pose_config(args)
     localizer = make_localizer(method, args.checkpoint)
@@ -191,7 +213,7 @@ def run(args: argparse.Namespace) -> int:
     models: dict[str, ObjectModel] = {}
     failures, no_contact, errors = 0, 0, []
     with LocalizerProcess(localizer) if args.both_cores else nullcontext() as helper:
-        for path in find_pair_files(args.pairs):
+        for path, result_path in pairs:
             try:
                 pair = read_contact_pair(path, images, args.from_images)
                 key = args.model or pair.object_name
@@ -203,9 +225,9 @@ def run(args: argparse.Namespace) -> int:
                 estimate = estimate_pose(pair, model, localizer, pose_config, helper)
                 result = estimate.to_json(model)
                 line = _describe(estimate, model, pair, result)
+                write_json_atomic(result_path, result)
                 if "error" in result:
                     errors.append(result["error"])
-                write_json_atomic(pose_result_path(path, args.out), result)
                 print(f"{path.name}: {line}")
             except NoContactError as exc:
                 no_contact += 1

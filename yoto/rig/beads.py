@@ -11,24 +11,29 @@ Picks file (`beads.json`):
     {"bead_radius_mm": 5.0, "units": "m",
      "beads": [{"name": "Object:Marker1", "vertex": 1234}, {"name": "Object:Marker2", "point": [0.01, 0.02, 0.03]}]}
 `name` is the bead's marker (a PointStamped topic or name in a bag, a marker column of a Motive take);
-`vertex` indexes the object model's mesh (the mesh file's vertices when it needed no repair); `point` is in `units`.
+`vertex` indexes the mesh file's vertices in the file's order, as a mesh viewer numbers them (PLY vertex element,
+OBJ `v` lines, from 0; the built-in objects: their generated mesh); `point` is in `units`.
 """
 
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from yoto.errors import DegenerateGeometryError, InputError
 from yoto.geometry import make_transform, normalize, procrustes_rotation, transform_points, validate_transform
-from yoto.io import read_json, read_json_format, write_json_atomic
+from yoto.io import read_json, read_json_format, sha256_of_file, write_json_atomic
 from yoto.raycast import MeshRaycaster
 from yoto.rig.streams import Recording
 from yoto.rig.timeline import static_segments
+
+if TYPE_CHECKING:
+    from yoto.objects.model import ObjectModel
 
 FORMAT_NAME = "yoto-object-calibration"
 FORMAT_VERSION = 1
@@ -102,8 +107,29 @@ def load_object_calibration(path: str | Path) -> ObjectCalibration:
     )
 
 
-def read_bead_picks(path: str | Path, vertices_mesh: np.ndarray) -> BeadPicks:
-    """Read a picks file (module docstring); vertex ids index `vertices_mesh` (metres, mesh frame)."""
+def pick_vertices_mesh(model: ObjectModel) -> np.ndarray:
+    """What a picks file's `vertex` ids index (metres, mesh frame): the vertices of the mesh file the model was built
+    from, in the file's order, or a built-in object's generated mesh. The model's own mesh is repaired (duplicate
+    vertices merged, unused ones dropped), so its order is not the file's; a file that moved or changed since the
+    build cannot resolve ids (InputError)."""
+    from yoto.objects.mesh import mesh_file_vertices
+
+    source = model.meta.get("source", {})
+    if "mesh" not in source:
+        return model.mesh_vertices_mesh
+    mesh_path = Path(source["mesh"])
+    if not mesh_path.is_file() or sha256_of_file(mesh_path) != source.get("sha256"):
+        raise InputError(
+            f"bead picks by 'vertex' index the vertices of the mesh file the model '{model.name}' was built from, "
+            "which is no longer there unchanged: rebuild the model from the file, or give the picks as 'point's",
+            mesh_path,
+        )
+    return mesh_file_vertices(mesh_path, float(source.get("scale_to_m", 1.0)))
+
+
+def read_bead_picks(path: str | Path, vertices_mesh: np.ndarray | Callable[[], np.ndarray]) -> BeadPicks:
+    """Read a picks file (module docstring); vertex ids index `vertices_mesh` (metres, mesh frame; a function giving
+    them is called only when a bead is picked by vertex, e.g. `lambda: pick_vertices_mesh(model)`)."""
     path = Path(path)
     payload = read_json(path)
     if not isinstance(payload, dict) or not isinstance(payload.get("beads"), list):
@@ -121,6 +147,8 @@ def read_bead_picks(path: str | Path, vertices_mesh: np.ndarray) -> BeadPicks:
         if not isinstance(bead, dict) or "name" not in bead:
             raise InputError(f"bead {k} needs a 'name' (its marker) and a 'vertex' or 'point'", path)
         if "vertex" in bead:
+            if callable(vertices_mesh):
+                vertices_mesh = vertices_mesh()
             vertex = bead["vertex"]
             if not isinstance(vertex, int) or not 0 <= vertex < len(vertices_mesh):
                 raise InputError(

@@ -25,7 +25,7 @@ from yoto.io import read_json, write_json_atomic, write_text_atomic
 from yoto.metrics import summarize
 from yoto.objects.model import ObjectModel
 from yoto.raycast import MeshRaycaster
-from yoto.rig.beads import calibrate_object, read_bead_picks
+from yoto.rig.beads import calibrate_object, pick_vertices_mesh, read_bead_picks
 from yoto.rig.calibration import GelCalibrationConfig, calibrate_rig, read_cad_rotation
 from yoto.rig.labelling import LabelConfig, RigSide, label_recording, refine_object_calibration, write_labels
 from yoto.rig.recording import FORMATS, SIDES, RecordingConfig, simulate_recording
@@ -58,7 +58,7 @@ def calibrate_session(recording_dir: Path, fmt: str, model: ObjectModel, gel_con
             plate_body=session["plate_body"],
             config=gel_config,
         )
-    picks = read_bead_picks(recording_dir / "beads.json", model.mesh_vertices_mesh)
+    picks = read_bead_picks(recording_dir / "beads.json", lambda: pick_vertices_mesh(model))
     object_calibration = calibrate_object(
         open_recording(files["beads"]),
         picks,

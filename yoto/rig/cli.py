@@ -198,11 +198,11 @@ def _run_calibrate_rig(args: argparse.Namespace) -> int:
 
 
 def _run_calibrate_object(args: argparse.Namespace) -> int:
-    from yoto.rig.beads import calibrate_object, read_bead_picks
+    from yoto.rig.beads import calibrate_object, pick_vertices_mesh, read_bead_picks
     from yoto.rig.streams import open_recording
 
     model = load_model(args.object, args.workspace)
-    picks = read_bead_picks(args.picks, model.mesh_vertices_mesh)
+    picks = read_bead_picks(args.picks, lambda: pick_vertices_mesh(model))
     calibration = calibrate_object(
         open_recording(args.recording),
         picks,

@@ -48,6 +48,7 @@ from yoto.geometry import (
 from yoto.io import write_bytes_atomic, write_json_atomic
 from yoto.objects.model import ObjectModel
 from yoto.rig.bags import BagWriter
+from yoto.rig.beads import pick_vertices_mesh
 from yoto.rig.motive import write_motive_csv
 from yoto.rig.timeline import slerp
 from yoto.sensor.calibration import SensorCalibration
@@ -182,7 +183,9 @@ class Scene:
         self.bead_centre_mesh = self.bead_foot_mesh + config.bead_radius_m * normalize(normals.T)
         self.bead_names = [f"Bead{i + 1}" for i in range(config.beads)]
         picked = self.bead_foot_mesh + rng.normal(scale=noise.bead_pick_std_m, size=self.bead_foot_mesh.shape)
-        self.bead_pick_vertices = [int(np.argmin(np.linalg.norm(vertices - p, axis=1))) for p in picked]
+        # Picked as a user picks them in a mesh viewer: ids of the mesh file's vertices, in the file's order.
+        pick_vertices = pick_vertices_mesh(model)
+        self.bead_pick_vertices = [int(np.argmin(np.linalg.norm(pick_vertices - p, axis=1))) for p in picked]
         # The object's rigid body: origin at the beads' centroid, axes along the world's (as Motive defines one).
         centroid_world = transform_points(self.T_world_mesh, self.bead_centre_mesh).mean(axis=0)
         self.T_world_objectbody = make_transform(np.eye(3), centroid_world)

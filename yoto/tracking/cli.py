@@ -8,8 +8,8 @@ TRACK_EPILOG = """examples:
   yoto track touch.json --left left.tum --right right.tum --out object.tum
   yoto track touch.json --left left.tum --right right.tum --out object.tum \\
       --left-tactile left_tactile --right-tactile right_tactile --truth object_true.tum --figure error.png
-  yoto track touch.json --left rec.bag --left-topic /vrpn_client_node/GelLeft/pose \\
-      --right rec.bag --right-topic /vrpn_client_node/GelRight/pose --out object.tum
+  yoto track touch.json --left rec.bag --left-topic /vrpn_client_node/RigLeft/pose --left-rig left.rig.json \\
+      --right rec.bag --right-topic /vrpn_client_node/RigRight/pose --right-rig right.rig.json --out object.tum
   yoto track-bench --objects fruit figurine ../shared/data/meshes/bunny/bunny.ply -n 5
 """
 
@@ -30,6 +30,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--right", required=True, help="right sensor poses (as --left)")
     parser.add_argument("--left-topic", help="for a bag: the left sensor's PoseStamped/TF topic; Motive: its body")
     parser.add_argument("--right-topic", help="as --left-topic, for the right sensor")
+    parser.add_argument(
+        "--left-rig",
+        help="with --left-topic naming the rig's rigid body: its rig calibration (`yoto rig calibrate-rig`), which "
+        "puts the GelSight in the body (without it the body's pose is taken for the GelSight's)",
+    )
+    parser.add_argument("--right-rig", help="as --left-rig, for the right sensor")
     parser.add_argument("--out", required=True, help="tracked poses, TUM file (T_world_object, mesh file's frame)")
     parser.add_argument("--left-tactile", help="left tactile frames: a folder of <timestamp>.ply, or a bag")
     parser.add_argument("--right-tactile", help="right tactile frames (as --left-tactile)")
@@ -52,6 +58,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--open-loop", action="store_true", help="ignore tactile frames: the paper's open loop")
     parser.add_argument("--truth", help="ground truth T_world_object (mesh frame): TUM, bag or Motive CSV")
     parser.add_argument("--truth-topic", help="for a bag or Motive CSV: the object's topic or rigid body")
+    parser.add_argument(
+        "--truth-calibration",
+        help="with --truth-topic: the object calibration (`yoto rig calibrate-object`) that puts the mesh frame in "
+        "the object's rigid body",
+    )
     parser.add_argument("--report", help="JSON report: every tactile instant, the streams' jitter, errors")
     parser.add_argument("--figure", help="error plot against --truth (PNG), like the paper's Fig. 4")
     parser.set_defaults(run=run)
@@ -95,6 +106,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     bench.set_defaults(run=run_bench)
 
 
+def _path(value: str | None):
+    from pathlib import Path
+
+    return Path(value) if value else None
+
+
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -110,7 +127,10 @@ def run(args: argparse.Namespace) -> int:
                 tactile[side] = Source(Path(path), getattr(args, f"{side}_tactile_topic"))
     job = TrackJob(
         pair=Path(args.pair),
-        sensors={"left": Source(Path(args.left), args.left_topic), "right": Source(Path(args.right), args.right_topic)},
+        sensors={
+            side: Source(Path(getattr(args, side)), getattr(args, f"{side}_topic"), _path(getattr(args, f"{side}_rig")))
+            for side in ("left", "right")
+        },
         out=Path(args.out),
         tactile=tactile,
         calibration=Path(args.calibration) if args.calibration else None,
@@ -120,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
         model=args.model,
         workspace=args.workspace,
         touch_time_s=args.touch_time,
-        truth=Source(Path(args.truth), args.truth_topic) if args.truth else None,
+        truth=Source(Path(args.truth), args.truth_topic, _path(args.truth_calibration)) if args.truth else None,
         report=Path(args.report) if args.report else None,
         figure=Path(args.figure) if args.figure else None,
     )

@@ -123,8 +123,8 @@ def tracking_errors(
 def truth_at(truth_mesh: PoseStream, timestamps_s: np.ndarray, T_mesh_object: np.ndarray, max_gap_s: float = 0.1):
     """The true T_world_object (canonical frame) at the given times from a `T_world_mesh` stream; refuses times the
     truth does not cover."""
-    poses, covered = truth_mesh.interpolate(timestamps_s, max_gap_s)
-    if not covered.any():
+    poses, covered = truth_mesh.interpolate(timestamps_s, truth_mesh.dropout_gap_s(max_gap_s))
+    if len(timestamps_s) and not covered.any():
         raise InputError(
             f"the ground truth ({truth_mesh.start_s:.3f} - {truth_mesh.end_s:.3f} s) does not cover the tracked times "
             f"({timestamps_s[0]:.3f} - {timestamps_s[-1]:.3f} s)",

@@ -10,7 +10,7 @@ followed:
 - each stream is smoothed in time (a local quadratic over +- `smoothing_s`, glitches left out): jitter averages
   over the samples of the window, smooth motion passes;
 - both streams are interpolated to each output time (they have their own rates and phases); a time inside a
-  dropout (samples further apart than `max_gap_s`) uses the other sensor alone;
+  dropout (samples further apart than `max_gap_s`, or 1.5 periods of a slower stream) uses the other sensor alone;
 - rotations are averaged with weights 1 / sigma_rotation^2 and positions of the object's centroid with weights
   1 / (sigma_translation^2 + (sigma_rotation * lever)^2), where the lever is the sensor's distance from the
   centroid (a sensor's rotation jitter moves a far-away object more).
@@ -126,7 +126,7 @@ def smooth_stream(stream: PoseStream, jitter: StreamJitter, config: FusionConfig
     weights = (~jitter.glitch[window]).astype(np.float64)
     weights[np.abs(offsets) * period > config.smoothing_s * 1.5] = 0.0  # samples across a dropout
     usable = weights.sum(axis=1) >= 3
-    weights[~usable] = (np.abs(offsets[~usable]) <= 1.0).astype(np.float64)  # too few: keep the raw sample
+    weights[~usable] = 1.0  # too few: the raw sample is kept below (these rows' fits are only kept invertible)
     fit_t, gain = _local_fit(offsets, translations, weights)
     fit_r, _ = _local_fit(offsets, rotations, weights)
     poses = stream.T_world_frame.copy()
@@ -172,7 +172,7 @@ def sensor_poses(
     poses, covered, near_glitch = {}, {}, {}
     for side in SIDES:
         stream = streams[side]
-        poses[side], covered[side] = stream.interpolate(times, config.max_gap_s)
+        poses[side], covered[side] = stream.interpolate(times, stream.dropout_gap_s(config.max_gap_s))
         upper = np.clip(np.searchsorted(stream.timestamps_s, times, side="left"), 0, len(stream) - 1)
         lower = np.clip(upper - 1, 0, len(stream) - 1)
         near_glitch[side] = jitter[side].glitch[upper] | jitter[side].glitch[lower]

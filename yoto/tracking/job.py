@@ -16,7 +16,7 @@ import numpy as np
 
 from yoto.contacts import SIDES, ContactPair, read_contact_pair
 from yoto.errors import InputError
-from yoto.geometry import validate_transform
+from yoto.geometry import rotation_angle_rad, validate_transform
 from yoto.io import read_json, write_json_atomic
 from yoto.objects.model import ObjectModel
 from yoto.tracking.evaluate import (
@@ -27,8 +27,10 @@ from yoto.tracking.evaluate import (
     tracking_errors,
     truth_at,
 )
+from yoto.tracking.fusion import sensor_poses
 from yoto.tracking.streams import TactileStream, read_sensor_stream, read_tactile_stream
 from yoto.tracking.track import (
+    TOUCH_MATCH_ROTATION_M_PER_RAD,
     TrackConfig,
     TrackResult,
     tactile_timing_warnings,
@@ -45,6 +47,10 @@ class Source:
 
     path: Path
     topic: str | None = None  # bag topic, or Motive rigid-body name; None for TUM files and frame folders
+    # A recording gives rigid bodies: the calibration that maps the body to the frame the job needs, a rig calibration
+    # (`yoto rig calibrate-rig`: T_rig_sensor) for a sensor stream, an object calibration (`yoto rig calibrate-object`:
+    # T_objectbody_mesh) for the ground truth. None: the stream is that frame's already.
+    calibration: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -78,10 +84,37 @@ class TrackOutcome:
     warnings: list[str] = field(default_factory=list)
 
 
+def read_stream(source: Source, name: str, frame: str) -> PoseStream:
+    """A pose stream of `frame` ("sensor": T_world_sensor, "mesh": T_world_mesh): the file's own, or its rigid body's
+    composed with the source's calibration (T_rig_sensor, T_objectbody_mesh)."""
+    from yoto.rig.beads import load_object_calibration
+    from yoto.rig.calibration import load_rig_calibration
+
+    stream = read_sensor_stream(source.path, source.topic, name)
+    if source.calibration is None:
+        return stream
+    if frame == "sensor":
+        T_body_frame = load_rig_calibration(source.calibration).T_rig_sensor
+    else:
+        T_body_frame = load_object_calibration(source.calibration).T_objectbody_mesh
+    return PoseStream(stream.timestamps_s, stream.T_world_frame @ T_body_frame, stream.name, stream.source)
+
+
 def read_streams(job: TrackJob) -> dict[str, PoseStream]:
-    return {
-        side: read_sensor_stream(job.sensors[side].path, job.sensors[side].topic, f"{side} sensor") for side in SIDES
-    }
+    return {side: read_stream(job.sensors[side], f"{side} sensor", "sensor") for side in SIDES}
+
+
+def touch_mismatch_m(pair: ContactPair, streams: dict[str, PoseStream], time_s: float, config: TrackConfig) -> float:
+    """How far the streams' sensor poses at `time_s` are from the pair file's (metres, rotation counted at 5 cm per
+    radian, summed over both sensors; 0 where a stream does not cover the time)."""
+    poses = sensor_poses(streams, np.array([time_s]), config.fusion)
+    mismatch = 0.0
+    for side in SIDES:
+        if poses.covered[side][0]:
+            target, live = pair.contact(side).T_world_sensor, poses.T_world_sensor[side][0]
+            mismatch += float(np.linalg.norm(live[:3, 3] - target[:3, 3]))
+            mismatch += TOUCH_MATCH_ROTATION_M_PER_RAD * rotation_angle_rad(target, live)
+    return mismatch
 
 
 def read_tactile(job: TrackJob) -> dict[str, TactileStream]:
@@ -120,13 +153,30 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
     model = load_object_model(job.model or pair.object_name, job.workspace)
     streams = read_streams(job)
     tactile = read_tactile(job)
+    # Every input is read (and the truth checked against the track) before anything is written: a failing
+    # command writes nothing.
+    truth_stream = None
+    if job.truth is not None:
+        truth_stream = read_stream(job.truth, "object ground truth", "mesh")
     warnings = []
     time_s, time_source, mismatch = touch_time_of(pair, streams, job.touch_time_s, config)
+    hint = (
+        " (a recording's rigid body is not its GelSight: give the rig calibrations, --left-rig / --right-rig)"
+        if any(job.sensors[side].topic and job.sensors[side].calibration is None for side in SIDES)
+        else ""
+    )
     if time_source.startswith("matched") and mismatch > config.touch_mismatch_warning_m:
         warnings.append(
             f"the sensor streams never come closer than {mismatch * 1e3:.1f} mm (position plus 50 mm per radian) to "
-            "the pair file's sensor poses: are they the same recording, in the same world frame?"
+            f"the pair file's sensor poses: are they the same recording, in the same world frame?{hint}"
         )
+    elif not time_source.startswith("matched"):
+        mismatch = touch_mismatch_m(pair, streams, time_s, config)
+        if mismatch > config.touch_mismatch_warning_m:
+            warnings.append(
+                f"at the touch the sensor streams are {mismatch * 1e3:.1f} mm (position plus 50 mm per radian) from "
+                f"the pair file's sensor poses: are they the same recording, in the same world frame?{hint}"
+            )
     T_world_object, pose_source, confidence = touch_pose(job, pair, model)
     if confidence is not None and confidence < config.min_touch_confidence:
         warnings.append(
@@ -138,6 +188,9 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
     warnings += tactile_timing_warnings(tactile, streams, time_s) if tactile else []
     result = track(touch, streams, model, tactile or None, config)
     outcome = TrackOutcome(result, pose_source, warnings=warnings)
+    curves = None
+    if truth_stream is not None:
+        outcome.errors, curves = evaluate_against_truth(result, truth_stream, streams, model)
     mode = "closed loop (corrected by tactile frames)" if result.closed_loop else "open loop"
     outcome.written.append(
         write_tum(
@@ -156,10 +209,7 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
         )
     if result.skipped_times:
         warnings.append(f"{result.skipped_times} stream timestamps had no pose of either sensor (dropouts): skipped")
-    truth_stream = None
-    if job.truth is not None:
-        truth_stream = read_sensor_stream(job.truth.path, job.truth.topic, "object ground truth")
-        outcome.errors, curves = evaluate_against_truth(result, truth_stream, streams, model)
+    if curves is not None:
         if job.figure is not None:
             motion = outcome.errors["open_loop"]["motion_s"]
             panels = [(f"{model.name}: tracking error", curves, None if motion is None else tuple(motion))]

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from yoto.contacts import without_untouched_gel
 from yoto.errors import InputError
 from yoto.io import read_ply_points
 from yoto.rig.motive import is_motive_csv
@@ -89,7 +90,8 @@ def read_tactile_folder(folder: str | Path, name: str | None = None) -> TactileS
 
     def load(index: int) -> np.ndarray:
         points, _ = read_ply_points(paths[index])
-        return points
+        points = points[np.isfinite(points).all(axis=1)]  # an organised cloud's pixels without data
+        return without_untouched_gel(points) if len(points) else points  # a cloud of the whole pad: its contact
 
     return TactileStream(timestamps, load, name or Path(folder).name, Path(folder))
 

@@ -308,6 +308,8 @@ def track(
     streams = {side: smooth_stream(streams[side], jitter[side], config.fusion) for side in SIDES}
     sensors = sensor_poses(streams, times, config.fusion, jitter)
     keep = sensors.any_covered
+    if not keep.any():
+        raise InputError(f"no stream timestamp from the touch at {touch.time_s:.6f} s on has a pose of either sensor")
     sensors = sensors.select(keep)
     open_loop, weights = fuse_object_poses(sensors, touch.T_sensor_object)
     result = TrackResult(
