@@ -10,6 +10,9 @@ against the first variant, and the pose stage's CPU seconds (median and sum over
 thread); with `--errors`, each row's pose error on every pair the rows disagree on. With `--cache DIR`, each
 object's pairs and localizations (clean and through images) are kept in DIR as a pickle and reused by later runs
 (only the pose stage runs again: a variant costs seconds per object); `benchmarks/image_rescue.py` reads them.
+With `--draws N`, every row is also run with N - 1 other draws of the points the pose stage's fit reads
+(`RefineConfig.seed` + 1 ... N - 1: which 120 of a contact's points) and each row prints the poses right per draw and
+their mean: one draw moves a row by 1-5 pairs in 40 (docs/sensor.md, stop 13), as much as the 5-point target.
 Run it from the repository root with `PYTHONPATH=$PWD` to measure the working tree's `yoto`.
 
 A variant is `name:key=value,key=value`; keys are `PoseConfig` fields (`screened=1000`), or `SearchConfig`,
@@ -104,6 +107,9 @@ def main() -> None:
     parser.add_argument("--variants", nargs="+", default=["default", "images"])
     parser.add_argument("--errors", action="store_true", help="print the pose errors of pairs the rows disagree on")
     parser.add_argument(
+        "--draws", type=int, default=1, help="also run each row on this many draws of the fit's points (mean)"
+    )
+    parser.add_argument(
         "--cache", help="folder to keep each object's pairs and localizations in (pickles; reused when present)"
     )
     args = parser.parse_args()
@@ -147,13 +153,20 @@ def main() -> None:
                     pickle.dump(cases, file)
         rows: dict[str, list[tuple[bool, bool, float, str]]] = {"clean": []}
         rows.update({label: [] for label, _ in variants})
+        draws: dict[str, list[int]] = {row: [0] * args.draws for row in rows}  # poses right per draw of the points
         for clean_case, image_case in cases:
             for (pair, candidates, world), configs in ((clean_case, [("clean", base)]), (image_case, variants)):
                 for row, config in configs:
-                    if candidates is None:
-                        rows[row].append((False, False, 0.0, "failed"))
-                    else:
-                        rows[row].append(pose_outcome(pair, model, candidates, world, config))
+                    for draw in range(args.draws):
+                        if candidates is None:
+                            outcome = (False, False, 0.0, "failed")
+                        else:
+                            refine = replace(config.refine_config, seed=config.refine_config.seed + draw)
+                            drawn = replace(config, refine_config=refine)
+                            outcome = pose_outcome(pair, model, candidates, world, drawn)
+                        draws[row][draw] += outcome[0]
+                        if draw == 0:
+                            rows[row].append(outcome)
         clean_right = sum(outcome[0] for outcome in rows["clean"])
         first = [outcome[0] for outcome in rows[variants[0][0]]]
         print(f"{model.name} ({args.renderer}, {args.n} pairs)")
@@ -163,10 +176,18 @@ def main() -> None:
             gained = [i for i, (a, b) in enumerate(zip(first, right)) if b and not a]
             lost = [i for i, (a, b) in enumerate(zip(first, right)) if a and not b]
             points = 100.0 * (sum(right) - clean_right) / args.n
+            mean_points = 100.0 * (np.mean(draws[row]) - np.mean(draws["clean"])) / args.n
+            over_draws = (
+                f"; over {args.draws} draws {draws[row]}, mean {np.mean(draws[row]):.2f} ({mean_points:+.1f} points)"
+                if args.draws > 1
+                else ""
+            )
             print(
                 f"  {row:>12}: right {sum(right):2d} ({points:+.1f} points), truth among "
                 f"{among:2d}, pose stage CPU median {1000 * np.median(seconds):.0f} ms, "
-                f"sum {seconds.sum():.1f} s" + ("" if row == "clean" else f"; gained {gained} lost {lost}"),
+                f"sum {seconds.sum():.1f} s"
+                + ("" if row == "clean" else f"; gained {gained} lost {lost}")
+                + over_draws,
                 flush=True,
             )
         if args.errors:  # every pair whose outcome differs between the rows: each row's pose error
