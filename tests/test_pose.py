@@ -412,3 +412,73 @@ def test_the_rescue_verifies_the_seeds_again_only_when_nothing_explains_the_cont
     # Only the rescue's own verification screens on `rescue_screen_points`; the first pass keeps refine_config's.
     assert (60, 6) in screens and (8, base.refine_config.screen_points) in screens
     assert all(points == base.refine_config.screen_points for screened, points in screens if screened != 60)
+
+
+def test_auto_searches_where_the_candidates_first_hypothesis_fits_poorly(builtin_models):
+    """`search="auto"` skips the joint search only where the candidates' first hypothesis is decisive and also
+    explains the contacts at least as well as `search_unless_log_likelihood`: a pose the candidates alone make
+    certain can still be one that fits worse than the truth (a banana's, 8 mm along it)."""
+    from yoto.localize import make_localizer
+    from yoto.pose import pipeline
+    from yoto.pose.field import FieldConfig
+    from yoto.simulate.scenarios import PairSimulator
+
+    model = builtin_models["fruit"]
+    pair = PairSimulator(model).pair(seed=11, index=0).pair
+    candidates, world, _ = pipeline.localize_contacts(pair, model, make_localizer("match"))
+    decisive = PoseConfig(
+        suggest_next_touch=False,
+        field_config=FieldConfig(cell_m=0.002),
+        decisive_probability=0.0,
+        decisive_log_likelihood=-np.inf,
+        decisive_featured=0,
+    )
+    searched = {}
+    for name, threshold in (("any fit", -np.inf), ("fits well", -10.0), ("no fit is enough", np.inf)):
+        config = replace(decisive, search_unless_log_likelihood=threshold)
+        estimate = pipeline.pose_from_candidates(pair, model, candidates, world, config, "match")
+        searched[name] = (estimate.searched, estimate.hypotheses.log_likelihood[0])
+    assert searched["any fit"][0] is False and searched["no fit is enough"][0] is True
+    # The candidates' first hypothesis of this pair fits better than -10: searched exactly as with no threshold.
+    assert searched["any fit"][1] > -10.0 and searched["fits well"] == searched["any fit"]
+
+
+def test_the_rescue_also_runs_where_the_first_hypothesis_holds_too_little_probability(builtin_models, monkeypatch):
+    """However well the first hypothesis fits, the wider verification (`_rescue`) runs where it holds less than
+    `rescue_probability` (the truth of an ambiguous pair can lie among the seeds the first pass did not screen), and
+    not where it holds more."""
+    from yoto.localize import make_localizer
+    from yoto.pose import pipeline
+    from yoto.pose.field import FieldConfig
+    from yoto.simulate.scenarios import PairSimulator
+
+    model = builtin_models["fruit"]
+    pair = PairSimulator(model).pair(seed=11, index=0).pair
+    candidates, world, _ = pipeline.localize_contacts(pair, model, make_localizer("match"))
+    probabilities = []
+    rescue = pipeline._rescue
+
+    def recorded(*arguments, **settings):
+        probabilities.append(True)
+        return rescue(*arguments, **settings)
+
+    monkeypatch.setattr(pipeline, "_rescue", recorded)
+    base = PoseConfig(
+        search="always",
+        suggest_next_touch=False,
+        field_config=FieldConfig(cell_m=0.002),
+        screened=8,
+        seeds_refined=2,
+        rescue_screened=30,
+        rescue_refined=4,
+        rescue_log_likelihood=-np.inf,  # never for the fit alone
+    )
+    first = pipeline.pose_from_candidates(pair, model, candidates, world, base, "match").hypotheses.probability[0]
+    assert probabilities == []
+    runs = {}
+    for name, threshold in (("at", first), ("above", first + 0.01)):
+        probabilities.clear()
+        config = replace(base, rescue_probability=threshold)
+        pipeline.pose_from_candidates(pair, model, candidates, world, config, "match")
+        runs[name] = len(probabilities)
+    assert runs == {"at": 0, "above": 1}

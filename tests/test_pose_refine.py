@@ -3,6 +3,8 @@ pose stage refines in full."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import trimesh
@@ -19,14 +21,16 @@ from yoto.geometry import (
 from yoto.objects.model import ObjectModelConfig, build_object_model
 from yoto.objects.symmetry import Symmetry
 from yoto.pose.field import surface_field
-from yoto.pose.pipeline import PoseConfig, _verify_and_refine
+from yoto.pose.pipeline import PoseConfig, _best_distinct, _verify_and_refine
 from yoto.pose.refine import (
     CalibrationPrior,
     ContactPoints,
     RefineConfig,
     _add_normal_equations,
     contact_points,
+    evaluate_offsets,
     refine_hypotheses,
+    thinned,
 )
 from yoto.registration import transform_batch
 
@@ -245,3 +249,36 @@ def test_field_reads_a_thin_wall_within_a_few_microns():
 
     assert error_rms(FieldConfig()) < 5e-6
     assert error_rms(FieldConfig(cell_m=0.001)) > 15e-6
+
+
+def test_the_full_refinement_starts_where_the_short_one_left_the_sensor_corrections(box, rng):
+    """Each pose the short refinement screened is refined in full from its own sensor corrections
+    (`full_from_screen_corrections`), not from none: what `_verify_and_refine` returns is the full refinement of the
+    chosen short-refined poses started from their corrections, and it differs from the one started from none."""
+    field = surface_field(box)
+    T_world_object = make_transform(random_rotations(rng, 1)[0], [0.4, -0.1, 0.3])
+    contacts = _box_contacts(box, T_world_object, points=120)
+    error = se3_exp(np.array([0.015, -0.01, 0.01, 0.0008, -0.0006, 0.0]))  # each reported sensor pose this far off
+    contacts = [replace(contact, T_world_sensor=contact.T_world_sensor @ error) for contact in contacts]
+    seeds = T_world_object @ se3_exp(rng.normal(scale=[0.03] * 3 + [0.002] * 3, size=(40, 6)))
+    config = PoseConfig()
+    refine = config.refine_config
+    carried = _verify_and_refine(field, contacts, seeds, Symmetry(), config, 20, 6)
+    from_none = _verify_and_refine(
+        field, contacts, seeds, Symmetry(), PoseConfig(full_from_screen_corrections=False), 20, 6
+    )
+    # The same steps by hand: the short refinement of the best 20 by the cheap score, its 6 best distinct poses.
+    chosen = np.argsort(-evaluate_offsets(field, contacts, seeds, config.calibration, refine), kind="stable")[:20]
+    screening = thinned(contacts, refine.screen_points, refine.screen_free_points)
+    short = refine_hypotheses(
+        field, screening, seeds[chosen], config.calibration, replace(refine, iterations=refine.screen_iterations)
+    )
+    best = _best_distinct(short, Symmetry(), config.hypotheses, 6)
+    expected = refine_hypotheses(
+        field, contacts, short.T_world_object[best], config.calibration, refine, short.corrections[best]
+    )
+    assert np.array_equal(carried.T_world_object, expected.T_world_object)
+    assert np.array_equal(carried.corrections, expected.corrections)
+    none = refine_hypotheses(field, contacts, short.T_world_object[best], config.calibration, refine)
+    assert np.array_equal(from_none.T_world_object, none.T_world_object)
+    assert not np.array_equal(carried.corrections, from_none.corrections)

@@ -78,9 +78,10 @@ class LocalExecutor:
         T_world_object: np.ndarray,
         prior: CalibrationPrior,
         config: RefineConfig,
+        corrections_start: np.ndarray | None = None,
     ) -> Refined:
-        """`refine.refine_hypotheses`."""
-        return refine_hypotheses(field, contacts, T_world_object, prior, config)
+        """`refine.refine_hypotheses` (each pose's sensor corrections starting from `corrections_start` where given)."""
+        return refine_hypotheses(field, contacts, T_world_object, prior, config, corrections_start)
 
     def key_matches(self, test: KeyTest) -> Matched:
         """`search.key_matches` on all of the search's location pairs."""
@@ -142,17 +143,18 @@ class SplitExecutor(LocalExecutor):
         T_world_object: np.ndarray,
         prior: CalibrationPrior,
         config: RefineConfig,
+        corrections_start: np.ndarray | None = None,
     ) -> Refined:
         cut = self._cut(len(T_world_object), self.config.min_poses)
         if cut is None:
-            return refine_hypotheses(field, contacts, T_world_object, prior, config)
+            return refine_hypotheses(field, contacts, T_world_object, prior, config, corrections_start)
         (here, iterations), (there, iterations_there) = self._field_halves(
-            _counted_refine, cut, field, contacts, T_world_object, prior, config
+            _counted_refine, cut, field, contacts, T_world_object, prior, config, corrections_start
         )
         self.split += 1
         if iterations != iterations_there:  # the whole batch would have iterated on past the half that stopped first
             self.redone += 1
-            return refine_hypotheses(field, contacts, T_world_object, prior, config)
+            return refine_hypotheses(field, contacts, T_world_object, prior, config, corrections_start)
         return joined(here, there)
 
     def key_matches(self, test: KeyTest) -> Matched:
@@ -205,11 +207,13 @@ class SplitExecutor(LocalExecutor):
         T_world_object: np.ndarray,
         prior: CalibrationPrior,
         config: RefineConfig,
+        *per_pose: np.ndarray | None,
     ) -> tuple[Any, Any]:
         """`local` (a module-level function of the field and these arguments) on the poses before `cut` here, and
-        on the rest in the helper meanwhile (with the helper's field)."""
+        on the rest in the helper meanwhile (with the helper's field). `per_pose`: further arguments with a row per
+        pose (or None), cut as the poses are."""
         return self._halves(
-            lambda: local(field, contacts, T_world_object[:cut], prior, config),
+            lambda: local(field, contacts, T_world_object[:cut], prior, config, *_rows(per_pose, slice(None, cut))),
             _remote_half,
             self.field_config,
             local,
@@ -217,6 +221,7 @@ class SplitExecutor(LocalExecutor):
             T_world_object[cut:],
             prior,
             config,
+            *_rows(per_pose, slice(cut, None)),
         )
 
     def _halves(self, here: Callable[[], Any], remote: Callable[..., tuple[Any, float]], *arguments: Any) -> Any:
@@ -268,10 +273,17 @@ def _counted_refine(
     T_world_object: np.ndarray,
     prior: CalibrationPrior,
     config: RefineConfig,
+    corrections_start: np.ndarray | None = None,
 ) -> tuple[Refined, int]:
     """`refine_hypotheses` and how many field reads with a gradient it made (its iterations times the contacts)."""
     counting = _CountingField(field)
-    return refine_hypotheses(counting, contacts, T_world_object, prior, config), counting.gradient_reads
+    refined = refine_hypotheses(counting, contacts, T_world_object, prior, config, corrections_start)
+    return refined, counting.gradient_reads
+
+
+def _rows(arrays: tuple[np.ndarray | None, ...], rows: slice) -> list[np.ndarray | None]:
+    """The `rows` of each array (None stays None)."""
+    return [None if array is None else array[rows] for array in arrays]
 
 
 def _remote_field(model: ObjectModel, field_config: FieldConfig) -> None:

@@ -99,9 +99,16 @@ class PoseConfig:
     # holds this probability, ...
     decisive_log_likelihood: float = -10.0  # ... explains the contacts this well (hypotheses.log_likelihoods) ...
     decisive_featured: int = 1  # ... and at least this many of the two contacts have features of their own
+    search_unless_log_likelihood: float = -6.0  # "auto" searches anyway when the candidates' most likely hypothesis
+    # explains the contacts worse than this (a right pose from the candidates fits at -1 to -10, but a banana's
+    # pose 8 mm along it at -7.9 against its truth's -3.3, and the candidates' single hypothesis then holds all of the
+    # probability: docs/pose.md, stop 13)
     screened: int = 400  # seeds (the best by a cheap score) that get a short refinement (150 kept the truth's seed
     # on the pose benchmark's searches but lost right and confident poses on the trust benchmark's mugs: docs/pose.md)
     seeds_refined: int = 40  # distinct hypotheses (the most likely after the short refinement) refined in full
+    full_from_screen_corrections: bool = True  # the full refinement starts each pose's sensor corrections where
+    # its short refinement left them (False: from none; from none a pose near the truth can stop in another
+    # basin of the corrections and score far below it: docs/pose.md, stop 13)
     candidates_screened: int = 24  # the same two numbers when only the localizers' candidate pairs are verified
     candidates_refined: int = 6
     neighbours_refined: int = 36  # the neighbours of the most likely hypotheses (hypotheses.neighbour_poses) are
@@ -122,6 +129,10 @@ class PoseConfig:
     # refinement, on this many points per contact (half the first pass's refine_config.screen_points) ...
     rescue_screen_points: int = 12
     rescue_refined: int = 40  # ... and the best of this many distinct ones the full one (docs/pose.md, stop 11)
+    rescue_probability: float = 0.5  # the rescue also runs where the most likely hypothesis, however well it fits,
+    # holds less than this probability: where several poses explain the contacts about as well (a can turned about
+    # its axis, a box slid along a face), the truth's seeds can rank below the first pass's screen (docs/pose.md,
+    # stop 13; 0: only for the fit)
     seed_distinct_m: float = 0.005  # seeds in one cell of this size (object centroid) ...
     seed_distinct_rad: float = float(np.radians(5.0))  # ... and of this (rotation vector) are screened as one
     search_config: SearchConfig = SearchConfig()
@@ -345,7 +356,9 @@ def _verify_and_refine(
     screening = thinned(contacts, refine.screen_points, refine.screen_free_points)
     first = run.refine(field, screening, seeds[chosen], config.calibration, short)
     best = _best_distinct(first, symmetry, config.hypotheses, refined)
-    full = run.refine(field, contacts, first.T_world_object[best], config.calibration, refine)
+    full = run.refine(
+        field, contacts, first.T_world_object[best], config.calibration, refine, _started(first, best, config)
+    )
     if not neighbours or not config.hypotheses.neighbours_of:
         return full
     grouped = group_hypotheses(full, symmetry, config.hypotheses)
@@ -353,11 +366,19 @@ def _verify_and_refine(
         return full
     top = grouped.member[: config.hypotheses.neighbours_of]
     near = neighbour_poses(full.T_world_object[top], config.hypotheses)
+    start = None
     if config.neighbours_refined:
         first = run.refine(field, screening, near, config.calibration, short)
-        near = first.T_world_object[_best_distinct(first, symmetry, config.hypotheses, config.neighbours_refined)]
-    more = run.refine(field, contacts, near, config.calibration, refine)
+        best = _best_distinct(first, symmetry, config.hypotheses, config.neighbours_refined)
+        near, start = first.T_world_object[best], _started(first, best, config)
+    more = run.refine(field, contacts, near, config.calibration, refine, start)
     return joined(full, more)
+
+
+def _started(screened: Refined, chosen: np.ndarray, config: PoseConfig) -> np.ndarray | None:
+    """Where the full refinement of the `chosen` short-refined poses starts their sensor corrections: where the
+    short refinement left them (`full_from_screen_corrections`), else from none."""
+    return screened.corrections[chosen] if config.full_from_screen_corrections else None
 
 
 def _fill_family(
@@ -545,7 +566,10 @@ def _pose_from_candidates(
         and refined is not None
         and hypotheses is not None
         and len(hypotheses)
-        and hypotheses.log_likelihood[0] < config.rescue_log_likelihood
+        and (
+            hypotheses.log_likelihood[0] < config.rescue_log_likelihood
+            or hypotheses.probability[0] < config.rescue_probability
+        )
     ):
         refined, hypotheses = _rescue(field, contacts, seeds, score, refined, model.symmetry, config, run)
     if refined is None or hypotheses is None or not len(hypotheses):
@@ -798,7 +822,11 @@ def _decisive(hypotheses: Hypotheses | None, shapes: dict[str, LocalShape], conf
     nine objects, no pair that passed was wrong."""
     if hypotheses is None or not len(hypotheses):
         return False
-    return _clear_first(hypotheses, config) and _featured(shapes) >= config.decisive_featured
+    return (
+        _clear_first(hypotheses, config)
+        and hypotheses.log_likelihood[0] >= config.search_unless_log_likelihood
+        and _featured(shapes) >= config.decisive_featured
+    )
 
 
 def _clear_first(hypotheses: Hypotheses, config: PoseConfig) -> bool:
