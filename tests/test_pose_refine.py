@@ -282,3 +282,57 @@ def test_the_full_refinement_starts_where_the_short_one_left_the_sensor_correcti
     none = refine_hypotheses(field, contacts, short.T_world_object[best], config.calibration, refine)
     assert np.array_equal(from_none.T_world_object, none.T_world_object)
     assert not np.array_equal(carried.corrections, from_none.corrections)
+def _ridge_field(half_width: float = 0.001, cell: float = 0.0001, band: float = 0.004):
+    """The signed distance of a wall 2 * half_width thick (along x), its top face at z = 0, on a grid."""
+    from yoto.pose.field import SurfaceField
+
+    across = np.arange(-0.005, 0.005 + 1e-9, cell)
+    axes = [across, across, np.arange(-0.008, 0.002, cell)]
+    x, y, z = np.meshgrid(*axes, indexing="ij")
+    q = np.stack([np.abs(x) - half_width, np.abs(y) - 0.02, np.abs(z + 0.01) - 0.01], axis=-1)  # a box |y| < 20 mm
+    outside = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
+    values = np.clip(outside + np.minimum(q.max(axis=-1), 0.0), -band, band).astype(np.float32)
+    return SurfaceField(np.array([axis[0] for axis in axes]), cell, values, band, 0.0)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_the_gels_skirt_beside_a_ridge_is_forgiven_and_a_hovering_cloud_is_not(monkeypatch, compiled):
+    """A pad pressed 0.3 mm onto a ridge 2 mm wide: the gel sinks in beside it (its skirt hangs in the air over the
+    drop, up to 0.6 mm from the wall). The skirt's points count at most `skirt_tau_m`; a cloud hovering 150 um over
+    the ridge's top (the object reaches the pad plane under it) and one floating clear of it (nothing touches)
+    count in full."""
+    import yoto.pose.field as field_module
+    import yoto.pose.refine as refine_module
+    from yoto.pose.refine import evaluate_fit
+
+    if not compiled:
+        monkeypatch.setattr(field_module, "KERNELS", None)
+        monkeypatch.setattr(refine_module, "KERNELS", None)
+    field, press = _ridge_field(), 0.0003
+    x, y = np.meshgrid(np.linspace(-0.0016, 0.0016, 33), np.linspace(-0.002, 0.002, 9))
+    x, y = x.ravel(), y.ravel()
+    beyond = np.maximum(np.abs(x) - 0.001, 0.0)  # how far beyond the ridge's side
+    depth = np.where(beyond > 0, 0.6 * press * np.exp(-((beyond / 0.0004) ** 2)), press)
+    points_sensor = np.column_stack([x, y, -depth])  # heights below the pad plane: negative
+    # sensor -> object: the pad faces down onto the ridge (sensor z is object -z), the pad plane at z = -press
+    T_object_sensor = make_transform(rotation_about_axis(np.array([1.0, 0.0, 0.0]), np.pi), [0.0, 0.0, -press])
+    skirt_config, plain_config = RefineConfig(), RefineConfig(skirt_tau_m=None)
+
+    def rms(points: np.ndarray, lift: float, config: RefineConfig) -> float:
+        T = T_object_sensor.copy()
+        T[2, 3] += lift  # the pad moved away from the ridge
+        contacts = [ContactPoints(points, T, 0, np.zeros((0, 3)))]
+        return float(evaluate_fit(field, contacts, np.eye(4)[None], None, config)[0][0, 0])
+
+    # the skirt's exact distances: to the ridge's side (its points lie below the top face)
+    distance = beyond
+    expected = np.sqrt(np.mean(np.minimum(distance, skirt_config.skirt_tau_m) ** 2))
+    assert rms(points_sensor, 0.0, skirt_config) == pytest.approx(expected, abs=3e-6)
+    assert rms(points_sensor, 0.0, plain_config) == pytest.approx(
+        np.sqrt(np.mean(np.minimum(distance, plain_config.fit_tau_m) ** 2)), abs=3e-6
+    )
+    assert rms(points_sensor, 0.0, plain_config) > 3 * rms(points_sensor, 0.0, skirt_config)
+    on_top = points_sensor[beyond == 0]
+    for config in (skirt_config, plain_config):
+        assert rms(on_top, 0.00015, config) == pytest.approx(0.00015, abs=3e-6)  # hovering: in full
+        assert rms(points_sensor, 0.002, config) == pytest.approx(config.fit_tau_m)  # floating: nothing touches

@@ -428,14 +428,23 @@ def refine_loop(
 
 
 @_jit
-def fit_scores(flat, nx, ny, nz, origin, inverse_cell, band, A, points, z_scale, free, tau, inlier, free_tau, out):
+def fit_scores(
+    flat, nx, ny, nz, origin, inverse_cell, band, A, points, z_scale, free, tau, inlier, free_tau, skirt_tau, out
+):
     """`refine.evaluate_fit` for one contact under K poses A (K, 4, 4) (object <- sensor, its correction
     included): out (K, 3) = truncated RMS residual, inlier fraction and free-space RMS depth of its (M, 3) points,
-    heights scaled by z_scale (K,), and its (F, 3) free-space points (as they are)."""
+    heights scaled by z_scale (K,), and its (F, 3) free-space points (as they are). skirt_tau >= 0: a point outside
+    the object, no deeper than the deepest point touching it (within `inlier`), whose pad-plane foot (its x, y at
+    height 0) lies more than skirt_tau outside too counts at most skirt_tau (the gel's skirt,
+    `RefineConfig.skirt_tau_m`)."""
     count, spare = points.shape[0], free.shape[0]
     q = np.empty((count + spare, 3))
     distance = np.empty(count + spare)
     normal = np.empty((0, 3))
+    outside = np.empty(count, dtype=np.int64)
+    foot = np.empty((count, 3))
+    foot_distance = np.empty(count)
+    limit = np.empty(count)  # each point's truncation
     for k in range(A.shape[0]):
         for m in range(count + spare):
             if m < count:
@@ -445,10 +454,27 @@ def fit_scores(flat, nx, ny, nz, origin, inverse_cell, band, A, points, z_scale,
             for i in range(3):
                 q[m, i] = x * A[k, i, 0] + y * A[k, i, 1] + z * A[k, i, 2] + A[k, i, 3]
         field_read(flat, nx, ny, nz, origin, inverse_cell, band, q, distance, normal, False)
+        feet = 0
+        if skirt_tau >= 0.0:
+            deepest = -np.inf  # the deepest point touching the object (height z: below the pad plane, negative)
+            for m in range(count):
+                if abs(distance[m]) < inlier:
+                    deepest = max(deepest, -points[m, 2] * z_scale[k])
+            for m in range(count):
+                if distance[m] > 0.0 and -points[m, 2] * z_scale[k] <= deepest:
+                    for i in range(3):
+                        foot[feet, i] = points[m, 0] * A[k, i, 0] + points[m, 1] * A[k, i, 1] + A[k, i, 3]
+                    outside[feet] = m
+                    feet += 1
+            field_read(flat, nx, ny, nz, origin, inverse_cell, band, foot[:feet], foot_distance, normal, False)
+        limit[:] = tau
+        for f in range(feet):
+            if foot_distance[f] > skirt_tau:
+                limit[outside[f]] = skirt_tau
         squares, inside = 0.0, 0
         for m in range(count):
             magnitude = abs(distance[m])
-            squares += min(magnitude, tau) ** 2
+            squares += min(magnitude, limit[m]) ** 2
             inside += magnitude < inlier
         out[k, 0] = np.sqrt(squares / count) if count else np.nan  # numpy's mean of nothing
         out[k, 1] = inside / count if count else np.nan
@@ -480,6 +506,7 @@ def fit_all(
     tau,
     inlier,
     free_tau,
+    skirt_tau,
     out,
 ):
     """`fit_scores` of every contact (packed as for `refine_loop`, its free-space points free[free_starts[c]:
@@ -505,6 +532,7 @@ def fit_all(
             tau,
             inlier,
             free_tau,
+            skirt_tau,
             out[c],
         )
 

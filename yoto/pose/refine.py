@@ -74,6 +74,10 @@ class RefineConfig:
     fit_tau_m: float = 0.0005  # residuals are truncated here when the fit is scored (a point off the surface
     # counts as much as one this far)
     inlier_distance_m: float = 0.0002  # a point within this of the surface counts as lying on it
+    skirt_tau_m: float | None = 6e-5  # the gel's skirt: a point outside the object over which the object does not
+    # reach the undeformed pad plane (its foot, sensor (x, y, 0), lies this far outside too) is gel sunk in beside
+    # the contact, touching nothing, and counts at most this in the fit's score (None: as any point, `fit_tau_m`);
+    # 60 um, two right-pose residuals: a pose still pays for leaning on its skirt (0 measured worse, docs/pose.md)
     free_spacing_m: float = 0.0015  # free space: grid spacing over the pad
     free_depth_m: float = 0.0002  # ... the points lie this far into the gel (the object would have pressed there)
     free_clearance_m: float = 0.001  # ... and at least this (one cell of that size) from the contact, across the pad
@@ -224,11 +228,47 @@ def evaluate_fit(
         distance, _ = field.distance(q, with_gradient=False)
         count = len(contact.points_sensor)
         magnitude = np.abs(distance[:, :count])
-        rms.append(np.sqrt(np.mean(np.minimum(magnitude, config.fit_tau_m) ** 2, axis=1)))
+        limit = np.full(magnitude.shape, config.fit_tau_m)
+        if config.skirt_tau_m is not None:
+            heights = np.broadcast_to(contact.points_sensor[:, 2], (len(T), count))
+            if factor is not None:
+                heights = heights * factor[:, None]  # as `_scaled_heights` scales them
+            skirt = _on_skirt(
+                field,
+                T,
+                contact.points_sensor,
+                distance[:, :count],
+                heights,
+                config.inlier_distance_m,
+                config.skirt_tau_m,
+            )
+            limit[skirt] = config.skirt_tau_m
+        rms.append(np.sqrt(np.mean(np.minimum(magnitude, limit) ** 2, axis=1)))
         inliers.append(np.mean(magnitude < config.inlier_distance_m, axis=1))
         depth = np.clip(-distance[:, count:], 0.0, config.free_tau_m)
         free.append(np.sqrt(np.mean(depth**2, axis=1)) if depth.shape[1] else np.zeros(len(T)))
     return np.stack(rms, axis=1), np.stack(inliers, axis=1), np.stack(free, axis=1)
+
+
+def _on_skirt(
+    field: SurfaceField,
+    T: np.ndarray,
+    points_sensor: np.ndarray,
+    distance: np.ndarray,
+    heights: np.ndarray,
+    touching_m: float,
+    clearance_m: float,
+) -> np.ndarray:
+    """(K, M) which of a contact's (M, 3) points lie on the gel's skirt under K poses T (K, 4, 4) (object <- sensor),
+    given their distances and heights (K, M; heights below the pad plane negative): outside the object, no deeper
+    than the deepest point within `touching_m` of it (the gel sinks in beside a contact, never deeper than the
+    contact itself: a cloud floating clear of the object has no skirt), and their foot on the undeformed pad plane
+    more than `clearance_m` outside too (the object does not reach the gel there: the point touches nothing; a foot
+    within a contact point's error of the surface, a shallow point at the cloud's edge, tells nothing)."""
+    feet = np.column_stack([points_sensor[:, :2], np.zeros(len(points_sensor))])
+    foot_distance, _ = field.distance(transform_batch(T, feet), with_gradient=False)
+    deepest = np.max(np.where(np.abs(distance) < touching_m, -heights, -np.inf), axis=1, keepdims=True)
+    return (distance > 0.0) & (-heights <= deepest) & (foot_distance > clearance_m)
 
 
 def _packed(contacts: list[ContactPoints]) -> tuple[np.ndarray, ...]:
@@ -273,6 +313,7 @@ def _compiled_fit(
         config.fit_tau_m,
         config.inlier_distance_m,
         config.free_tau_m,
+        -1.0 if config.skirt_tau_m is None else config.skirt_tau_m,
         scores,
     )
     return scores[:, :, 0].T, scores[:, :, 1].T, scores[:, :, 2].T
