@@ -282,6 +282,8 @@ def test_the_full_refinement_starts_where_the_short_one_left_the_sensor_correcti
     none = refine_hypotheses(field, contacts, short.T_world_object[best], config.calibration, refine)
     assert np.array_equal(from_none.T_world_object, none.T_world_object)
     assert not np.array_equal(carried.corrections, from_none.corrections)
+
+
 def _ridge_field(half_width: float = 0.001, cell: float = 0.0001, band: float = 0.004):
     """The signed distance of a wall 2 * half_width thick (along x), its top face at z = 0, on a grid."""
     from yoto.pose.field import SurfaceField
