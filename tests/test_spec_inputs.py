@@ -192,11 +192,8 @@ def test_a_builtin_object_goes_where_out_says(tmp_path):
     assert main(["object", "build", "--builtin", "all", "--out", str(out), "--workspace", str(workspace)]) == 2
 
 
-def test_track_with_an_unreadable_truth_writes_nothing(builtin_models, tmp_path, rng, capsys):
-    """`yoto track --truth BAD`: refused naming the file, and the tracked poses are not written (the old code wrote
-    OUT.tum, then failed on the truth). Open loop from a given pose: hand-written touch, streams and pose result.
-    The streams are at 10 Hz, slower than the 0.1 s dropout gap's floor: every time is tracked (the old code failed
-    on a singular smoothing fit, then took the intervals a rounding over 0.1 s for dropouts and skipped them)."""
+def _tool_touch_at_ten_seconds(builtin_models, tmp_path: Path, rng) -> tuple[Path, Path, np.ndarray]:
+    """The built-in tool's model file, a hand-written pair touched at t = 10 s, and its pose (written to pose.json)."""
     model_path = builtin_models["tool"].save(tmp_path / "tool.npz")
     touch = hand_written_pair(tmp_path, rng)
     payload = json.loads(touch.read_text())
@@ -204,6 +201,15 @@ def test_track_with_an_unreadable_truth_writes_nothing(builtin_models, tmp_path,
     touch.write_text(json.dumps(payload))
     T_world_mesh = make_transform(np.eye(3), [0.05, 0.0, 0.03])
     (tmp_path / "pose.json").write_text(json.dumps({"T_world_object": T_world_mesh.tolist()}))
+    return model_path, touch, T_world_mesh
+
+
+def test_track_with_an_unreadable_truth_writes_nothing(builtin_models, tmp_path, rng, capsys):
+    """`yoto track --truth BAD`: refused naming the file, and the tracked poses are not written (the old code wrote
+    OUT.tum, then failed on the truth). Open loop from a given pose: hand-written touch, streams and pose result.
+    The streams are at 10 Hz, slower than the 0.1 s dropout gap's floor: every time is tracked (the old code failed
+    on a singular smoothing fit, then took the intervals a rounding over 0.1 s for dropouts and skipped them)."""
+    model_path, touch, T_world_mesh = _tool_touch_at_ten_seconds(builtin_models, tmp_path, rng)
     for side, x in (("left", 0.0), ("right", 0.1)):
         lines = [f"{t:.2f} {x + 0.01 * (t - 10):.6f} 0 0 0 0 0 1" for t in np.arange(9.5, 11.0, 0.1)]
         (tmp_path / f"{side}.tum").write_text("\n".join(lines) + "\n")
@@ -305,13 +311,8 @@ def test_track_from_rig_bodies_with_their_calibrations(builtin_models, tmp_path,
     --right-rig) and the object calibration (--truth-calibration) the same track, and errors, as from the GelSight
     and mesh poses themselves; without them, a warning that the streams are far from the pair's sensor poses at the
     touch (the body is not the GelSight), where the old code said nothing."""
-    model_path = builtin_models["tool"].save(tmp_path / "tool.npz")
-    touch = hand_written_pair(tmp_path, rng)
+    model_path, touch, T_world_mesh = _tool_touch_at_ten_seconds(builtin_models, tmp_path, rng)
     payload = json.loads(touch.read_text())
-    payload["timestamp"] = 10.0
-    touch.write_text(json.dumps(payload))
-    T_world_mesh = make_transform(np.eye(3), [0.05, 0.0, 0.03])
-    (tmp_path / "pose.json").write_text(json.dumps({"T_world_object": T_world_mesh.tolist()}))
     times = np.arange(9.5, 11.0, 0.1)
     move = np.array(
         [make_transform(random_rotations(rng, 1)[0] if t > 10.2 else np.eye(3), [0.01 * t, 0, 0]) for t in times]
