@@ -16,7 +16,7 @@ import numpy as np
 
 from yoto.contacts import SIDES, ContactPair, read_contact_pair
 from yoto.errors import InputError
-from yoto.geometry import rotation_angle_rad, validate_transform
+from yoto.geometry import validate_transform
 from yoto.io import read_json, write_json_atomic
 from yoto.objects.model import ObjectModel
 from yoto.tracking.evaluate import (
@@ -27,10 +27,8 @@ from yoto.tracking.evaluate import (
     tracking_errors,
     truth_at,
 )
-from yoto.tracking.fusion import sensor_poses
 from yoto.tracking.streams import TactileStream, read_sensor_stream, read_tactile_stream
 from yoto.tracking.track import (
-    TOUCH_MATCH_ROTATION_M_PER_RAD,
     TrackConfig,
     TrackResult,
     tactile_timing_warnings,
@@ -104,19 +102,6 @@ def read_streams(job: TrackJob) -> dict[str, PoseStream]:
     return {side: read_stream(job.sensors[side], f"{side} sensor", "sensor") for side in SIDES}
 
 
-def touch_mismatch_m(pair: ContactPair, streams: dict[str, PoseStream], time_s: float, config: TrackConfig) -> float:
-    """How far the streams' sensor poses at `time_s` are from the pair file's (metres, rotation counted at 5 cm per
-    radian, summed over both sensors; 0 where a stream does not cover the time)."""
-    poses = sensor_poses(streams, np.array([time_s]), config.fusion)
-    mismatch = 0.0
-    for side in SIDES:
-        if poses.covered[side][0]:
-            target, live = pair.contact(side).T_world_sensor, poses.T_world_sensor[side][0]
-            mismatch += float(np.linalg.norm(live[:3, 3] - target[:3, 3]))
-            mismatch += TOUCH_MATCH_ROTATION_M_PER_RAD * rotation_angle_rad(target, live)
-    return mismatch
-
-
 def read_tactile(job: TrackJob) -> dict[str, TactileStream]:
     return {
         side: read_tactile_stream(source.path, source.topic, job.calibration, f"{side} tactile")
@@ -165,18 +150,15 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
         if any(job.sensors[side].topic and job.sensors[side].calibration is None for side in SIDES)
         else ""
     )
-    if time_source.startswith("matched") and mismatch > config.touch_mismatch_warning_m:
-        warnings.append(
-            f"the sensor streams never come closer than {mismatch * 1e3:.1f} mm (position plus 50 mm per radian) to "
-            f"the pair file's sensor poses: are they the same recording, in the same world frame?{hint}"
+    if mismatch > config.touch_mismatch_warning_m:
+        where = (
+            f"the sensor streams never come closer than {mismatch * 1e3:.1f} mm (position plus 50 mm per radian) to"
+            if time_source.startswith("matched")
+            else f"at the touch the sensor streams are {mismatch * 1e3:.1f} mm (position plus 50 mm per radian) from"
         )
-    elif not time_source.startswith("matched"):
-        mismatch = touch_mismatch_m(pair, streams, time_s, config)
-        if mismatch > config.touch_mismatch_warning_m:
-            warnings.append(
-                f"at the touch the sensor streams are {mismatch * 1e3:.1f} mm (position plus 50 mm per radian) from "
-                f"the pair file's sensor poses: are they the same recording, in the same world frame?{hint}"
-            )
+        warnings.append(
+            f"{where} the pair file's sensor poses: are they the same recording, in the same world frame?{hint}"
+        )
     T_world_object, pose_source, confidence = touch_pose(job, pair, model)
     if confidence is not None and confidence < config.min_touch_confidence:
         warnings.append(

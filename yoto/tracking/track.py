@@ -169,7 +169,7 @@ class Touch:
     T_world_object: np.ndarray  # (4, 4) the touch's pose estimate, canonical object frame
     T_sensor_object: dict[str, np.ndarray]  # side -> (4, 4) the object in the sensor's frame
     time_source: str = ""  # how the time was found (pair file, given, matched to the streams)
-    mismatch_m: float = 0.0  # how far the streams were from the pair's sensor poses at that time (matched only)
+    mismatch_m: float = 0.0  # how far the streams were from the pair's sensor poses at that time (`touch_time_of`)
 
 
 def touch_from_pair(pair: ContactPair, T_world_object: np.ndarray, time_s: float, time_source: str = "") -> Touch:
@@ -178,42 +178,54 @@ def touch_from_pair(pair: ContactPair, T_world_object: np.ndarray, time_s: float
     return Touch(float(time_s), np.asarray(T_world_object, dtype=np.float64), grasps, time_source)
 
 
+def sensor_pose_mismatch(
+    pair: ContactPair, streams: dict[str, PoseStream], times_s: np.ndarray, config: FusionConfig = FusionConfig()
+) -> np.ndarray:
+    """(2, N) how far each sensor's (left, right) stream pose at `times_s` is from the pair's sensor pose: metres,
+    rotation counted at 5 cm per radian; NaN where the stream does not cover the time."""
+    poses = sensor_poses(streams, times_s, config)
+    mismatch = np.full((len(SIDES), len(times_s)), np.nan)
+    for k, side in enumerate(SIDES):
+        target = pair.contact(side).T_world_sensor
+        live = poses.T_world_sensor[side]
+        angles = np.linalg.norm(so3_log(np.einsum("ji,njk->nik", target[:3, :3], live[:, :3, :3])), axis=1)
+        offsets = np.linalg.norm(live[:, :3, 3] - target[:3, 3], axis=1) + TOUCH_MATCH_ROTATION_M_PER_RAD * angles
+        mismatch[k, poses.covered[side]] = offsets[poses.covered[side]]
+    return mismatch
+
+
 def find_touch_time(
     pair: ContactPair, streams: dict[str, PoseStream], config: FusionConfig = FusionConfig()
 ) -> tuple[float, float]:
     """When the streams' sensor poses are nearest the pair's: (timestamp, mismatch), the mismatch in metres with
     rotation counted at 5 cm per radian, summed over both sensors."""
     times = np.union1d(streams["left"].timestamps_s, streams["right"].timestamps_s)
-    poses = sensor_poses(streams, times, config)
-    mismatch = np.zeros(len(times))
-    for side in SIDES:
-        target = pair.contact(side).T_world_sensor
-        live = poses.T_world_sensor[side]
-        mismatch += np.linalg.norm(live[:, :3, 3] - target[:3, 3], axis=1)
-        angles = np.linalg.norm(so3_log(np.einsum("ji,njk->nik", target[:3, :3], live[:, :3, :3])), axis=1)
-        mismatch += TOUCH_MATCH_ROTATION_M_PER_RAD * angles
-        mismatch[~poses.covered[side]] = np.inf
+    mismatch = sensor_pose_mismatch(pair, streams, times, config).sum(axis=0)  # NaN unless both cover the time
     if not np.isfinite(mismatch).any():
         raise InputError("the two sensor pose streams never overlap in time")
-    best = int(np.argmin(mismatch))
+    best = int(np.nanargmin(mismatch))
     return float(times[best]), float(mismatch[best])
 
 
 def touch_time_of(
     pair: ContactPair, streams: dict[str, PoseStream], given_s: float | None, config: TrackConfig
 ) -> tuple[float, str, float]:
-    """The touch's time: given, else the pair file's `timestamp`, else matched to the streams (with a warning
-    when they never come close). Returns (time, how it was found, mismatch in metres)."""
+    """The touch's time: given, else the pair file's `timestamp`, else matched to the streams. Returns (time, how it
+    was found, mismatch): how far the streams' sensor poses are from the pair's then (`sensor_pose_mismatch` summed
+    over the sensors whose streams cover the time; matched: the least over the streams)."""
     if given_s is not None:
-        return float(given_s), "given", 0.0
-    stamp = pair.extra.get("timestamp")
-    if stamp is not None:
+        time_s, source = float(given_s), "given"
+    elif pair.extra.get("timestamp") is not None:
+        stamp = pair.extra["timestamp"]
         try:
-            return float(stamp), "the pair file's timestamp", 0.0
+            time_s, source = float(stamp), "the pair file's timestamp"
         except (TypeError, ValueError):
             raise InputError(f"'timestamp' must be a number of seconds, got {stamp!r}", pair.path) from None
-    found, mismatch = find_touch_time(pair, streams, config.fusion)
-    return found, "matched to the streams", mismatch
+    else:
+        found, mismatch = find_touch_time(pair, streams, config.fusion)
+        return found, "matched to the streams", mismatch
+    mismatch = float(np.nansum(sensor_pose_mismatch(pair, streams, np.array([time_s]), config.fusion)))
+    return time_s, source, mismatch
 
 
 # ------------------------------------------------------------------------------------------------ results
