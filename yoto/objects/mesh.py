@@ -95,8 +95,9 @@ def load_mesh(path: str | Path, units: str = "m") -> tuple[trimesh.Trimesh, Repa
         raise InputError(f"mesh faces index vertices that do not exist ({len(loaded.vertices)} vertices)", path)
     # Vertices no face uses (an exporter's leftovers, a scan's stray points) take no part: not in the size check,
     # not in the model.
-    vertices = np.asarray(loaded.vertices, dtype=np.float64)[np.unique(faces)]
-    faces = np.searchsorted(np.unique(faces), faces)
+    used = np.unique(faces)
+    vertices = np.asarray(loaded.vertices, dtype=np.float64)[used]
+    faces = np.searchsorted(used, faces)
     if not np.all(np.isfinite(vertices)):
         raise InputError(f"mesh has {int((~np.isfinite(vertices)).any(axis=1).sum())} vertices with NaN or inf", path)
     scale = _unit_scale(path, float(np.ptp(vertices, axis=0).max()), units)
