@@ -70,6 +70,7 @@ from yoto.tracking.bench import (  # noqa: E402
     RIGHT_TOUCH_M,
     RIGHT_TOUCH_RAD,
     TrackBenchConfig,
+    drift_meets_target,
     scaled_trajectory,
     tactile_streams,
     touch_estimate,
@@ -217,14 +218,12 @@ def key_of(record: dict[str, Any]) -> str:
 
 
 def meets(record: dict[str, Any]) -> bool:
-    drift = record["closed"]["settled_drift"]
-    return bool(drift["mm"] < DRIFT_TARGET_MM and drift["deg"] < DRIFT_TARGET_DEG)
+    return drift_meets_target(record["closed"]["settled_drift"])
 
 
 def meets_final(record: dict[str, Any]) -> bool:
     """The same target on the final drift (mean error settled against the mean error just before the motion)."""
-    drift = record["closed"]["final_drift"]
-    return bool(drift["mm"] < DRIFT_TARGET_MM and drift["deg"] < DRIFT_TARGET_DEG)
+    return drift_meets_target(record["closed"]["final_drift"])
 
 
 def within_touch(record: dict[str, Any]) -> bool:

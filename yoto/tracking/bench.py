@@ -47,6 +47,11 @@ FIGURES = ("motion_mean", "motion_peak", "settled", "settled_drift", "final_drif
 DRIFT_TARGET_MM, DRIFT_TARGET_DEG = 0.5, 0.5  # the issue's closed-loop target
 
 
+def drift_meets_target(drift: dict[str, float]) -> bool:
+    """Whether a drift figure (`{"mm": ..., "deg": ...}`) is under the closed-loop target in both."""
+    return bool(drift["mm"] < DRIFT_TARGET_MM and drift["deg"] < DRIFT_TARGET_DEG)
+
+
 @dataclass(frozen=True)
 class TrackBenchConfig:
     """What the tracking benchmark runs."""
@@ -398,14 +403,10 @@ def build_report(records: dict[str, dict[str, list[dict[str, Any]]]], config: Tr
                     for t in chosen
                 )
                 entry[subset]["closed_loop_final_drift_met"] = sum(
-                    t["closed_loop"]["final_drift"]["mm"] < DRIFT_TARGET_MM
-                    and t["closed_loop"]["final_drift"]["deg"] < DRIFT_TARGET_DEG
-                    for t in chosen
+                    drift_meets_target(t["closed_loop"]["final_drift"]) for t in chosen
                 )
                 entry[subset]["closed_loop_drift_met"] = sum(
-                    t["closed_loop"]["settled_drift"]["mm"] < DRIFT_TARGET_MM
-                    and t["closed_loop"]["settled_drift"]["deg"] < DRIFT_TARGET_DEG
-                    for t in chosen
+                    drift_meets_target(t["closed_loop"]["settled_drift"]) for t in chosen
                 )
             table[name][key] = entry
     return {
