@@ -33,6 +33,19 @@ from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
 
 IMAGE_SUFFIXES = (".png",)
 FRAME_NUMBER_BELOW = 1e6  # integer PNG names below this, one apart, are frame numbers, not seconds
+# sensor_msgs/Image encodings of colour frames: channels, their order, bytes per channel. `8uc3` is what cv_bridge
+# writes for an OpenCV image without an encoding: OpenCV's BGR. Alpha is dropped; 16-bit channels keep their top 8 bits.
+RAW_ENCODINGS = {
+    "rgb8": (3, "rgb", 1),
+    "bgr8": (3, "bgr", 1),
+    "rgba8": (4, "rgb", 1),
+    "bgra8": (4, "bgr", 1),
+    "8uc3": (3, "bgr", 1),
+    "rgb16": (3, "rgb", 2),
+    "bgr16": (3, "bgr", 2),
+    "rgba16": (4, "rgb", 2),
+    "bgra16": (4, "bgr", 2),
+}
 # A bag stores messages in receive order; header stamps may lag that order by network delays up to this. Further
 # back is a broken clock (a restarted recorder), refused by `clean_timeline`.
 MAX_REORDER_S = 1.0
@@ -80,7 +93,7 @@ def check_frame_shape(frame: np.ndarray, spec: GelSightSpec, where: str, path: P
 
 
 def decode_image_message(message: Any, msgtype: str, spec: GelSightSpec, where: str, path: Path) -> np.ndarray:
-    """An (H, W, 3) uint8 RGB frame from a sensor_msgs/Image (rgb8, bgr8) or CompressedImage (PNG, JPEG)."""
+    """An (H, W, 3) uint8 RGB frame from a sensor_msgs/Image (RAW_ENCODINGS) or CompressedImage (PNG, JPEG)."""
     if msgtype == "sensor_msgs/msg/CompressedImage":
         from PIL import Image, UnidentifiedImageError
 
@@ -99,10 +112,10 @@ def decode_image_message(message: Any, msgtype: str, spec: GelSightSpec, where: 
             ) from exc
         return check_frame_shape(frame, spec, where, path)
     encoding = str(message.encoding).lower()
-    if encoding not in ("rgb8", "bgr8"):
+    if encoding not in RAW_ENCODINGS:
         raise InputError(
-            f"{where}: image encoding '{message.encoding}' is not supported; GelSight frames must be rgb8 or bgr8 "
-            "(colour, 8 bits per channel)",
+            f"{where}: image encoding '{message.encoding}' is not supported; GelSight frames are colour: "
+            f"{', '.join(RAW_ENCODINGS)}",
             path,
         )
     if (message.width, message.height) != (spec.width_px, spec.height_px):
@@ -111,12 +124,17 @@ def decode_image_message(message: Any, msgtype: str, spec: GelSightSpec, where: 
             f"{spec.width_px}x{spec.height_px}: is this the GelSight topic, and is the camera at full size?",
             path,
         )
+    channels, order, size = RAW_ENCODINGS[encoding]
+    row_bytes = message.width * channels * size
     data = np.frombuffer(bytes(message.data), dtype=np.uint8)
-    if len(data) < message.step * message.height or message.step < message.width * 3:
+    if len(data) < message.step * message.height or message.step < row_bytes:
         raise InputError(f"{where}: image data is shorter than height x step ({len(data)} bytes)", path)
-    frame = data[: message.step * message.height].reshape(message.height, message.step)[:, : message.width * 3]
-    frame = frame.reshape(message.height, message.width, 3)
-    return np.ascontiguousarray(frame if encoding == "rgb8" else frame[:, :, ::-1])
+    rows = data[: message.step * message.height].reshape(message.height, message.step)[:, :row_bytes]
+    if size == 2:  # 16 bits a channel: the top 8 bits, in the message's byte order
+        wide = np.ascontiguousarray(rows).view(">u2" if message.is_bigendian else "<u2")
+        rows = (wide >> 8).astype(np.uint8)
+    frame = rows.reshape(message.height, message.width, channels)[:, :, :3]
+    return np.ascontiguousarray(frame if order == "rgb" else frame[:, :, ::-1])
 
 
 def _stamp_text(path: Path) -> str:

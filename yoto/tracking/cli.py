@@ -37,11 +37,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--right-rig", help="as --left-rig, for the right sensor")
     parser.add_argument("--out", required=True, help="tracked poses, TUM file (T_world_object, mesh file's frame)")
-    parser.add_argument("--left-tactile", help="left tactile frames: a folder of <timestamp>.ply, or a bag")
+    parser.add_argument(
+        "--left-tactile", help="left tactile frames: a folder of <timestamp>.ply (or .png images), or a bag"
+    )
     parser.add_argument("--right-tactile", help="right tactile frames (as --left-tactile)")
     parser.add_argument("--left-tactile-topic", help="for a bag: the left GelSight's image topic")
     parser.add_argument("--right-tactile-topic", help="for a bag: the right GelSight's image topic")
-    parser.add_argument("--calibration", help="sensor calibration, for tactile frames given as images in a bag")
+    parser.add_argument(
+        "--calibration",
+        help="sensor calibration, for GelSight images (the touch's sides, tactile frames) that name none",
+    )
     parser.add_argument("--pose", help="the touch's pose from a `yoto pose` result file (default: estimate it)")
     parser.add_argument(
         "--method",
