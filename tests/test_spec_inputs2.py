@@ -313,3 +313,31 @@ def test_track_reads_tactile_frames_and_a_touch_given_as_images(builtin_models, 
     printed = capsys.readouterr().out
     assert "closed loop:" in printed and "unreadable 1" in printed, printed
     assert (theirs / "object.tum").is_file()
+
+
+def test_image_frames_beside_a_motive_take_are_put_on_its_clock(gelsight, tmp_path):
+    """`yoto track --left take.csv --left-topic RigLeft --left-tactile pngs/`: the take's poses are in seconds since
+    it started, the PNGs named by their wall-clock time (as a GelSight capture script writes them): the frames come
+    on the take's clock, anchored by its `Capture Start Time`, as the rig stage reads them."""
+    from test_spec_inputs import _motive_take
+
+    from yoto.rig.motive import read_motive_csv
+    from yoto.tracking.streams import read_tactile_stream
+
+    sensor, calibration = gelsight
+    times = np.arange(0.0, 2.0, 0.1)
+    take = _motive_take(tmp_path / "take.csv", times, {"RigLeft": np.repeat(np.eye(4)[None], len(times), axis=0)})
+    start = read_motive_csv(take).capture_start_epoch_s
+    assert start is not None
+    folder = tmp_path / "left_frames"
+    folder.mkdir()
+    frame = sensor.render(_press((150.0, 120.0)), np.random.default_rng(4))
+    stamps = (0.52, 0.92, 1.32)
+    for t in stamps:
+        _png(folder / f"gelsight_{start + t:.6f}.png", frame)
+    cal = calibration.save(tmp_path / "mini.npz")
+    stream = read_tactile_stream(folder, calibration=cal, recording=take)
+    np.testing.assert_allclose(stream.timestamps_s, stamps, atol=1e-5)
+    assert len(stream.load(1)) > 500
+    on_their_own = read_tactile_stream(folder, calibration=cal)  # without the take: the names' own clock
+    np.testing.assert_allclose(on_their_own.timestamps_s, np.add(stamps, start), atol=1e-5)
