@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +29,7 @@ from yoto.trajectory import TACTILE_SUFFIX, PoseStream, list_tactile_frames, rea
 TUM_SUFFIXES = (".tum", ".txt")
 BAG_SUFFIXES = (".bag", ".db3", ".mcap")
 MOTIVE_SUFFIXES = (".csv",)
+READ_AHEAD_FRAMES = 32  # GelSight frames read from a recording in one pass
 
 
 def is_recording(path: Path) -> bool:
@@ -148,12 +150,23 @@ def read_tactile_stream(
         images = read_image_stream(path, str(path))
     files = images.details.get("files")
     swapped: list[str] = []  # frames read in BGR order: warned about once
+    ahead: dict[int, np.ndarray] = {}  # frames read ahead: the tracker asks for them in time order
+
+    def frame(index: int) -> np.ndarray:
+        """Frame `index`, read with the next ones in one pass over the bag (a bag opened per frame costs 8x the
+        frame's decoding); a frame that cannot be decoded ends the pass, and raises when it is asked for."""
+        if index not in ahead:
+            ahead.clear()
+            with contextlib.suppress(InputError):
+                for k, image in images.frames(list(range(index, min(index + READ_AHEAD_FRAMES, len(images))))):
+                    ahead[k] = image
+        return ahead[index] if index in ahead else images.frame(index)
 
     def load(index: int) -> np.ndarray:
         where = str(files[index]) if files else f"{path}:{topic} frame {index}"
-        frame = images.frame(index)
-        rgb = in_rgb_order(frame, sensor.background, where, warn=not swapped)
-        if rgb is not frame:
+        image = frame(index)
+        rgb = in_rgb_order(image, sensor.background, where, warn=not swapped)
+        if rgb is not image:
             swapped.append(where)
         return reconstruct(rgb, sensor, source=where).points_sensor
 
