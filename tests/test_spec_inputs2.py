@@ -343,3 +343,26 @@ def test_image_frames_beside_a_motive_take_are_put_on_its_clock(gelsight, tmp_pa
     assert len(stream.load(1)) > 500
     on_their_own = read_tactile_stream(folder, calibration=cal)  # without the take: the names' own clock
     np.testing.assert_allclose(on_their_own.timestamps_s, np.add(stamps, start), atol=1e-5)
+
+
+def test_calibrations_from_other_tools_are_refused_saying_what_they_are(gelsight, tmp_path):
+    """A per-side `calibration` that is another tool's file (a lookup table saved with `np.save`, a JSON file, a
+    pickled model) or a yoto calibration with a model setting this version does not know: errors naming the file
+    and what it is (before, a JSON file read as "pickled (object) data"); extra top-level keys are kept."""
+    from yoto.io import load_npz, save_npz_atomic
+    from yoto.sensor.calibration import load_calibration
+
+    _, calibration = gelsight
+    np.save(tmp_path / "table.npy", np.zeros((8, 8, 8, 2)))
+    (tmp_path / "calibration.json").write_text('{"gradient": "table.npy"}')
+    expected = {"table.npy": r"a single NumPy array \(.npy\)", "calibration.json": "not a zip archive"}
+    for name, what in expected.items():
+        with pytest.raises(InputError, match=rf"{name}: not a readable sensor calibration file: .*{what}"):
+            load_calibration(tmp_path / name)
+    arrays, meta = load_npz(calibration.save(tmp_path / "mini.npz"), "sensor calibration")
+    save_npz_atomic(tmp_path / "extra.npz", arrays, {**meta, "tool": {"name": "another", "version": 3}})
+    assert load_calibration(tmp_path / "extra.npz").meta["tool"]["version"] == 3
+    meta["model"]["gradient"]["a_new_setting"] = 1
+    save_npz_atomic(tmp_path / "newer.npz", arrays, meta)
+    with pytest.raises(InputError, match="newer.npz: .*unexpected keyword argument 'a_new_setting'"):
+        load_calibration(tmp_path / "newer.npz")

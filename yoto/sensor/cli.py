@@ -111,12 +111,16 @@ def _run_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _read_frames(path: Path, spec: GelSightSpec):
-    """(name, frame) pairs of an image, a folder of images, or a multi-frame file, at the size of `spec`'s sensor."""
+def _read_frames(path: Path, spec: GelSightSpec | None = None):
+    """(name, frame) pairs of an image, a folder of images, or a multi-frame file, at the size of `spec`'s sensor
+    (default: the GelSight Mini's)."""
     import numpy as np
 
     from yoto.errors import InputError, MissingDependencyError
     from yoto.sensor.presses import IMAGE_SUFFIXES, list_press_images, load_image
+    from yoto.sensor.spec import GELSIGHT_MINI
+
+    spec = spec or GELSIGHT_MINI
 
     if path.is_dir():
         for frame_path in list_press_images(path):
