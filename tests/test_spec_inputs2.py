@@ -366,3 +366,22 @@ def test_calibrations_from_other_tools_are_refused_saying_what_they_are(gelsight
     save_npz_atomic(tmp_path / "newer.npz", arrays, meta)
     with pytest.raises(InputError, match="newer.npz: .*unexpected keyword argument 'a_new_setting'"):
         load_calibration(tmp_path / "newer.npz")
+
+
+def test_image_streams_take_the_size_of_the_calibration(tmp_path):
+    """Frames of a sensor calibrated at another size (a 640x480 camera mode, here 64x48) are read at that size from a
+    PNG folder when the calibration's spec is given (`yoto track` gives it); before, every such frame was refused as
+    not 320x240. Without it, the GelSight Mini's size is still required, naming the file."""
+    from yoto.rig.streams import read_image_stream
+    from yoto.sensor.spec import GelSightSpec
+
+    small = GelSightSpec(name="small", width_px=64, height_px=48, mm_per_px=0.3)
+    frame = np.random.default_rng(3).integers(0, 256, size=(48, 64, 3)).astype(np.uint8)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for t in (10.0, 10.04):
+        _png(folder / f"{t:.6f}.png", frame)
+    stream = read_image_stream(folder, str(folder), spec=small)
+    np.testing.assert_array_equal(stream.frame(1), frame)
+    with pytest.raises(InputError, match="10.000000.png: image is 64x48 with 3 channels but the gelsight_mini gives"):
+        read_image_stream(folder, str(folder))

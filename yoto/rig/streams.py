@@ -401,13 +401,15 @@ def read_point_stream(path: str | Path, topic_or_marker: str) -> PointStream:
     return Recording(path).point(topic_or_marker)
 
 
-def read_image_stream(path: str | Path, topic_or_folder: str, time_offset_s: float | None = None) -> ImageStream:
+def read_image_stream(
+    path: str | Path, topic_or_folder: str, time_offset_s: float | None = None, spec: GelSightSpec = GELSIGHT_MINI
+) -> ImageStream:
     """GelSight frames with their timestamps from a bag's image topic, or from a folder of PNGs (`path` may then
-    be the folder itself, or the Motive take the folder belongs to)."""
+    be the folder itself, or the Motive take the folder belongs to); frames of `spec`'s size (the calibration's)."""
     path = Path(path)
     if path.is_dir() and not bags.is_bag(path):
-        return image_folder_stream(path, offset_s=time_offset_s or 0.0)
-    return Recording(path, time_offset_s).images(topic_or_folder)
+        return image_folder_stream(path, spec, offset_s=time_offset_s or 0.0)
+    return Recording(path, time_offset_s, spec).images(topic_or_folder)
 
 
 __all__ = [

@@ -143,11 +143,11 @@ def read_tactile_stream(
 
     sensor = calibration if isinstance(calibration, SensorCalibration) else load_calibration(calibration)
     if from_bag:
-        images = read_image_stream(path, str(topic))
+        images = read_image_stream(path, str(topic), spec=sensor.spec)
     elif recording is not None and is_motive_csv(Path(recording)):
-        images = read_image_stream(recording, str(path))
+        images = read_image_stream(recording, str(path), spec=sensor.spec)
     else:
-        images = read_image_stream(path, str(path))
+        images = read_image_stream(path, str(path), spec=sensor.spec)
     files = images.details.get("files")
     swapped: list[str] = []  # frames read in BGR order: warned about once
     ahead: dict[int, np.ndarray] = {}  # frames read ahead: the tracker asks for them in time order
