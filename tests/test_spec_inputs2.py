@@ -385,3 +385,47 @@ def test_image_streams_take_the_size_of_the_calibration(tmp_path):
     np.testing.assert_array_equal(stream.frame(1), frame)
     with pytest.raises(InputError, match="10.000000.png: image is 64x48 with 3 channels but the gelsight_mini gives"):
         read_image_stream(folder, str(folder))
+
+
+def test_a_png_folder_of_both_sensors_is_refused(tmp_path):
+    """One folder holding both GelSights' frames (`left_<t>.png`, `right_<t>.png`), as a capture script may write them:
+    refused naming the prefixes (before: read as one sensor's frames, the right GelSight's among the left's)."""
+    from yoto.rig.streams import read_image_stream
+
+    frame = np.random.default_rng(3).integers(0, 256, size=(240, 320, 3)).astype(np.uint8)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for t in (10.0, 10.04):
+        for side in ("left", "right"):
+            _png(folder / f"{side}_{t:.6f}.png", frame)
+    with pytest.raises(InputError, match=r"several sensors \(left_\*.png, right_\*.png\)"):
+        read_image_stream(folder, str(folder))
+    for path in folder.glob("right_*.png"):
+        path.unlink()
+    assert len(read_image_stream(folder, str(folder))) == 2
+
+
+def test_a_damaged_bag_is_an_error_naming_it_not_a_traceback(tmp_path, capsys):
+    """A ROS1 bag whose message record was overwritten (a recorder killed mid-write, a bad copy): every reader says
+    the bag is damaged, naming it and the topic (before, rosbags' ReaderError came out of `yoto track` and `yoto rig`
+    as a traceback)."""
+    from test_spec_rig import ForeignBag
+
+    from yoto.rig.streams import read_pose_stream
+
+    path = tmp_path / "take.bag"
+    bag = ForeignBag(path, "ros1")
+    for k in range(20):
+        t = 100.0 + 0.01 * k
+        bag.write("/vrpn_client_node/RigLeft/pose", "geometry_msgs/msg/PoseStamped", t, bag.pose(t, "world", np.eye(4)))
+    bag.close()
+    data = bytearray(path.read_bytes())
+    record = data.find(b"op=\x02", data.find(b"op=\x02") + 1)  # the second message record's opcode
+    data[record + 3] = 9  # no such record type
+    path.write_bytes(bytes(data))
+    with pytest.raises(
+        InputError, match=r"take.bag: the bag is damaged: reading topic '/vrpn_client_node/RigLeft/pose'"
+    ):
+        read_pose_stream(path, "RigLeft")
+    assert main(["rig", "inspect", str(path)]) == 2
+    assert "the bag is damaged" in capsys.readouterr().err

@@ -173,6 +173,12 @@ def image_folder_stream(folder: Path, spec: GelSightSpec = GELSIGHT_MINI, offset
     if not files:
         raise InputError("no GelSight frames (*.png named by their timestamp) in the folder", folder)
     times = np.array([png_timestamp(p) for p in files])
+    prefixes = sorted({p.name[: -len(p.suffix) - len(_stamp_text(p))] for p in files})
+    if len(prefixes) > 1:  # `left_12.3.png` beside `right_12.3.png`: two sensors' frames would be read as one's
+        named = ", ".join(f"{prefix or '(none)'}*.png" for prefix in prefixes)
+        raise InputError(
+            f"the folder holds GelSight PNGs of several sensors ({named}): give each sensor a folder of its own", folder
+        )
     _refuse_frame_numbers(files, times, folder)
     order = np.argsort(times, kind="stable")
     files, times = [files[i] for i in order], times[order]
@@ -191,7 +197,7 @@ def bag_image_stream(reader: Any, path: Path, topic: str, spec: GelSightSpec) ->
     msgtype = reader.topics[topic].msgtype
     where = f"topic '{topic}'"
     stamps, log_times = [], []
-    for k, (stamp, log_time, message) in enumerate(bags.read_messages(reader, topic)):
+    for k, (stamp, log_time, message) in enumerate(bags.read_messages(reader, topic, path)):
         if k == 0:
             decode_image_message(message, msgtype, spec, where, path)  # size and encoding, up front
         stamps.append(stamp)
@@ -216,15 +222,13 @@ def bag_image_stream(reader: Any, path: Path, topic: str, spec: GelSightSpec) ->
         start, stop = int(kept_log[indices].min()), int(kept_log[indices].max()) + 1
         seen: dict[int, int] = {}
         with bags.open_bag(path) as bag:
-            connections = [c for c in bag.connections if c.topic == topic]
-            for connection, log_time, raw in bag.messages(connections=connections, start=start, stop=stop):
+            for connection, log_time, message in bags.raw_messages(bag, path, topic, start=start, stop=stop):
                 # The message's place in the topic: messages sharing a receive time come in bag order.
                 k = seen.get(log_time, 0)
                 seen[log_time] = k + 1
                 same_time = by_log_time.get(int(log_time), [])
                 original = same_time[k] if k < len(same_time) else -1
                 if original in wanted:
-                    message = bag.deserialize(raw, connection.msgtype)
                     yield wanted[original], decode_image_message(message, connection.msgtype, spec, where, path)
 
     return ImageStream(path, topic, np.asarray(stamps)[kept], dropped, rate, load, {"msgtype": msgtype})
@@ -266,14 +270,14 @@ class Recording:
             try:
                 topic = bags.resolve_topic(reader, self.path, selector, types, "a rigid body")
             except InputError:
-                links = bags.tf_links(reader)
+                links = bags.tf_links(reader, self.path)
                 child = selector.strip("/")
                 if child not in links:
                     raise
                 return self._tf_stream(links, child)
             msgtype = reader.topics[topic].msgtype
             stamps, positions, quaternions = [], [], []
-            for stamp, _, message in bags.read_messages(reader, topic):
+            for stamp, _, message in bags.read_messages(reader, topic, self.path):
                 position, orientation = bags.pose_fields(message, msgtype)
                 stamps.append(stamp)
                 positions.append((position.x, position.y, position.z))
@@ -331,7 +335,7 @@ class Recording:
         with bags.open_bag(self.path) as reader:
             topic = bags.resolve_topic(reader, self.path, selector, bags.POINT_TYPES, "a marker")
             stamps, positions = [], []
-            for stamp, _, message in bags.read_messages(reader, topic):
+            for stamp, _, message in bags.read_messages(reader, topic, self.path):
                 stamps.append(stamp)
                 positions.append((message.point.x, message.point.y, message.point.z))
         if not stamps:
