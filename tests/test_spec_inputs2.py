@@ -429,3 +429,22 @@ def test_a_damaged_bag_is_an_error_naming_it_not_a_traceback(tmp_path, capsys):
         read_pose_stream(path, "RigLeft")
     assert main(["rig", "inspect", str(path)]) == 2
     assert "the bag is damaged" in capsys.readouterr().err
+
+
+def test_a_motive_take_resaved_in_another_locale_is_refused(tmp_path):
+    """A take re-saved by a spreadsheet with decimal commas (`0,100000` in a comma-separated file) was read as one
+    frame, silently; with ';' between cells it was "not a Motive CSV export". Both are now refused saying why."""
+    from test_spec_inputs import _motive_take
+
+    from yoto.rig.streams import read_pose_stream
+
+    times = np.arange(0.0, 1.0, 0.1)
+    take = _motive_take(tmp_path / "take.csv", times, {"Body": np.repeat(np.eye(4)[None], len(times), axis=0)})
+    assert len(read_pose_stream(take, "Body").timestamps_s) == 10
+    text = take.read_text(encoding="utf-8-sig")
+    (tmp_path / "commas.csv").write_text(text.replace(".", ","), encoding="utf-8")
+    with pytest.raises(InputError, match=r"commas.csv: frame row 8 has 17 cells but the column header 9: .*decimal"):
+        read_pose_stream(tmp_path / "commas.csv", "Body")
+    (tmp_path / "semicolons.csv").write_text(text.replace(",", ";").replace(".", ","), encoding="utf-8")
+    with pytest.raises(InputError, match=r"semicolons.csv: the cells are separated by ';'"):
+        read_pose_stream(tmp_path / "semicolons.csv", "Body")
