@@ -448,3 +448,28 @@ def test_a_motive_take_resaved_in_another_locale_is_refused(tmp_path):
     (tmp_path / "semicolons.csv").write_text(text.replace(",", ";").replace(".", ","), encoding="utf-8")
     with pytest.raises(InputError, match=r"semicolons.csv: the cells are separated by ';'"):
         read_pose_stream(tmp_path / "semicolons.csv", "Body")
+
+
+def test_track_refuses_one_source_for_both_sensors(tmp_path, capsys, monkeypatch):
+    """`--left-tactile-topic` and `--right-tactile-topic` naming the same bag topic (or one frame folder, or one pose
+    file for both sensors): before, the left GelSight's frames were registered as the right one's too, silently."""
+    (tmp_path / "frames").mkdir()
+    common = ["track", str(tmp_path / "touch.json"), "--out", str(tmp_path / "object.tum")]
+    cases = {
+        "the left and right tactile frames are the same source, rec.bag (topic /gelsight/image_raw)": [
+            *("--left", "l.tum", "--right", "r.tum", "--left-tactile", "rec.bag"),
+            *("--right-tactile", "rec.bag", "--left-tactile-topic", "/gelsight/image_raw"),
+            *("--right-tactile-topic", "/gelsight/image_raw"),
+        ],
+        "the left and right tactile frames are the same source, frames: give each sensor its own folder": [
+            *("--left", "l.tum", "--right", "r.tum", "--left-tactile", "frames", "--right-tactile", "frames/"),
+        ],
+        "the left and right pose streams are the same source, l.tum: give each sensor its own file": [
+            *("--left", "l.tum", "--right", "./l.tum"),
+        ],
+    }
+    monkeypatch.chdir(tmp_path)
+    for message, args in cases.items():
+        assert main([*common, *args]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "object.tum").exists()
