@@ -104,6 +104,8 @@ def holds_images(path: str | Path) -> bool:
     """Whether tactile frames at `path` are GelSight images (a bag, or a folder of images and no `.ply` clouds), which
     need the sensor's calibration, rather than clouds."""
     path = Path(path)
+    if not path.exists():
+        return False  # the reader says it is not there
     if is_recording(path):
         return True
     if not path.is_dir():
