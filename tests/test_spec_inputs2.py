@@ -473,3 +473,23 @@ def test_track_refuses_one_source_for_both_sensors(tmp_path, capsys, monkeypatch
         assert main([*common, *args]) == 2
         assert message in capsys.readouterr().err
     assert not (tmp_path / "object.tum").exists()
+
+
+def test_tum_quaternions_written_w_first_are_named_in_the_touch_warning(builtin_models, tmp_path, rng, capsys):
+    """A TUM stream written `timestamp tx ty tz qw qx qy qz` (pyquaternion's / transforms3d's order) holds unit
+    quaternions, so it reads; at the touch its rotations are far from the pair's sensor poses. The warning now names
+    the file whose quaternions fit when read w x y z (before: only "are they the same recording?")."""
+    from test_spec_inputs import _tool_touch_at_ten_seconds, _tum_row
+
+    model_path, touch, _ = _tool_touch_at_ten_seconds(builtin_models, tmp_path, rng)
+    payload = json.loads(touch.read_text())
+    times = np.arange(9.5, 11.0, 0.1)
+    for side, order in (("left", [0, 1, 2, 6, 3, 4, 5]), ("right", list(range(7)))):
+        row = _tum_row(np.asarray(payload[side]["T_world_sensor"]))[order]  # tx ty tz (qw) qx qy qz (qw)
+        lines = [f"{t:.2f} " + " ".join(f"{v:.12f}" for v in row) for t in times]
+        (tmp_path / f"{side}.tum").write_text("\n".join(lines) + "\n")
+    args = ["track", str(touch), "--model", str(model_path), "--pose", str(tmp_path / "pose.json"), "--open-loop"]
+    args += ["--left", str(tmp_path / "left.tum"), "--right", str(tmp_path / "right.tum")]
+    assert main([*args, "--out", str(tmp_path / "object.tum")]) == 0
+    printed = capsys.readouterr().out
+    assert f"they fit if the quaternions of {tmp_path / 'left.tum'} are read as w x y z" in printed, printed

@@ -16,7 +16,7 @@ import numpy as np
 
 from yoto.contacts import SIDES, ContactPair, read_contact_pair
 from yoto.errors import InputError
-from yoto.geometry import validate_transform
+from yoto.geometry import quaternion_xyzw_to_rotation, rotation_to_quaternion_xyzw, validate_transform
 from yoto.io import read_json, write_json_atomic
 from yoto.objects.model import ObjectModel
 from yoto.sensor.pair_images import ImageSides
@@ -117,6 +117,26 @@ def read_tactile(job: TrackJob, pair: ContactPair, images: ImageSides) -> dict[s
     return streams
 
 
+def read_as_wxyz(stream: PoseStream) -> PoseStream:
+    """The stream as it is if its file's quaternion columns were written w x y z (TUM's order is x y z w)."""
+    as_read = rotation_to_quaternion_xyzw(stream.T_world_frame[:, :3, :3])  # the file's columns (up to sign)
+    T_world_frame = stream.T_world_frame.copy()
+    T_world_frame[:, :3, :3] = quaternion_xyzw_to_rotation(as_read[:, [1, 2, 3, 0]])
+    return PoseStream(stream.timestamps_s, T_world_frame, stream.name, stream.source)
+
+
+def quaternion_order_hint(job: TrackJob, pair: ContactPair, streams: dict[str, PoseStream], config: TrackConfig) -> str:
+    """When TUM streams far from the pair's sensor poses at the touch fit them with their quaternions read w x y z (a
+    writer's wrong column order; a unit quaternion either way), the hint naming the files; else ""."""
+    tum = [side for side in SIDES if job.sensors[side].topic is None]
+    for sides in [[side] for side in tum] + ([tum] if len(tum) == 2 else []):
+        permuted = {side: read_as_wxyz(stream) if side in sides else stream for side, stream in streams.items()}
+        if touch_time_of(pair, permuted, job.touch_time_s, config)[2] <= config.touch_mismatch_warning_m:
+            files = " and ".join(str(job.sensors[side].path) for side in sides)
+            return f" (they fit if the quaternions of {files} are read as w x y z: TUM's order is x y z w)"
+    return ""
+
+
 def touch_pose(job: TrackJob, pair: ContactPair, model: ObjectModel) -> tuple[np.ndarray, str, float | None]:
     """The touch's T_world_object (canonical frame), where it came from, and its confidence (None if unknown)."""
     if job.pose_result is not None:
@@ -160,6 +180,7 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
         else ""
     )
     if mismatch > config.touch_mismatch_warning_m:
+        hint = hint or quaternion_order_hint(job, pair, streams, config)
         where = (
             f"the sensor streams never come closer than {mismatch * 1e3:.1f} mm (position plus 50 mm per radian) to"
             if time_source.startswith("matched")
