@@ -387,9 +387,10 @@ def test_image_streams_take_the_size_of_the_calibration(tmp_path):
         read_image_stream(folder, str(folder))
 
 
-def test_a_png_folder_of_both_sensors_is_refused(tmp_path):
+def test_a_png_folder_of_both_sensors_or_in_milliseconds_is_refused(tmp_path):
     """One folder holding both GelSights' frames (`left_<t>.png`, `right_<t>.png`), as a capture script may write them:
-    refused naming the prefixes (before: read as one sensor's frames, the right GelSight's among the left's)."""
+    refused naming the prefixes (before: read as one sensor's frames, the right GelSight's among the left's); names in
+    milliseconds refused (before: read as seconds, 50 000 years on)."""
     from yoto.rig.streams import read_image_stream
 
     frame = np.random.default_rng(3).integers(0, 256, size=(240, 320, 3)).astype(np.uint8)
@@ -403,6 +404,13 @@ def test_a_png_folder_of_both_sensors_is_refused(tmp_path):
     for path in folder.glob("right_*.png"):
         path.unlink()
     assert len(read_image_stream(folder, str(folder))) == 2
+    # Names in milliseconds since 1970 (a camera driver's stamp): refused as the tactile PLY folders' are.
+    millis = tmp_path / "millis"
+    millis.mkdir()
+    for t in (1_700_000_000_000, 1_700_000_000_040):
+        _png(millis / f"left_{t}.png", frame)
+    with pytest.raises(InputError, match=r"left_1700000000000.png: .*milliseconds or nanoseconds since 1970"):
+        read_image_stream(millis, str(millis))
 
 
 def test_a_damaged_bag_is_an_error_naming_it_not_a_traceback(tmp_path, capsys):

@@ -30,6 +30,7 @@ from yoto.rig.motive import MotiveTake, is_motive_csv, read_motive_csv
 from yoto.rig.timeline import PointStream, PoseStream, Stream, clean_timeline, make_point_stream, make_pose_stream
 from yoto.sensor.presses import COLOUR_IMAGE_MODES, load_image
 from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
+from yoto.trajectory import LARGEST_PLAUSIBLE_TIMESTAMP_S
 
 IMAGE_SUFFIXES = (".png",)
 FRAME_NUMBER_BELOW = 1e6  # integer PNG names below this, one apart, are frame numbers, not seconds
@@ -145,9 +146,16 @@ def _stamp_text(path: Path) -> str:
 def png_timestamp(path: Path) -> float:
     """The timestamp (seconds) in a frame's file name: `1712.345678.png` or `left_1712.345678.png`."""
     try:
-        return float(_stamp_text(path))
+        stamp = float(_stamp_text(path))
     except ValueError as exc:
         raise InputError("GelSight PNG names must be their timestamp in seconds (e.g. 1712.345678.png)", path) from exc
+    if not abs(stamp) <= LARGEST_PLAUSIBLE_TIMESTAMP_S:
+        raise InputError(
+            f"the file name reads as {stamp:.4g} s, after the year 5000: GelSight PNGs are named by their time in "
+            "seconds (are these milliseconds or nanoseconds since 1970?)",
+            path,
+        )
+    return stamp
 
 
 def _refuse_frame_numbers(files: list[Path], times_s: np.ndarray, folder: Path) -> None:
