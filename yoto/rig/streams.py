@@ -33,6 +33,7 @@ from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
 from yoto.trajectory import LARGEST_PLAUSIBLE_TIMESTAMP_S
 
 IMAGE_SUFFIXES = (".png",)
+FRAMES_CHECKED_UP_FRONT = 5  # a stream is refused when none of its first frames is a GelSight frame of the size
 FRAME_NUMBER_BELOW = 1e6  # integer PNG names below this, one apart, are frame numbers, not seconds
 # sensor_msgs/Image encodings of colour frames: channels, their order, bytes per channel. `8uc3` is what cv_bridge
 # writes for an OpenCV image without an encoding: OpenCV's BGR. Alpha is dropped; 16-bit channels keep their top 8 bits.
@@ -138,6 +139,21 @@ def decode_image_message(message: Any, msgtype: str, spec: GelSightSpec, where: 
     return np.ascontiguousarray(frame if order == "rgb" else frame[:, :, ::-1])
 
 
+def first_readable(read: Callable[[int], np.ndarray], count: int) -> np.ndarray:
+    """The first of a stream's first FRAMES_CHECKED_UP_FRONT frames that `read` decodes (a stream is refused up
+    front for its size or encoding, not for one frame cut short at its start); raises the first frame's error when
+    none of them reads."""
+    errors: list[InputError] = []
+    for k in range(min(count, FRAMES_CHECKED_UP_FRONT)):
+        try:
+            return read(k)
+        except InputError as exc:
+            errors.append(exc)
+    if errors:
+        raise errors[0]
+    raise InputError("no GelSight frames")
+
+
 def _stamp_text(path: Path) -> str:
     """The part of a frame's file name that holds its timestamp: after the last underscore, before the suffix."""
     return path.name[: -len(path.suffix)].rsplit("_", 1)[-1]
@@ -192,7 +208,7 @@ def image_folder_stream(folder: Path, spec: GelSightSpec = GELSIGHT_MINI, offset
     files, times = [files[i] for i in order], times[order]
     kept, dropped, rate = clean_timeline(times, np.ones(len(times), bool), folder, folder.name)
     files, times = [files[i] for i in kept], times[kept]
-    load_image(files[0], spec)  # colour, 8 or 16 bits, the sensor's size: checked up front
+    first_readable(lambda k: load_image(files[k], spec), len(files))  # colour, the sensor's size: checked up front
 
     def load(indices: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
         for i in indices:
@@ -204,12 +220,14 @@ def image_folder_stream(folder: Path, spec: GelSightSpec = GELSIGHT_MINI, offset
 def bag_image_stream(reader: Any, path: Path, topic: str, spec: GelSightSpec) -> ImageStream:
     msgtype = reader.topics[topic].msgtype
     where = f"topic '{topic}'"
-    stamps, log_times = [], []
+    stamps, log_times, first = [], [], []
     for k, (stamp, log_time, message) in enumerate(bags.read_messages(reader, topic, path)):
-        if k == 0:
-            decode_image_message(message, msgtype, spec, where, path)  # size and encoding, up front
+        if k < FRAMES_CHECKED_UP_FRONT:
+            first.append(message)
         stamps.append(stamp)
         log_times.append(log_time)
+    # Size and encoding, up front (a depth topic, a camera at another size).
+    first_readable(lambda k: decode_image_message(first[k], msgtype, spec, where, path), len(first))
     if not stamps:
         raise InputError(f"topic '{topic}' holds no frames", path)
     order = stamp_order(np.asarray(stamps))
