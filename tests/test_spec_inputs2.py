@@ -502,3 +502,23 @@ def test_tum_quaternions_written_w_first_are_named_in_the_touch_warning(builtin_
     assert main([*args, "--out", str(tmp_path / "object.tum")]) == 0
     printed = capsys.readouterr().out
     assert f"they fit if the quaternions of {tmp_path / 'left.tum'} are read as w x y z" in printed, printed
+
+
+def test_tactile_frames_in_millimetres_or_flipped_are_left_out_saying_why(tmp_path, rng):
+    """PLY frames another tool wrote in millimetres, or with z pointing into the gel: each load raises an InputError
+    naming the frame and the likely cause, which the tracker counts as unreadable and prints (before: millimetres
+    crashed `yoto track` allocating 33.7 GiB for its sampling grid; flipped frames were a silent "bad fit")."""
+    from yoto.io import write_ply_points
+    from yoto.tracking.streams import read_tactile_folder
+
+    xy = rng.uniform(-0.004, 0.004, size=(400, 2))
+    contact = np.column_stack([xy, -8e-4 + 20.0 * (xy**2).sum(axis=1)])  # a cap 0.8 mm deep, z < 0
+    folders = {}
+    for name, points in (("metres", contact), ("millimetres", 1e3 * contact), ("flipped", contact * [1, 1, -1])):
+        folders[name] = tmp_path / name
+        write_ply_points(folders[name] / "1700000000.000000.ply", points)
+    np.testing.assert_allclose(read_tactile_folder(folders["metres"]).load(0), contact, atol=1e-7)
+    with pytest.raises(InputError, match=r"1700000000.000000.ply: tactile frame spans 79\d\d mm, .*is it in metres"):
+        read_tactile_folder(folders["millimetres"]).load(0)
+    with pytest.raises(InputError, match="are its z values flipped"):
+        read_tactile_folder(folders["flipped"]).load(0)

@@ -175,6 +175,11 @@ def run(args: argparse.Namespace) -> int:
             f"divergence guard: {speed['guard_checks']} checks, {speed['reanchored']} re-anchored; "
             f"{speed['latency_median_ms']:.1f} ms per instant (median), {speed['instants_per_s']:.0f} instants/s"
         )
+        for side in ("left", "right"):  # why frames could not be read: the first reason of each side
+            unreadable = [c.unusable[side] for c in result.corrections if c.unusable.get(side, "").startswith("unread")]
+            if unreadable:
+                why = unreadable[0].removeprefix("unreadable (").removesuffix(")")
+                print(f"  {side}: {len(unreadable)} frame(s) unreadable, the first: {why}")
     if result.pinning is not None:
         spread = result.pinning.spread
         print(

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from yoto.contacts import without_untouched_gel
+from yoto.contacts import indentation_m, without_untouched_gel
 from yoto.errors import InputError
 from yoto.io import read_ply_points
 from yoto.rig.motive import is_motive_csv
@@ -88,14 +88,39 @@ class TactileStream:
         return cls(np.asarray(timestamps_s, dtype=np.float64)[order], lambda i: clouds[order[i]], name)
 
 
+MAX_FRAME_EXTENT_M = 0.1  # a tactile frame wider than this is no GelSight's (millimetres, pixels)
+
+
+def frame_contact(points_sensor: np.ndarray, path: Path) -> np.ndarray:
+    """A tactile frame's contact points: its finite points (an organised cloud marks pixels without data NaN), without
+    the untouched gel of a cloud of the whole pad. A frame in millimetres (or pixels) or with its z flipped raises
+    InputError naming it, so the tracker leaves it out saying why (in millimetres it would size the tracker's sampling
+    grid by metres: an out-of-memory crash)."""
+    points = points_sensor[np.isfinite(points_sensor).all(axis=1)]
+    if len(points) == 0:
+        return points
+    extent = max(float(np.ptp(points[:, axis])) for axis in range(3))
+    if extent > MAX_FRAME_EXTENT_M:
+        raise InputError(
+            f"tactile frame spans {extent * 1e3:.0f} mm, more than any GelSight pad: is it in metres, sensor frame?",
+            path,
+        )
+    depth, floor = indentation_m(points)
+    if depth <= floor and np.greater(*indentation_m(points * np.array([1.0, 1.0, -1.0]))):
+        raise InputError(
+            "tactile frame is not pressed into the gel but its mirror is: are its z values flipped? "
+            "(SPEC: z <= 0 where the gel is pressed)",
+            path,
+        )
+    return without_untouched_gel(points)
+
+
 def read_tactile_folder(folder: str | Path, name: str | None = None) -> TactileStream:
-    """The `<timestamp>.ply` frames of a folder (SPEC), read when asked for."""
+    """The `<timestamp>.ply` frames of a folder (SPEC), read when asked for (`frame_contact`)."""
     timestamps, paths = list_tactile_frames(folder)
 
     def load(index: int) -> np.ndarray:
-        points, _ = read_ply_points(paths[index])
-        points = points[np.isfinite(points).all(axis=1)]  # an organised cloud's pixels without data
-        return without_untouched_gel(points) if len(points) else points  # a cloud of the whole pad: its contact
+        return frame_contact(read_ply_points(paths[index])[0], paths[index])
 
     return TactileStream(timestamps, load, name or Path(folder).name, Path(folder))
 
