@@ -522,3 +522,24 @@ def test_tactile_frames_in_millimetres_or_flipped_are_left_out_saying_why(tmp_pa
         read_tactile_folder(folders["millimetres"]).load(0)
     with pytest.raises(InputError, match="are its z values flipped"):
         read_tactile_folder(folders["flipped"]).load(0)
+
+
+def test_bag_poses_in_millimetres_are_refused(tmp_path):
+    """A mocap bridge that publishes Motive's millimetres in PoseStamped / PointStamped (ROS messages are metres): the
+    stream is refused naming the topic (before: read as a rig 1.2 km away; `yoto track` only warned that the streams
+    were far from the pair's sensor poses, `yoto rig` calibrated on it)."""
+    from test_spec_rig import ForeignBag
+
+    from yoto.rig.streams import read_point_stream, read_pose_stream
+
+    path = tmp_path / "take.bag"
+    bag = ForeignBag(path, "ros1")
+    for k in range(20):
+        t = 100.0 + 0.01 * k
+        T = make_transform(np.eye(3), [800.0 + k, 300.0, 1200.0])  # millimetres
+        bag.write("/vrpn_client_node/RigLeft/pose", "geometry_msgs/msg/PoseStamped", t, bag.pose(t, "world", T))
+        bag.write("/mocap/GelBall", "geometry_msgs/msg/PointStamped", t, bag.point(t, "world", T[:3, 3] / 1e3))
+    bag.close()
+    with pytest.raises(InputError, match=r"take.bag: '/vrpn_client_node/RigLeft/pose': positions reach 1200 m .*milli"):
+        read_pose_stream(path, "RigLeft")
+    np.testing.assert_allclose(read_point_stream(path, "GelBall").p_world[0], [0.8, 0.3, 1.2])
