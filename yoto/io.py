@@ -143,6 +143,11 @@ def load_npz(path: str | Path, kind: str) -> tuple[dict[str, np.ndarray], dict[s
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{kind} file not found", path)
+    with open(path, "rb") as handle:
+        magic = handle.read(6)
+    if not magic.startswith(b"PK"):  # an npz is a zip archive
+        what = "a single NumPy array (.npy)" if magic == b"\x93NUMPY" else "not a zip archive"
+        raise InputError(f"not a readable {kind} file: YOTO writes it as a NumPy .npz archive, this is {what}", path)
     try:
         with np.load(path, allow_pickle=False) as archive:
             arrays = {key: archive[key] for key in archive.files}
@@ -150,7 +155,12 @@ def load_npz(path: str | Path, kind: str) -> tuple[dict[str, np.ndarray], dict[s
         raise InputError(f"not a readable {kind} file ({exc})", path) from exc
     if "meta_json" not in arrays:
         raise InputError(f"not a YOTO {kind} file (no metadata entry)", path)
-    meta = json.loads(arrays.pop("meta_json").tobytes().decode("utf-8"))
+    try:
+        meta = json.loads(arrays.pop("meta_json").tobytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{kind} file's metadata is damaged ({exc})", path) from exc
+    if not isinstance(meta, dict):
+        raise InputError(f"{kind} file's metadata is not a JSON object", path)
     return arrays, meta
 
 

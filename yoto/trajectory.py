@@ -252,7 +252,9 @@ def list_tactile_frames(folder: str | Path) -> tuple[np.ndarray, list[Path]]:
             )
         stamped.append((timestamp, path))
     if not stamped:
-        raise InputError("no tactile frames (<timestamp>.ply files) in the folder", folder)
+        raise InputError(
+            "no tactile frames (<timestamp>.ply clouds, or <timestamp>.png GelSight images) in the folder", folder
+        )
     stamped.sort()
     timestamps = np.array([timestamp for timestamp, _ in stamped])
     repeated = np.flatnonzero(np.diff(timestamps) == 0.0)

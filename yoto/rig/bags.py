@@ -121,12 +121,10 @@ def bag_topics(path: str | Path) -> list[TopicSummary]:
     summaries = []
     with open_bag(path) as reader:
         for name, info in sorted(reader.topics.items()):
-            connections = [c for c in reader.connections if c.topic == name]
             first = last = None
             frame, size = "", ""
             count = 0
-            for connection, log_time, raw in reader.messages(connections=connections):
-                message = reader.deserialize(raw, connection.msgtype)
+            for connection, log_time, message in raw_messages(reader, Path(path), name):
                 stamp = _stamp_s(message, log_time)
                 if first is None:
                     first = stamp
@@ -170,11 +168,24 @@ def resolve_topic(reader: Any, path: Path, selector: str, types: tuple[str, ...]
     )
 
 
-def read_messages(reader: Any, topic: str) -> Iterator[tuple[float, int, Any]]:
-    """(header stamp in seconds, receive time in ns, message) of every message on a topic, in bag order."""
+def raw_messages(reader: Any, path: Path | None, topic: str, **window: int) -> Iterator[tuple[Any, int, Any]]:
+    """`reader.messages` of one topic (`window`: its `start` / `stop` in ns), with the messages decoded: (connection,
+    receive time in ns, message). A damaged bag (a record cut short or overwritten: rosbags' reader and the message
+    decoder raise many types) raises InputError naming the bag and the topic."""
     connections = [c for c in reader.connections if c.topic == topic]
-    for connection, log_time, raw in reader.messages(connections=connections):
-        message = reader.deserialize(raw, connection.msgtype)
+    try:
+        for connection, log_time, raw in reader.messages(connections=connections, **window):
+            yield connection, log_time, reader.deserialize(raw, connection.msgtype)
+    except Exception as exc:
+        raise InputError(
+            f"the bag is damaged: reading topic '{topic}' failed ({type(exc).__name__}: {exc})", path
+        ) from exc
+
+
+def read_messages(reader: Any, topic: str, path: str | Path | None = None) -> Iterator[tuple[float, int, Any]]:
+    """(header stamp in seconds, receive time in ns, message) of every message on a topic, in bag order; `path`
+    names the bag in errors."""
+    for _, log_time, message in raw_messages(reader, None if path is None else Path(path), topic):
         yield _stamp_s(message, log_time), log_time, message
 
 
@@ -190,14 +201,14 @@ class TfLink:
     quaternions_xyzw: list[tuple[float, float, float, float]]
 
 
-def tf_links(reader: Any) -> dict[str, TfLink]:
+def tf_links(reader: Any, path: str | Path | None = None) -> dict[str, TfLink]:
     """child frame -> its TfLink, over every TF topic of the bag (/tf, /tf_static, ...); frame ids without '/'."""
     links: dict[str, TfLink] = {}
     for topic, info in sorted(reader.topics.items()):
         if info.msgtype not in TF_TYPES:
             continue
         static = "static" in topic
-        for _, _, message in read_messages(reader, topic):
+        for _, _, message in read_messages(reader, topic, path):
             for transform in message.transforms:
                 child = str(transform.child_frame_id).strip("/")
                 link = links.setdefault(child, TfLink(set(), set(), static, [], [], []))

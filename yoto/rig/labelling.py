@@ -41,6 +41,7 @@ from yoto.rig.samples import LabelledContact, write_labelled_contact
 from yoto.rig.streams import ImageStream, Recording
 from yoto.rig.timeline import PoseStream
 from yoto.sensor.calibration import SensorCalibration
+from yoto.sensor.pair_images import in_rgb_order
 from yoto.sensor.reconstruction import Reconstruction, reconstruct
 
 log = logging.getLogger("yoto")
@@ -293,8 +294,10 @@ def label_trial(
     # refused for it.
     unusable: list[str] = []
     for index, frame in images.frames(frame_indices):
+        source = f"{images.source} {images.name} frame {index}"
+        frame = in_rgb_order(frame, side.gelsight.background, source, warn=False)  # warned by `check_gelsight`
         try:
-            result = reconstruct(frame, side.gelsight, source=f"{images.source} {images.name} frame {index}")
+            result = reconstruct(frame, side.gelsight, source=source)
         except InputError as exc:
             unusable.append(str(exc))
             continue
@@ -426,7 +429,7 @@ def choose_frame(
 
 def check_gelsight(images: ImageStream, side: RigSide) -> None:
     """The first frame must be one the GelSight calibration can reconstruct (same sensor, same lighting)."""
-    first = images.frame(0)
+    first = in_rgb_order(images.frame(0), side.gelsight.background, f"{images.source} {images.name}")
     try:
         reconstruct(first, side.gelsight)
     except InputError as exc:

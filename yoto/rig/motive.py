@@ -114,6 +114,12 @@ def read_motive_csv(path: str | Path) -> MotiveTake:
     text = path.read_text(encoding="utf-8-sig", errors="replace")
     rows = list(csv.reader(io.StringIO(text)))
     if not rows or not rows[0] or rows[0][0].strip() != "Format Version":
+        if rows and rows[0] and rows[0][0].startswith("Format Version;"):
+            raise InputError(
+                "the cells are separated by ';' (a spreadsheet in another locale saved it): use the CSV as Motive "
+                "exported it (',' between cells, '.' as the decimal point)",
+                path,
+            )
         raise InputError("not a Motive CSV export (the first cell is not 'Format Version')", path)
     first = [cell.strip() for cell in rows[0]]
     header = {first[i]: first[i + 1] for i in range(0, len(first) - 1, 2) if first[i]}
@@ -156,6 +162,12 @@ def read_motive_csv(path: str | Path) -> MotiveTake:
     width = len(axes)
     table = np.full((len(data), width), np.nan)
     for i, row in enumerate(data):
+        if any(cell.strip() for cell in row[width:]):
+            raise InputError(
+                f"frame row {i + axis_row + 2} has {len(row)} cells but the column header {width}: numbers written "
+                "with decimal commas (a spreadsheet in another locale)? Export or save with '.' as the decimal point",
+                path,
+            )
         for j, cell in enumerate(row[:width]):
             cell = cell.strip()
             if cell:

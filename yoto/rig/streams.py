@@ -30,9 +30,24 @@ from yoto.rig.motive import MotiveTake, is_motive_csv, read_motive_csv
 from yoto.rig.timeline import PointStream, PoseStream, Stream, clean_timeline, make_point_stream, make_pose_stream
 from yoto.sensor.presses import COLOUR_IMAGE_MODES, load_image
 from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
+from yoto.trajectory import LARGEST_PLAUSIBLE_TIMESTAMP_S
 
 IMAGE_SUFFIXES = (".png",)
+FRAMES_CHECKED_UP_FRONT = 5  # a stream is refused when none of its first frames is a GelSight frame of the size
 FRAME_NUMBER_BELOW = 1e6  # integer PNG names below this, one apart, are frame numbers, not seconds
+# sensor_msgs/Image encodings of colour frames: channels, their order, bytes per channel. `8uc3` is what cv_bridge
+# writes for an OpenCV image without an encoding: OpenCV's BGR. Alpha is dropped; 16-bit channels keep their top 8 bits.
+RAW_ENCODINGS = {
+    "rgb8": (3, "rgb", 1),
+    "bgr8": (3, "bgr", 1),
+    "rgba8": (4, "rgb", 1),
+    "bgra8": (4, "bgr", 1),
+    "8uc3": (3, "bgr", 1),
+    "rgb16": (3, "rgb", 2),
+    "bgr16": (3, "bgr", 2),
+    "rgba16": (4, "rgb", 2),
+    "bgra16": (4, "bgr", 2),
+}
 # A bag stores messages in receive order; header stamps may lag that order by network delays up to this. Further
 # back is a broken clock (a restarted recorder), refused by `clean_timeline`.
 MAX_REORDER_S = 1.0
@@ -80,7 +95,7 @@ def check_frame_shape(frame: np.ndarray, spec: GelSightSpec, where: str, path: P
 
 
 def decode_image_message(message: Any, msgtype: str, spec: GelSightSpec, where: str, path: Path) -> np.ndarray:
-    """An (H, W, 3) uint8 RGB frame from a sensor_msgs/Image (rgb8, bgr8) or CompressedImage (PNG, JPEG)."""
+    """An (H, W, 3) uint8 RGB frame from a sensor_msgs/Image (RAW_ENCODINGS) or CompressedImage (PNG, JPEG)."""
     if msgtype == "sensor_msgs/msg/CompressedImage":
         from PIL import Image, UnidentifiedImageError
 
@@ -99,10 +114,10 @@ def decode_image_message(message: Any, msgtype: str, spec: GelSightSpec, where: 
             ) from exc
         return check_frame_shape(frame, spec, where, path)
     encoding = str(message.encoding).lower()
-    if encoding not in ("rgb8", "bgr8"):
+    if encoding not in RAW_ENCODINGS:
         raise InputError(
-            f"{where}: image encoding '{message.encoding}' is not supported; GelSight frames must be rgb8 or bgr8 "
-            "(colour, 8 bits per channel)",
+            f"{where}: image encoding '{message.encoding}' is not supported; GelSight frames are colour: "
+            f"{', '.join(RAW_ENCODINGS)}",
             path,
         )
     if (message.width, message.height) != (spec.width_px, spec.height_px):
@@ -111,12 +126,32 @@ def decode_image_message(message: Any, msgtype: str, spec: GelSightSpec, where: 
             f"{spec.width_px}x{spec.height_px}: is this the GelSight topic, and is the camera at full size?",
             path,
         )
+    channels, order, size = RAW_ENCODINGS[encoding]
+    row_bytes = message.width * channels * size
     data = np.frombuffer(bytes(message.data), dtype=np.uint8)
-    if len(data) < message.step * message.height or message.step < message.width * 3:
+    if len(data) < message.step * message.height or message.step < row_bytes:
         raise InputError(f"{where}: image data is shorter than height x step ({len(data)} bytes)", path)
-    frame = data[: message.step * message.height].reshape(message.height, message.step)[:, : message.width * 3]
-    frame = frame.reshape(message.height, message.width, 3)
-    return np.ascontiguousarray(frame if encoding == "rgb8" else frame[:, :, ::-1])
+    rows = data[: message.step * message.height].reshape(message.height, message.step)[:, :row_bytes]
+    if size == 2:  # 16 bits a channel: the top 8 bits, in the message's byte order
+        wide = np.ascontiguousarray(rows).view(">u2" if message.is_bigendian else "<u2")
+        rows = (wide >> 8).astype(np.uint8)
+    frame = rows.reshape(message.height, message.width, channels)[:, :, :3]
+    return np.ascontiguousarray(frame if order == "rgb" else frame[:, :, ::-1])
+
+
+def first_readable(read: Callable[[int], np.ndarray], count: int) -> np.ndarray:
+    """The first of a stream's first FRAMES_CHECKED_UP_FRONT frames that `read` decodes (a stream is refused up
+    front for its size or encoding, not for one frame cut short at its start); raises the first frame's error when
+    none of them reads."""
+    errors: list[InputError] = []
+    for k in range(min(count, FRAMES_CHECKED_UP_FRONT)):
+        try:
+            return read(k)
+        except InputError as exc:
+            errors.append(exc)
+    if errors:
+        raise errors[0]
+    raise InputError("no GelSight frames")
 
 
 def _stamp_text(path: Path) -> str:
@@ -127,9 +162,16 @@ def _stamp_text(path: Path) -> str:
 def png_timestamp(path: Path) -> float:
     """The timestamp (seconds) in a frame's file name: `1712.345678.png` or `left_1712.345678.png`."""
     try:
-        return float(_stamp_text(path))
+        stamp = float(_stamp_text(path))
     except ValueError as exc:
         raise InputError("GelSight PNG names must be their timestamp in seconds (e.g. 1712.345678.png)", path) from exc
+    if not abs(stamp) <= LARGEST_PLAUSIBLE_TIMESTAMP_S:
+        raise InputError(
+            f"the file name reads as {stamp:.4g} s, after the year 5000: GelSight PNGs are named by their time in "
+            "seconds (are these milliseconds or nanoseconds since 1970?)",
+            path,
+        )
+    return stamp
 
 
 def _refuse_frame_numbers(files: list[Path], times_s: np.ndarray, folder: Path) -> None:
@@ -155,12 +197,18 @@ def image_folder_stream(folder: Path, spec: GelSightSpec = GELSIGHT_MINI, offset
     if not files:
         raise InputError("no GelSight frames (*.png named by their timestamp) in the folder", folder)
     times = np.array([png_timestamp(p) for p in files])
+    prefixes = sorted({p.name[: -len(p.suffix) - len(_stamp_text(p))] for p in files})
+    if len(prefixes) > 1:  # `left_12.3.png` beside `right_12.3.png`: two sensors' frames would be read as one's
+        named = ", ".join(f"{prefix or '(none)'}*.png" for prefix in prefixes)
+        raise InputError(
+            f"the folder holds GelSight PNGs of several sensors ({named}): give each sensor a folder of its own", folder
+        )
     _refuse_frame_numbers(files, times, folder)
     order = np.argsort(times, kind="stable")
     files, times = [files[i] for i in order], times[order]
     kept, dropped, rate = clean_timeline(times, np.ones(len(times), bool), folder, folder.name)
     files, times = [files[i] for i in kept], times[kept]
-    load_image(files[0], spec)  # colour, 8 or 16 bits, the sensor's size: checked up front
+    first_readable(lambda k: load_image(files[k], spec), len(files))  # colour, the sensor's size: checked up front
 
     def load(indices: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
         for i in indices:
@@ -172,12 +220,14 @@ def image_folder_stream(folder: Path, spec: GelSightSpec = GELSIGHT_MINI, offset
 def bag_image_stream(reader: Any, path: Path, topic: str, spec: GelSightSpec) -> ImageStream:
     msgtype = reader.topics[topic].msgtype
     where = f"topic '{topic}'"
-    stamps, log_times = [], []
-    for k, (stamp, log_time, message) in enumerate(bags.read_messages(reader, topic)):
-        if k == 0:
-            decode_image_message(message, msgtype, spec, where, path)  # size and encoding, up front
+    stamps, log_times, first = [], [], []
+    for k, (stamp, log_time, message) in enumerate(bags.read_messages(reader, topic, path)):
+        if k < FRAMES_CHECKED_UP_FRONT:
+            first.append(message)
         stamps.append(stamp)
         log_times.append(log_time)
+    # Size and encoding, up front (a depth topic, a camera at another size).
+    first_readable(lambda k: decode_image_message(first[k], msgtype, spec, where, path), len(first))
     if not stamps:
         raise InputError(f"topic '{topic}' holds no frames", path)
     order = stamp_order(np.asarray(stamps))
@@ -198,15 +248,13 @@ def bag_image_stream(reader: Any, path: Path, topic: str, spec: GelSightSpec) ->
         start, stop = int(kept_log[indices].min()), int(kept_log[indices].max()) + 1
         seen: dict[int, int] = {}
         with bags.open_bag(path) as bag:
-            connections = [c for c in bag.connections if c.topic == topic]
-            for connection, log_time, raw in bag.messages(connections=connections, start=start, stop=stop):
+            for connection, log_time, message in bags.raw_messages(bag, path, topic, start=start, stop=stop):
                 # The message's place in the topic: messages sharing a receive time come in bag order.
                 k = seen.get(log_time, 0)
                 seen[log_time] = k + 1
                 same_time = by_log_time.get(int(log_time), [])
                 original = same_time[k] if k < len(same_time) else -1
                 if original in wanted:
-                    message = bag.deserialize(raw, connection.msgtype)
                     yield wanted[original], decode_image_message(message, connection.msgtype, spec, where, path)
 
     return ImageStream(path, topic, np.asarray(stamps)[kept], dropped, rate, load, {"msgtype": msgtype})
@@ -248,14 +296,14 @@ class Recording:
             try:
                 topic = bags.resolve_topic(reader, self.path, selector, types, "a rigid body")
             except InputError:
-                links = bags.tf_links(reader)
+                links = bags.tf_links(reader, self.path)
                 child = selector.strip("/")
                 if child not in links:
                     raise
                 return self._tf_stream(links, child)
             msgtype = reader.topics[topic].msgtype
             stamps, positions, quaternions = [], [], []
-            for stamp, _, message in bags.read_messages(reader, topic):
+            for stamp, _, message in bags.read_messages(reader, topic, self.path):
                 position, orientation = bags.pose_fields(message, msgtype)
                 stamps.append(stamp)
                 positions.append((position.x, position.y, position.z))
@@ -313,7 +361,7 @@ class Recording:
         with bags.open_bag(self.path) as reader:
             topic = bags.resolve_topic(reader, self.path, selector, bags.POINT_TYPES, "a marker")
             stamps, positions = [], []
-            for stamp, _, message in bags.read_messages(reader, topic):
+            for stamp, _, message in bags.read_messages(reader, topic, self.path):
                 stamps.append(stamp)
                 positions.append((message.point.x, message.point.y, message.point.z))
         if not stamps:
@@ -383,13 +431,15 @@ def read_point_stream(path: str | Path, topic_or_marker: str) -> PointStream:
     return Recording(path).point(topic_or_marker)
 
 
-def read_image_stream(path: str | Path, topic_or_folder: str, time_offset_s: float | None = None) -> ImageStream:
+def read_image_stream(
+    path: str | Path, topic_or_folder: str, time_offset_s: float | None = None, spec: GelSightSpec = GELSIGHT_MINI
+) -> ImageStream:
     """GelSight frames with their timestamps from a bag's image topic, or from a folder of PNGs (`path` may then
-    be the folder itself, or the Motive take the folder belongs to)."""
+    be the folder itself, or the Motive take the folder belongs to); frames of `spec`'s size (the calibration's)."""
     path = Path(path)
     if path.is_dir() and not bags.is_bag(path):
-        return image_folder_stream(path, offset_s=time_offset_s or 0.0)
-    return Recording(path, time_offset_s).images(topic_or_folder)
+        return image_folder_stream(path, spec, offset_s=time_offset_s or 0.0)
+    return Recording(path, time_offset_s, spec).images(topic_or_folder)
 
 
 __all__ = [

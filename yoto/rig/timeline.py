@@ -15,6 +15,7 @@ import numpy as np
 
 from yoto.errors import InputError
 from yoto.geometry import quaternion_xyzw_to_rotation, rotation_to_quaternion_xyzw
+from yoto.trajectory import LARGEST_PLAUSIBLE_POSITION_M
 
 # A stream whose timestamps step back, or jump forward by more than this, has a broken clock.
 MAX_CLOCK_JUMP_S = 5.0
@@ -177,11 +178,25 @@ def clean_timeline(
     return kept, dropped, (1.0 / period if period > 0 else 0.0)
 
 
+def check_metres(positions: np.ndarray, source: Path, name: str) -> np.ndarray:
+    """`positions` (N, 3), refused naming the stream when they reach beyond LARGEST_PLAUSIBLE_POSITION_M (a mocap
+    world is a room): a stream in millimetres (a bridge publishing Motive's units; ROS messages are metres)."""
+    finite = positions[np.isfinite(positions).all(axis=1)]
+    reach = float(np.abs(finite).max()) if len(finite) else 0.0
+    if reach > LARGEST_PLAUSIBLE_POSITION_M:
+        raise InputError(
+            f"'{name}': positions reach {reach:.0f} m from the mocap origin, beyond any room: is the stream in "
+            "millimetres? (ROS PoseStamped / PointStamped and YOTO's streams are metres)",
+            source,
+        )
+    return positions
+
+
 def make_pose_stream(
     source: Path, name: str, timestamps_s: np.ndarray, positions: np.ndarray, quaternions_xyzw: np.ndarray
 ) -> PoseStream:
     """A PoseStream from raw samples; NaN or zero quaternions and NaN positions are dropouts."""
-    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    positions = check_metres(np.asarray(positions, dtype=np.float64).reshape(-1, 3), source, name)
     quaternions_xyzw = np.asarray(quaternions_xyzw, dtype=np.float64).reshape(-1, 4)
     norms = np.linalg.norm(quaternions_xyzw, axis=1)
     valid = np.isfinite(positions).all(axis=1) & np.isfinite(quaternions_xyzw).all(axis=1) & (norms > 0.5)
@@ -194,7 +209,7 @@ def make_pose_stream(
 
 def make_point_stream(source: Path, name: str, timestamps_s: np.ndarray, positions: np.ndarray) -> PointStream:
     """A PointStream from raw samples; NaN positions are dropouts."""
-    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    positions = check_metres(np.asarray(positions, dtype=np.float64).reshape(-1, 3), source, name)
     kept, dropped, rate = clean_timeline(timestamps_s, np.asarray(np.isfinite(positions).all(axis=1)), source, name)
     return PointStream(source, name, np.asarray(timestamps_s, np.float64)[kept], dropped, rate, positions[kept])
 

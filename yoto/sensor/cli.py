@@ -5,6 +5,10 @@ from __future__ import annotations
 import argparse
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from yoto.sensor.spec import GelSightSpec
 
 log = logging.getLogger("yoto")
 
@@ -107,16 +111,20 @@ def _run_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _read_frames(path: Path):
-    """(name, frame) pairs of an image, a folder of images, or a multi-frame file."""
+def _read_frames(path: Path, spec: GelSightSpec | None = None):
+    """(name, frame) pairs of an image, a folder of images, or a multi-frame file, at the size of `spec`'s sensor
+    (default: the GelSight Mini's)."""
     import numpy as np
 
     from yoto.errors import InputError, MissingDependencyError
     from yoto.sensor.presses import IMAGE_SUFFIXES, list_press_images, load_image
+    from yoto.sensor.spec import GELSIGHT_MINI
+
+    spec = spec or GELSIGHT_MINI
 
     if path.is_dir():
         for frame_path in list_press_images(path):
-            yield str(frame_path.relative_to(path).with_suffix("")).replace("/", "_"), load_image(frame_path)
+            yield str(frame_path.relative_to(path).with_suffix("")).replace("/", "_"), load_image(frame_path, spec)
         return
     if not path.is_file():
         raise InputError("input not found", path)
@@ -155,7 +163,7 @@ def _read_frames(path: Path):
             ) from exc
         return
     if suffix in IMAGE_SUFFIXES:
-        yield path.stem, load_image(path)
+        yield path.stem, load_image(path, spec)
         return
     raise InputError(f"unknown input type '{suffix}' (expected an image, a folder, GIF/TIFF, .npy or a video)", path)
 
@@ -164,20 +172,23 @@ def _run_reconstruct(args: argparse.Namespace) -> int:
 
     from yoto.io import save_npz_atomic, write_ply_points
     from yoto.sensor.calibration import load_calibration, with_background
-    from yoto.sensor.presses import load_image
+    from yoto.sensor.pair_images import in_rgb_order, read_frame
     from yoto.sensor.reconstruction import reconstruct
 
     calibration = load_calibration(args.calibration)
     if args.background:
-        calibration = with_background(calibration, load_image(args.background, calibration.spec), args.background)
+        calibration = with_background(calibration, read_frame(args.background, calibration), args.background)
     source = Path(args.input)
-    frames = _read_frames(source)
+    frames = _read_frames(source, calibration.spec)
     single = source.is_file() and source.suffix.lower() not in VIDEO_SUFFIXES
     out = Path(args.out)
     written = empty = 0
+    swapped = 0
     for name, frame in frames:
         label = f"{source}:{name}" if not single else source
-        result = reconstruct(frame, calibration, source=label)
+        rgb = in_rgb_order(frame, calibration.background, label, warn=swapped == 0)  # BGR files: warned once
+        swapped += rgb is not frame
+        result = reconstruct(rgb, calibration, source=label)
         target = out if single else out / f"{name}.ply"
         write_ply_points(target, result.points_sensor)
         if args.height_maps:
@@ -198,6 +209,8 @@ def _run_reconstruct(args: argparse.Namespace) -> int:
                 result.max_depth_m * 1e3,
                 ", touches the frame's edge" if result.touches_border else "",
             )
+    if swapped > 1:
+        log.warning("%d of %d frames were in BGR order (read as RGB)", swapped, written)
     print(f"wrote {written} point cloud(s) to {out} ({empty} without contact)")
     return 0 if written else 1
 

@@ -37,11 +37,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--right-rig", help="as --left-rig, for the right sensor")
     parser.add_argument("--out", required=True, help="tracked poses, TUM file (T_world_object, mesh file's frame)")
-    parser.add_argument("--left-tactile", help="left tactile frames: a folder of <timestamp>.ply, or a bag")
+    parser.add_argument(
+        "--left-tactile", help="left tactile frames: a folder of <timestamp>.ply (or .png images), or a bag"
+    )
     parser.add_argument("--right-tactile", help="right tactile frames (as --left-tactile)")
     parser.add_argument("--left-tactile-topic", help="for a bag: the left GelSight's image topic")
     parser.add_argument("--right-tactile-topic", help="for a bag: the right GelSight's image topic")
-    parser.add_argument("--calibration", help="sensor calibration, for tactile frames given as images in a bag")
+    parser.add_argument(
+        "--calibration",
+        help="sensor calibration, for GelSight images (the touch's sides, tactile frames) that name none",
+    )
     parser.add_argument("--pose", help="the touch's pose from a `yoto pose` result file (default: estimate it)")
     parser.add_argument(
         "--method",
@@ -117,8 +122,18 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
+    from yoto.errors import InputError
     from yoto.tracking.job import Source, TrackJob, run_track_job
 
+    for what, suffix in (("pose streams", ""), ("tactile frames", "_tactile")):
+        left, right = (getattr(args, f"{side}{suffix}") for side in ("left", "right"))
+        topics = [getattr(args, f"{side}{suffix}_topic") for side in ("left", "right")]
+        if left and right and Path(left).resolve() == Path(right).resolve() and topics[0] == topics[1]:
+            where = f" (topic {topics[0]})" if topics[0] else ""
+            raise InputError(
+                f"the left and right {what} are the same source, {left}{where}: give each sensor its own "
+                + ("topic" if topics[0] else "file" if not suffix else "folder or topic")
+            )
     tactile = {}
     if not args.open_loop:
         for side in ("left", "right"):
@@ -160,6 +175,11 @@ def run(args: argparse.Namespace) -> int:
             f"divergence guard: {speed['guard_checks']} checks, {speed['reanchored']} re-anchored; "
             f"{speed['latency_median_ms']:.1f} ms per instant (median), {speed['instants_per_s']:.0f} instants/s"
         )
+        for side in ("left", "right"):  # why frames could not be read: the first reason of each side
+            unreadable = [c.unusable[side] for c in result.corrections if c.unusable.get(side, "").startswith("unread")]
+            if unreadable:
+                why = unreadable[0].removeprefix("unreadable (").removesuffix(")")
+                print(f"  {side}: {len(unreadable)} frame(s) unreadable, the first: {why}")
     if result.pinning is not None:
         spread = result.pinning.spread
         print(

@@ -16,9 +16,10 @@ import numpy as np
 
 from yoto.contacts import SIDES, ContactPair, read_contact_pair
 from yoto.errors import InputError
-from yoto.geometry import validate_transform
+from yoto.geometry import quaternion_xyzw_to_rotation, rotation_to_quaternion_xyzw, validate_transform
 from yoto.io import read_json, write_json_atomic
 from yoto.objects.model import ObjectModel
+from yoto.sensor.pair_images import ImageSides
 from yoto.tracking.evaluate import (
     ErrorCurve,
     motion_interval,
@@ -27,7 +28,7 @@ from yoto.tracking.evaluate import (
     tracking_errors,
     truth_at,
 )
-from yoto.tracking.streams import TactileStream, read_sensor_stream, read_tactile_stream
+from yoto.tracking.streams import TactileStream, holds_images, read_sensor_stream, read_tactile_stream
 from yoto.tracking.track import (
     TrackConfig,
     TrackResult,
@@ -59,7 +60,7 @@ class TrackJob:
     sensors: dict[str, Source]  # side -> the sensor's pose stream T_world_sensor
     out: Path  # tracked T_world_object (mesh file's frame), TUM
     tactile: dict[str, Source] = field(default_factory=dict)  # side -> tactile frames during motion (closed loop)
-    calibration: Path | None = None  # sensor calibration, for tactile frames given as GelSight images in a bag
+    calibration: Path | None = None  # sensor calibration for GelSight images (touch, tactile frames) naming none
     pose_result: Path | None = None  # the touch's pose from a `yoto pose` result instead of estimating it
     method: str = "match"  # contact localizer for the touch's pose
     checkpoint: str | None = None  # network weights for method "yoto"
@@ -102,11 +103,38 @@ def read_streams(job: TrackJob) -> dict[str, PoseStream]:
     return {side: read_stream(job.sensors[side], f"{side} sensor", "sensor") for side in SIDES}
 
 
-def read_tactile(job: TrackJob) -> dict[str, TactileStream]:
-    return {
-        side: read_tactile_stream(source.path, source.topic, job.calibration, f"{side} tactile")
-        for side, source in job.tactile.items()
-    }
+def read_tactile(job: TrackJob, pair: ContactPair, images: ImageSides) -> dict[str, TactileStream]:
+    """Each side's tactile frames; GelSight images among them are reconstructed with the side's calibration: the
+    touch side's own `calibration` / `background` entries where it gives an image, else `--calibration`."""
+    streams = {}
+    for side, source in job.tactile.items():
+        calibration = None
+        if holds_images(source.path):
+            image = pair.contact(side).image
+            calibration = images.calibration(image.calibration if image else None, image.background if image else None)
+        recording = job.sensors[side].path  # a Motive take puts a folder of images on its clock
+        streams[side] = read_tactile_stream(source.path, source.topic, calibration, f"{side} tactile", recording)
+    return streams
+
+
+def read_as_wxyz(stream: PoseStream) -> PoseStream:
+    """The stream as it is if its file's quaternion columns were written w x y z (TUM's order is x y z w)."""
+    as_read = rotation_to_quaternion_xyzw(stream.T_world_frame[:, :3, :3])  # the file's columns (up to sign)
+    T_world_frame = stream.T_world_frame.copy()
+    T_world_frame[:, :3, :3] = quaternion_xyzw_to_rotation(as_read[:, [1, 2, 3, 0]])
+    return PoseStream(stream.timestamps_s, T_world_frame, stream.name, stream.source)
+
+
+def quaternion_order_hint(job: TrackJob, pair: ContactPair, streams: dict[str, PoseStream], config: TrackConfig) -> str:
+    """When TUM streams far from the pair's sensor poses at the touch fit them with their quaternions read w x y z (a
+    writer's wrong column order; a unit quaternion either way), the hint naming the files; else ""."""
+    tum = [side for side in SIDES if job.sensors[side].topic is None]
+    for sides in [[side] for side in tum] + ([tum] if len(tum) == 2 else []):
+        permuted = {side: read_as_wxyz(stream) if side in sides else stream for side, stream in streams.items()}
+        if touch_time_of(pair, permuted, job.touch_time_s, config)[2] <= config.touch_mismatch_warning_m:
+            files = " and ".join(str(job.sensors[side].path) for side in sides)
+            return f" (they fit if the quaternions of {files} are read as w x y z: TUM's order is x y z w)"
+    return ""
 
 
 def touch_pose(job: TrackJob, pair: ContactPair, model: ObjectModel) -> tuple[np.ndarray, str, float | None]:
@@ -134,10 +162,11 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
     """Read the job's files, track, write the tracked poses (and report, figure); return what happened."""
     from yoto.objects.build import load_object_model
 
-    pair = read_contact_pair(job.pair)
+    images = ImageSides(job.calibration)  # the touch's image sides and image tactile frames
+    pair = read_contact_pair(job.pair, images)
     model = load_object_model(job.model or pair.object_name, job.workspace)
     streams = read_streams(job)
-    tactile = read_tactile(job)
+    tactile = read_tactile(job, pair, images)
     # Every input is read (and the truth checked against the track) before anything is written: a failing
     # command writes nothing.
     truth_stream = None
@@ -151,6 +180,7 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
         else ""
     )
     if mismatch > config.touch_mismatch_warning_m:
+        hint = hint or quaternion_order_hint(job, pair, streams, config)
         where = (
             f"the sensor streams never come closer than {mismatch * 1e3:.1f} mm (position plus 50 mm per radian) to"
             if time_source.startswith("matched")

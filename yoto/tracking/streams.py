@@ -3,29 +3,33 @@
 - Pose streams: TUM files (SPEC) are read here; ROS bags (ROS1 `.bag`, ROS2 folders or `.db3` / `.mcap` files) and
   OptiTrack Motive CSV exports go to the rig stage's reader, `yoto.rig.streams.read_pose_stream(path, topic_or_body)`,
   with the topic (PoseStamped or TF) or rigid-body name the user gives.
-- Tactile frames: a folder of `<timestamp>.ply` clouds (SPEC; read lazily, frame by frame), a bag's GelSight image
-  topic (the rig's `read_image_stream`, then the sensor stage's `reconstruct` with a calibration), or frames in
-  memory (the benchmark).
+- Tactile frames: a folder of `<timestamp>.ply` clouds (SPEC; read lazily, frame by frame), GelSight images (a bag's
+  image topic, or a folder of `<timestamp>.png` beside a Motive take: the rig's `read_image_stream`, then the sensor
+  stage's `reconstruct` with the sensor's calibration), or frames in memory (the benchmark). A frame that cannot be
+  read or reconstructed raises InputError when it is loaded: the tracker leaves it out and goes on.
 """
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from yoto.contacts import without_untouched_gel
+from yoto.contacts import indentation_m, without_untouched_gel
 from yoto.errors import InputError
 from yoto.io import read_ply_points
 from yoto.rig.motive import is_motive_csv
-from yoto.rig.streams import read_image_stream, read_pose_stream
-from yoto.trajectory import PoseStream, list_tactile_frames, read_tum
+from yoto.rig.streams import IMAGE_SUFFIXES, read_image_stream, read_pose_stream
+from yoto.sensor.calibration import SensorCalibration
+from yoto.trajectory import TACTILE_SUFFIX, PoseStream, list_tactile_frames, read_tum
 
 TUM_SUFFIXES = (".tum", ".txt")
 BAG_SUFFIXES = (".bag", ".db3", ".mcap")
 MOTIVE_SUFFIXES = (".csv",)
+READ_AHEAD_FRAMES = 32  # GelSight frames read from a recording in one pass
 
 
 def is_recording(path: Path) -> bool:
@@ -84,40 +88,114 @@ class TactileStream:
         return cls(np.asarray(timestamps_s, dtype=np.float64)[order], lambda i: clouds[order[i]], name)
 
 
+MAX_FRAME_EXTENT_M = 0.1  # a tactile frame wider than this is no GelSight's (millimetres, pixels)
+
+
+def frame_contact(points_sensor: np.ndarray, path: Path) -> np.ndarray:
+    """A tactile frame's contact points: its finite points (an organised cloud marks pixels without data NaN), without
+    the untouched gel of a cloud of the whole pad. A frame in millimetres (or pixels) or with its z flipped raises
+    InputError naming it, so the tracker leaves it out saying why (in millimetres it would size the tracker's sampling
+    grid by metres: an out-of-memory crash)."""
+    points = points_sensor[np.isfinite(points_sensor).all(axis=1)]
+    if len(points) == 0:
+        return points
+    extent = max(float(np.ptp(points[:, axis])) for axis in range(3))
+    if extent > MAX_FRAME_EXTENT_M:
+        raise InputError(
+            f"tactile frame spans {extent * 1e3:.0f} mm, more than any GelSight pad: is it in metres, sensor frame?",
+            path,
+        )
+    depth, floor = indentation_m(points)
+    if depth <= floor and np.greater(*indentation_m(points * np.array([1.0, 1.0, -1.0]))):
+        raise InputError(
+            "tactile frame is not pressed into the gel but its mirror is: are its z values flipped? "
+            "(SPEC: z <= 0 where the gel is pressed)",
+            path,
+        )
+    return without_untouched_gel(points)
+
+
 def read_tactile_folder(folder: str | Path, name: str | None = None) -> TactileStream:
-    """The `<timestamp>.ply` frames of a folder (SPEC), read when asked for."""
+    """The `<timestamp>.ply` frames of a folder (SPEC), read when asked for (`frame_contact`)."""
     timestamps, paths = list_tactile_frames(folder)
 
     def load(index: int) -> np.ndarray:
-        points, _ = read_ply_points(paths[index])
-        points = points[np.isfinite(points).all(axis=1)]  # an organised cloud's pixels without data
-        return without_untouched_gel(points) if len(points) else points  # a cloud of the whole pad: its contact
+        return frame_contact(read_ply_points(paths[index])[0], paths[index])
 
     return TactileStream(timestamps, load, name or Path(folder).name, Path(folder))
 
 
+def holds_images(path: str | Path) -> bool:
+    """Whether tactile frames at `path` are GelSight images (a bag, or a folder of images and no `.ply` clouds), which
+    need the sensor's calibration, rather than clouds."""
+    path = Path(path)
+    if not path.exists():
+        return False  # the reader says it is not there
+    if is_recording(path):
+        return True
+    if not path.is_dir():
+        return False
+    suffixes = {p.suffix.lower() for p in path.iterdir() if not p.name.startswith(".")}
+    return TACTILE_SUFFIX not in suffixes and bool(suffixes & set(IMAGE_SUFFIXES))
+
+
 def read_tactile_stream(
-    source: str | Path, topic: str | None = None, calibration: str | Path | None = None, name: str | None = None
+    source: str | Path,
+    topic: str | None = None,
+    calibration: str | Path | SensorCalibration | None = None,
+    name: str | None = None,
+    recording: str | Path | None = None,
 ) -> TactileStream:
-    """Tactile frames from a folder of `<timestamp>.ply` clouds, or from a bag's GelSight image topic (each image
-    reconstructed with the sensor `calibration`)."""
+    """Tactile frames from a folder of `<timestamp>.ply` clouds (SPEC), or GelSight images reconstructed with the
+    sensor `calibration`: a bag's image topic, or a folder of images named by their time (`<timestamp>.png`, or
+    `left_<timestamp>.png`), as a Motive take has beside it; with `recording` the take the folder belongs to, the
+    images' stamps are put on its clock (its own, or the wall clock through its start time; `yoto.rig.streams`)."""
     path = Path(source)
     if not path.exists():
         raise InputError("tactile frames not found", path)
-    if not is_recording(path):
+    if not holds_images(path):
         return read_tactile_folder(path, name)
-    if not topic or calibration is None:
+    from_bag = is_recording(path)
+    if from_bag and not topic:
+        raise InputError("tactile frames from a bag need its GelSight image topic (--left-tactile-topic)", path)
+    if calibration is None:
+        what = "a bag's GelSight frames" if from_bag else "a folder of GelSight images (no <timestamp>.ply clouds)"
         raise InputError(
-            "tactile frames from a bag need its GelSight image topic and the sensor's calibration "
-            "(--left-tactile-topic, --calibration)",
+            f"tactile frames from {what} are reconstructed with the sensor's calibration: give it (--calibration, "
+            'or a "calibration" entry in the touch\'s side)',
             path,
         )
     from yoto.sensor import load_calibration, reconstruct
+    from yoto.sensor.pair_images import in_rgb_order
 
-    images = read_image_stream(path, topic)
-    sensor = load_calibration(calibration)
+    sensor = calibration if isinstance(calibration, SensorCalibration) else load_calibration(calibration)
+    if from_bag:
+        images = read_image_stream(path, str(topic), spec=sensor.spec)
+    elif recording is not None and is_motive_csv(Path(recording)):
+        images = read_image_stream(recording, str(path), spec=sensor.spec)
+    else:
+        images = read_image_stream(path, str(path), spec=sensor.spec)
+    files = images.details.get("files")
+    swapped: list[str] = []  # frames read in BGR order: warned about once
+    ahead: dict[int, np.ndarray] = {}  # frames read ahead: the tracker asks for them in time order
+
+    def frame(index: int) -> np.ndarray:
+        """Frame `index`, read with the next ones in one pass over the bag (a bag opened per frame costs 8x the
+        frame's decoding); a frame that cannot be decoded ends the pass, and raises when it is asked for."""
+        if index not in ahead:
+            ahead.clear()
+            with contextlib.suppress(InputError):
+                for k, image in images.frames(list(range(index, min(index + READ_AHEAD_FRAMES, len(images))))):
+                    ahead[k] = image
+        return ahead[index] if index in ahead else images.frame(index)
 
     def load(index: int) -> np.ndarray:
-        return reconstruct(images.frame(index), sensor, source=f"{path}:{topic} frame {index}").points_sensor
+        where = str(files[index]) if files else f"{path}:{topic} frame {index}"
+        image = frame(index)
+        rgb = in_rgb_order(image, sensor.background, where, warn=not swapped)
+        if rgb is not image:
+            swapped.append(where)
+        return reconstruct(rgb, sensor, source=where).points_sensor
 
-    return TactileStream(np.asarray(images.timestamps_s, dtype=np.float64), load, name or f"{path.name}:{topic}", path)
+    label = f"{path.name}:{topic}" if from_bag else path.name
+    return TactileStream(np.asarray(images.timestamps_s, dtype=np.float64), load, name or label, path)
