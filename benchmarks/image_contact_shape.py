@@ -126,7 +126,12 @@ def main() -> None:
     parser.add_argument("--objects", nargs="+", required=True)
     parser.add_argument("-n", type=int, default=20, help="pairs per object (two contacts each)")
     parser.add_argument("--seed", type=int, default=7)
-    parser.add_argument("--variation", type=float, default=0.0, help="optics varied per image (0: none, 1: large)")
+    parser.add_argument(
+        "--variation",
+        type=float,
+        default=0.0,
+        help="optics varied per benchmark image (0: none, 1: large); the noise-free stage keeps the nominal optics",
+    )
     parser.add_argument("--verbose", action="store_true", help="one line per contact")
     args = parser.parse_args()
 
