@@ -42,7 +42,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_press_arguments(validate)
     validate.add_argument("--folds", type=int, default=4, help="number of folds (default 4)")
     validate.add_argument(
-        "--figure", default="docs/figures/sensor_validation.png", help="figure to write ('' for none)"
+        "--figure",
+        default="sensor_validation.png",
+        help="figure to write (default sensor_validation.png in the current folder; '' for none)",
     )
     validate.add_argument("--table", help="also write the Markdown table here")
     validate.set_defaults(run=_run_validate)
