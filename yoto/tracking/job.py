@@ -32,6 +32,7 @@ from yoto.tracking.track import (
     Retouch,
     TrackConfig,
     TrackResult,
+    contact_samples,
     retouch,
     tactile_timing_warnings,
     touch_from_pair,
@@ -177,7 +178,10 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
     if result.pinning is not None and result.pinning.spread[0] > config.retouch_above:
         contacts = np.vstack(
             [
-                transform_points(invert_transform(T_world_object) @ contact.T_world_sensor, contact.points_sensor)
+                transform_points(
+                    invert_transform(T_world_object) @ contact.T_world_sensor,
+                    contact_samples(contact.points_sensor, config.correction),  # as the closed loop samples frames
+                )
                 for contact in map(pair.contact, SIDES)
             ]
         )
