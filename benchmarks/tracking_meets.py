@@ -38,6 +38,12 @@ Printed, over the trajectories whose touch was right (within 5 mm and 5 deg):
   mm (beside the open loop's slip along the same part) and growth;
 - one row per object, and every miss. `--compare OLD.json` (this script's `--out` of another code) lists the tracks
   that changed in meeting the target and those whose rotation drift moved by more than 0.05 deg.
+
+`--without bias scale pixel` tracks each cached trajectory simulated again with those parts of the tactile frames'
+reconstruction error switched off (the pad's smooth field, the depth scale error, the per-frame pixel noise): the same
+seed, path, slip and sensor streams, the cached touch estimate and its pinning (the touch's own clouds keep their
+errors), so the drift's change is what those errors did to the frames during the motion (~5 CPU s more a trajectory,
+not cached).
 """
 
 from __future__ import annotations
@@ -148,11 +154,33 @@ def cached(job: tuple[int, str, int, int], args: argparse.Namespace) -> tuple[An
     return trajectory, T_touch
 
 
+NOISE_FIELDS = {"bias": "bias_std_m", "scale": "scale_std", "pixel": "pixel_std_m"}  # --without -> the press's noise
+
+
+def without_errors(trajectory: Any, job: tuple[int, str, int, int], args: argparse.Namespace) -> Any:
+    """The job's trajectory simulated again with the reconstruction errors named in `args.without` switched off
+    (the same seed: path, slip and streams are drawn from their own random streams); the cached touch is kept."""
+    from yoto.simulate.trajectory import TrajectorySimulator
+
+    seed, name, length, index = job
+    scenario = TrackBenchConfig().trajectory.scenario
+    noise = dataclasses.replace(scenario.press.noise, **{NOISE_FIELDS[part]: 0.0 for part in args.without})
+    scenario = dataclasses.replace(scenario, press=dataclasses.replace(scenario.press, noise=noise))
+    config = scaled_trajectory(dataclasses.replace(TrackBenchConfig().trajectory, scenario=scenario), length / 1e3)
+    again = TrajectorySimulator(_model(object_spec(name, args.meshes), args.workspace), config).trajectory(seed, index)
+    if not np.allclose(again.truth.T_world_frame, trajectory.truth.T_world_frame, atol=1e-12):
+        raise SystemExit(f"{key_of(dict(seed=seed, object=name, length_mm=length, index=index))}: the truth changed")
+    return dataclasses.replace(again, touch=trajectory.touch, touch_time_s=trajectory.touch_time_s)
+
+
 def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[str, Any]:
     """Track one cached trajectory closed loop with the working tree's code: its figures and CPU time."""
     trajectory, T_touch = cached(job, args)
     seed, name, length, index = job
     model = _model(object_spec(name, args.meshes), args.workspace)
+    touch_trajectory = trajectory
+    if args.without:
+        trajectory = without_errors(trajectory, job, args)
     touch = touch_from_pair(trajectory.touch.pair, T_touch, trajectory.touch_time_s, "simulated")
     config = TrackBenchConfig().track
     if args.correction:  # CorrectionConfig fields overridden, NAME=VALUE (a Python literal; pad_error.NAME too)
@@ -173,6 +201,8 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
     truth, _ = trajectory.truth.interpolate(result.timestamps_s)
     motion = motion_interval(trajectory.streams, result.timestamps_s)
     record: dict[str, Any] = {"seed": seed, "object": name, "length_mm": length, "index": index}
+    if args.without:
+        record["without"] = list(args.without)
     for loop, poses in (("open", result.T_world_object_open_loop), ("closed", result.T_world_object)):
         errors = tracking_errors(result.timestamps_s, poses, truth, T_touch, trajectory.touch.T_world_object)
         summary = summarize_errors(errors, motion)
@@ -187,7 +217,7 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
     used = [c for c in result.corrections if c.used]
     if used:  # the filter's own 1-sigma after its last applied instant (its least certain turn and shift)
         record["sigma"] = {"deg": float(np.degrees(used[-1].sigma_rad)), "mm": 1e3 * used[-1].sigma_m}
-    record["pinning"] = pinning_of(trajectory, T_touch, model)
+    record["pinning"] = pinning_of(touch_trajectory, T_touch, model)
     return record
 
 
@@ -494,6 +524,13 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=1, help="processes (each track's CPU time is its own)")
     parser.add_argument("--correction", nargs="*", help="CorrectionConfig fields overridden: NAME=VALUE")
     parser.add_argument("--build-only", action="store_true", help="simulate and cache, do not track")
+    parser.add_argument(
+        "--without",
+        nargs="*",
+        default=[],
+        choices=sorted(NOISE_FIELDS),
+        help="track the trajectories simulated again without these reconstruction errors (the cached touch kept)",
+    )
     parser.add_argument("--out", help="JSON of every track's figures")
     parser.add_argument("--compare", help="an earlier --out to compare with")
     parser.add_argument(

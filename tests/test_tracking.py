@@ -340,6 +340,28 @@ def test_the_pinning_names_the_directions_two_contacts_leave_free_and_splits_a_d
     assert "pinned to" in pinning.describe(0)
 
 
+def test_a_retouch_is_found_where_the_surface_moves_along_its_normal_and_none_where_it_slides_along_itself(rng):
+    """Two opposite contacts at +-x on a cylinder about z: a turn about x (the line through them) moves the surface
+    along its normal most at +-y and the cylinder's ends (|z| 15 mm: 0.52 mm per unit of 2 deg), barely at the
+    contacts; the cylinder's spin about its axis and a slide along it move no point along its normal."""
+    from yoto.tracking.track import CorrectionConfig, observable_unit, retouch
+
+    radius, unit = 0.03, observable_unit(CorrectionConfig())
+    surface = _cylinder(radius, 0.0, rng)
+    contacts = _two_contacts(radius)
+    turn_x = np.eye(6)[0] * unit
+    advice = retouch(surface, turn_x, contacts)
+    assert abs(advice.point[1]) > 0.028 and abs(advice.point[2]) > 0.012  # at +-y, near an end
+    assert abs(advice.normal[1]) > 0.99
+    assert advice.seen_m == pytest.approx(0.014 * unit[0], rel=0.1)  # the patch's |z| about 14 mm
+    assert advice.seen_at_contacts_m < 0.1 * advice.seen_m
+    for free in (np.eye(6)[2] * unit, np.eye(6)[5] * unit):  # spin about z, slide along z
+        assert retouch(surface, free, contacts).seen_m < 1e-3 * advice.seen_m
+    moved = advice.in_frame(np.diag([1.0, -1.0, -1.0, 1.0]))  # the same advice in a frame turned about x
+    np.testing.assert_allclose(moved.point, advice.point * [1.0, -1.0, -1.0])
+    assert "mm along its normal" in advice.describe()
+
+
 def test_the_final_drift_is_the_offset_the_motion_left_without_the_outputs_jitter(rng):
     """Errors that jitter frame to frame (0.1 mm, 0.05 deg per axis) about an offset that the motion moved by 0.3 mm
     / 0.2 deg: the final drift (mean error settled against the mean just before the motion) finds that change; the

@@ -180,6 +180,12 @@ def test_track_command_on_written_files(builtin_models, fruit_trajectory, tmp_pa
     assert report["mode"] == "closed loop" and report["errors"]["closed_loop"]["settled"]["mm"] < 0.5
     assert "pinned by the contacts" in out and len(report["pinning"]["directions"]) == 6
     assert all("sigma_deg" in c for c in report["corrections"] if c["used"])
+    # the fruit's weakest direction is pinned worse than the target: where a contact would see it, on the surface
+    retouch = report["retouch"]
+    assert report["pinning"]["spread"][0] > 0.25 and "touch again there" in out
+    surface_mm = 1e3 * transform_points(model.T_mesh_object, model.points_object)
+    assert np.linalg.norm(surface_mm - retouch["point_mm"], axis=1).min() < 0.5
+    assert retouch["seen_mm"] > 3 * retouch["seen_at_contacts_mm"]
     assert (tmp_path / "error.png").stat().st_size > 10_000
     # The tracked poses are in the mesh file's frame, as the truth file's (a frame mix-up would be centimetres off).
     assert rotation_angle_rad(tracked.T_world_frame[-1], truth.T_world_frame[-1]) < np.radians(3.0)

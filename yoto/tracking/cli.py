@@ -186,6 +186,8 @@ def run(args: argparse.Namespace) -> int:
             f"  pinned by the contacts: {np.sum(spread <= 0.25)} of 6 directions to within 0.5 deg / 0.5 mm; weakest: "
             f"{result.pinning.describe(0)}"
         )
+    if outcome.retouch is not None:
+        print(f"  to pin it, touch again there: {outcome.retouch.describe()} (mesh file's frame)")
     for name, summary in outcome.errors.items():
         print(
             f"{name.replace('_', ' ')} vs truth: during motion {summary['motion_mean']['mm']:.2f} mm / "

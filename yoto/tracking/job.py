@@ -16,7 +16,13 @@ import numpy as np
 
 from yoto.contacts import SIDES, ContactPair, read_contact_pair
 from yoto.errors import InputError
-from yoto.geometry import quaternion_xyzw_to_rotation, rotation_to_quaternion_xyzw, validate_transform
+from yoto.geometry import (
+    invert_transform,
+    quaternion_xyzw_to_rotation,
+    rotation_to_quaternion_xyzw,
+    transform_points,
+    validate_transform,
+)
 from yoto.io import read_json, write_json_atomic
 from yoto.objects.model import ObjectModel
 from yoto.sensor.pair_images import ImageSides
@@ -30,8 +36,11 @@ from yoto.tracking.evaluate import (
 )
 from yoto.tracking.streams import TactileStream, holds_images, read_sensor_stream, read_tactile_stream
 from yoto.tracking.track import (
+    Retouch,
     TrackConfig,
     TrackResult,
+    contact_samples,
+    retouch,
     tactile_timing_warnings,
     touch_from_pair,
     touch_time_of,
@@ -81,6 +90,8 @@ class TrackOutcome:
     errors: dict[str, dict[str, Any]] = field(default_factory=dict)  # "closed_loop"/"open_loop" -> Table-3 figures
     written: list[Path] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    retouch: Retouch | None = None  # where a contact would pin the weakest direction (mesh file's frame), when the
+    # contacts pin it worse than the drift target (`TrackConfig.retouch_above`)
 
 
 def read_stream(source: Source, name: str, frame: str) -> PoseStream:
@@ -200,6 +211,17 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
     warnings += tactile_timing_warnings(tactile, streams, time_s) if tactile else []
     result = track(touch, streams, model, tactile or None, config)
     outcome = TrackOutcome(result, pose_source, warnings=warnings)
+    if result.pinning is not None and result.pinning.spread[0] > config.retouch_above:
+        contacts = np.vstack(
+            [
+                transform_points(
+                    invert_transform(T_world_object) @ contact.T_world_sensor,
+                    contact_samples(contact.points_sensor, config.correction),  # as the closed loop samples frames
+                )
+                for contact in map(pair.contact, SIDES)
+            ]
+        )
+        outcome.retouch = retouch(model, result.pinning.twist(0), contacts).in_frame(model.T_mesh_object)
     curves = None
     if truth_stream is not None:
         outcome.errors, curves = evaluate_against_truth(result, truth_stream, streams, model)
@@ -317,6 +339,17 @@ def report_payload(job: TrackJob, model: ObjectModel, outcome: TrackOutcome) -> 
                 for twist in map(result.pinning.twist, range(6))
             ],
             "spread": result.pinning.spread.tolist(),
+        },
+        "retouch": None
+        if outcome.retouch is None
+        else {
+            "about": "where a contact would see the weakest direction of `pinning` (mesh file's frame): the surface "
+            "point and its outward normal, and how far one unit of that direction moves the surface there along its "
+            "normal (seen_mm; root mean square over a contact-sized patch) against at the touch's contacts",
+            "point_mm": (1e3 * outcome.retouch.point).tolist(),
+            "normal": outcome.retouch.normal.tolist(),
+            "seen_mm": 1e3 * outcome.retouch.seen_m,
+            "seen_at_contacts_mm": 1e3 * outcome.retouch.seen_at_contacts_m,
         },
         "errors": outcome.errors or None,
         "warnings": outcome.warnings,

@@ -47,6 +47,7 @@ from typing import Any
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from yoto.contacts import MIN_TACTILE_POINTS, SIDES, ContactPair
 from yoto.errors import InputError
@@ -159,6 +160,8 @@ class TrackConfig:
     min_touch_confidence: float = 0.5  # warn when the touch's pose is less likely than this to be right
     weak_pinning_warning: float = 1.0  # warn when the two contacts pin a direction of the pose only this loosely
     # (`Pinning.spread`, observable units: 1 is 2 deg / 2 mm): slip along it is not observable from the contacts
+    retouch_above: float = 0.25  # beyond this spread of the weakest direction (the drift target, 0.5 deg / 0.5 mm),
+    # `yoto track` says where on the object a contact would see it (`retouch`)
 
 
 @dataclass
@@ -588,6 +591,67 @@ class Pinning:
             f"turn ({turn[0]:+.2f}, {turn[1]:+.2f}, {turn[2]:+.2f}) deg with shift ({shift[0]:+.2f}, {shift[1]:+.2f}, "
             f"{shift[2]:+.2f}) mm (object frame, about the centroid), pinned to {self.spread[index]:.2f} of that"
         )
+
+
+@dataclass(frozen=True)
+class Retouch:
+    """Where on the object a contact would see one direction of the pose (`retouch`): a contact pins a direction by
+    how far that motion moves the surface under it along the surface's normal (sliding along itself, the surface
+    shows nothing)."""
+
+    point: np.ndarray  # (3,) the surface sample whose patch sees the direction most (the surface's frame: the
+    # canonical object frame for a model; `in_frame` maps it)
+    normal: np.ndarray  # (3,) its outward normal: a sensor would press there along -normal
+    seen_m: float  # root mean square over that patch of the surface's motion along its normal per observable unit
+    seen_at_contacts_m: float  # the same over the touch's contact points: information grows with its square
+
+    def in_frame(self, T_frame_surface: np.ndarray) -> Retouch:
+        """The same advice with its point and normal mapped by `T_frame_surface` (e.g. `T_mesh_object`)."""
+        point = transform_points(T_frame_surface, self.point[None])[0]
+        return dataclasses.replace(self, point=point, normal=T_frame_surface[:3, :3] @ self.normal)
+
+    def describe(self) -> str:
+        """In words (millimetres)."""
+        point, normal = 1e3 * self.point, self.normal
+        return (
+            f"a contact at ({point[0]:+.1f}, {point[1]:+.1f}, {point[2]:+.1f}) mm, surface normal ({normal[0]:+.2f}, "
+            f"{normal[1]:+.2f}, {normal[2]:+.2f}), would see it move the surface {1e3 * self.seen_m:.3f} mm along "
+            f"its normal per unit, the touch's contacts {1e3 * self.seen_at_contacts_m:.3f} mm"
+        )
+
+
+def retouch(
+    surface: SurfaceCloud,
+    twist: np.ndarray,
+    contacts_object: np.ndarray,
+    patch_points: int = 64,
+    candidates: int = 3000,
+) -> Retouch:
+    """Where a contact would pin the direction `twist` (rad, m; object frame about its origin, e.g.
+    `Pinning.twist(0)`, the weakest): each surface sample moves by w x p + v under it, and a contact there sees the
+    part along the surface's normal. Over patches of `patch_points` nearest samples (about a contact's size on a
+    model's parent cloud) around `candidates` evenly taken samples, the patch where that motion's root mean square
+    is largest, against the same over `contacts_object` (the touch's contact points, object frame). On a surface of
+    revolution spun about its axis, or a cylinder slid along it, no patch sees the motion: no re-touch pins it."""
+    points = np.asarray(surface.points_object, dtype=np.float64)
+    normals = np.asarray(surface.normals_object, dtype=np.float64)
+
+    def seen(where: np.ndarray, normal: np.ndarray) -> np.ndarray:
+        return np.einsum("ij,ij->i", normal, np.cross(twist[:3], where) + twist[3:])
+
+    along = seen(points, normals)
+    picked = np.arange(0, len(points), max(1, len(points) // candidates))
+    tree = surface.kdtree if isinstance(surface.kdtree, cKDTree) else cKDTree(points)  # a model's, built already
+    _, patches = tree.query(points[picked], k=min(patch_points, len(points)))
+    patch_rms = np.sqrt(np.mean(along[patches.reshape(len(picked), -1)] ** 2, axis=1))
+    best = picked[int(np.argmax(patch_rms))]
+    _, nearest = tree.query(np.asarray(contacts_object, dtype=np.float64))
+    return Retouch(
+        points[best],
+        normals[best],
+        float(patch_rms.max()),
+        float(np.sqrt(np.mean(seen(points[nearest], normals[nearest]) ** 2))),
+    )
 
 
 def touch_pinning(
