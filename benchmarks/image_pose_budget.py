@@ -16,11 +16,12 @@ their mean: one draw moves a row by 1-5 pairs in 40 (docs/sensor.md, stop 13), a
 Run it from the repository root with `PYTHONPATH=$PWD` to measure the working tree's `yoto`.
 
 A variant is `name:key=value,key=value`; keys are `PoseConfig` fields (`screened=1000`), or `SearchConfig`,
-`RefineConfig`, `HypothesisConfig` and `CalibrationPrior` fields with a `search.`, `refine.`, `hypotheses.` or
-`calibration.` prefix
+`RefineConfig`, `HypothesisConfig`, `CalibrationPrior` and `ImageBudget` fields with a `search.`, `refine.`,
+`hypotheses.`, `calibration.` or `budget.` prefix
 (`search.pair_budget=10000000`); `default` is `PoseConfig` as `yoto bench` sets it;
 `images` is what the image rows use (`PoseConfig.for_pair` on a pair reconstructed from images), and
-`images+NAME:key=value` that with settings changed (`images+r10:rescue_log_likelihood=-10`).
+`images+NAME:key=value` that with settings changed (`images+r10:rescue_log_likelihood=-10`; the image budget's own
+settings: `images+f30:budget.fit_noise_m=0.00003`, the fit noise main had before stop 14).
 
     python benchmarks/image_pose_budget.py --renderer CAL_GAIN.npz -n 40 \\
         --objects ../shared/data/meshes/mug/mug.ply ../shared/data/meshes/cracker_box/cracker_box.ply \\
@@ -43,6 +44,7 @@ NESTED = {
     "refine": "refine_config",
     "hypotheses": "hypotheses",
     "calibration": "calibration",
+    "budget": "image_budget",
 }
 
 

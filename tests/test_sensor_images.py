@@ -460,12 +460,23 @@ def test_image_pairs_search_and_screen_with_the_image_budget(image_pair, builtin
     assert imaged.screened == budget.screened > default.screened
     assert imaged.refine_config.screen_points == budget.screen_points > default.refine_config.screen_points
     assert imaged.refine_config.screen_iterations == budget.screen_iterations > default.refine_config.screen_iterations
-    # Everything else is the caller's, a setting already above the image one is never lowered, twice is once, and
-    # without a budget image pairs run as clean ones.
-    assert replace(imaged, search_config=default.search_config, screened=400, refine_config=default.refine_config) == (
-        default
+    # the fit's evidence weighs more against the corrections: 20 um against the clean pairs' 30 um
+    assert imaged.hypotheses.fit_noise_m == budget.fit_noise_m == 2e-5 < default.hypotheses.fit_noise_m == 3e-5
+    # Everything else is the caller's, a setting already above (the fit noise: below) the image one is kept, twice
+    # is once, and without a budget image pairs run as clean ones.
+    assert (
+        replace(
+            imaged,
+            search_config=default.search_config,
+            screened=400,
+            refine_config=default.refine_config,
+            hypotheses=default.hypotheses,
+        )
+        == default
     )
     assert replace(default, screened=5000).for_pair(through_images[0].pair).screened == 5000
+    sharper = replace(default, hypotheses=replace(default.hypotheses, fit_noise_m=1.5e-5))
+    assert sharper.for_pair(through_images[0].pair).hypotheses.fit_noise_m == 1.5e-5
     assert imaged.for_pair(through_images[0].pair) == imaged
     unbudgeted = replace(default, image_budget=None)
     assert unbudgeted.for_pair(through_images[0].pair) is unbudgeted

@@ -79,12 +79,18 @@ class ImageBudget:
     "The pose stage's budget for image contacts"). A reconstructed contact's shape is off where a clean cloud's is
     not (box edges and rims: 46-110 um after a plane and a depth scale, against 23 um typical), so the truth's
     location pairs often lie in the sets the clean budget thins, and its seeds rank low by the cheap score: more
-    location pairs, more seeds screened, on more points with more iterations. Settings already larger are kept."""
+    location pairs, more seeds screened, on more points with more iterations; and a sharper fit noise in the
+    hypotheses' likelihood. Settings already larger (the fit noise: smaller) are kept."""
 
     pair_budget: int = 10_000_000  # SearchConfig.pair_budget (clean: 4 M)
     screened: int = 2000  # PoseConfig.screened (clean: 400)
     screen_points: int = 48  # RefineConfig.screen_points (clean: 24)
     screen_iterations: int = 5  # RefineConfig.screen_iterations (clean: 3)
+    fit_noise_m: float = 2e-5  # HypothesisConfig.fit_noise_m (clean: 30 um): the fit's evidence weighs more
+    # against the sensor corrections. Through images a right pose needs larger corrections than through clean
+    # clouds (a reconstructed contact's tilt, level and depth scale are off, and the corrections absorb them): in
+    # most image pairs lost by ranking the truth fits the clouds better than the chosen pose and loses on its
+    # corrections (docs/sensor.md, stop 14). A setting already smaller is kept.
 
 
 @dataclass(frozen=True)
@@ -146,13 +152,13 @@ class PoseConfig:
     # (`for_pair`; None: as clean clouds)
 
     def for_pair(self, pair: ContactPair) -> PoseConfig:
-        """This config for `pair`: with the search and screening raised to `image_budget` when a side was
-        reconstructed from a GelSight image (its depth scale is uncertain: `depth_scale_sigma` > 0), else itself.
-        Clean clouds keep the defaults and their speed; applying it twice changes nothing."""
+        """This config for `pair`: with the search and screening raised (the fit noise lowered) to `image_budget`
+        when a side was reconstructed from a GelSight image (its depth scale is uncertain: `depth_scale_sigma` > 0),
+        else itself. Clean clouds keep the defaults, their speed and poses; applying it twice changes nothing."""
         budget = self.image_budget
         if budget is None or not any(pair.contact(side).depth_scale_sigma > 0.0 for side in SIDES):
             return self
-        search, refine = self.search_config, self.refine_config
+        search, refine, hypotheses = self.search_config, self.refine_config, self.hypotheses
         return replace(
             self,
             search_config=replace(search, pair_budget=max(search.pair_budget, budget.pair_budget)),
@@ -162,6 +168,7 @@ class PoseConfig:
                 screen_points=max(refine.screen_points, budget.screen_points),
                 screen_iterations=max(refine.screen_iterations, budget.screen_iterations),
             ),
+            hypotheses=replace(hypotheses, fit_noise_m=min(hypotheses.fit_noise_m, budget.fit_noise_m)),
         )
 
 
