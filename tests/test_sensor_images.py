@@ -462,9 +462,6 @@ def test_image_pairs_search_and_screen_with_the_image_budget(image_pair, builtin
     assert imaged.refine_config.screen_iterations == budget.screen_iterations > default.refine_config.screen_iterations
     # the fit's evidence weighs more against the corrections: 20 um against the clean pairs' 30 um
     assert imaged.hypotheses.fit_noise_m == budget.fit_noise_m == 2e-5 < default.hypotheses.fit_noise_m == 3e-5
-    # and the search's log-likelihood gates move with it, by (30 / 20)^2
-    assert imaged.decisive_log_likelihood == pytest.approx(2.25 * default.decisive_log_likelihood)
-    assert imaged.search_unless_log_likelihood == pytest.approx(2.25 * default.search_unless_log_likelihood)
     # Everything else is the caller's, a setting already above (the fit noise: below) the image one is kept, twice
     # is once, and without a budget image pairs run as clean ones.
     assert (
@@ -474,15 +471,12 @@ def test_image_pairs_search_and_screen_with_the_image_budget(image_pair, builtin
             screened=400,
             refine_config=default.refine_config,
             hypotheses=default.hypotheses,
-            decisive_log_likelihood=default.decisive_log_likelihood,
-            search_unless_log_likelihood=default.search_unless_log_likelihood,
         )
         == default
     )
     assert replace(default, screened=5000).for_pair(through_images[0].pair).screened == 5000
     sharper = replace(default, hypotheses=replace(default.hypotheses, fit_noise_m=1.5e-5))
     assert sharper.for_pair(through_images[0].pair).hypotheses.fit_noise_m == 1.5e-5
-    assert sharper.for_pair(through_images[0].pair).search_unless_log_likelihood == sharper.search_unless_log_likelihood
     assert imaged.for_pair(through_images[0].pair) == imaged
     unbudgeted = replace(default, image_budget=None)
     assert unbudgeted.for_pair(through_images[0].pair) is unbudgeted

@@ -152,23 +152,15 @@ class PoseConfig:
     # (`for_pair`; None: as clean clouds)
 
     def for_pair(self, pair: ContactPair) -> PoseConfig:
-        """This config for `pair`: with the search and screening raised (the fit noise lowered, the search's gates
-        with it) to `image_budget` when a side was reconstructed from a GelSight image (its depth scale is uncertain:
-        `depth_scale_sigma` > 0), else itself. Clean clouds keep the defaults, their speed and poses; applying it
-        twice changes nothing."""
+        """This config for `pair`: with the search and screening raised (the fit noise lowered) to `image_budget`
+        when a side was reconstructed from a GelSight image (its depth scale is uncertain: `depth_scale_sigma` > 0),
+        else itself. Clean clouds keep the defaults, their speed and poses; applying it twice changes nothing."""
         budget = self.image_budget
         if budget is None or not any(pair.contact(side).depth_scale_sigma > 0.0 for side in SIDES):
             return self
         search, refine, hypotheses = self.search_config, self.refine_config, self.hypotheses
-        fit_noise_m = min(hypotheses.fit_noise_m, budget.fit_noise_m)
-        # The search's gates read log-likelihoods, whose fit terms grow as 1 / fit noise^2: scaled with it, an image
-        # pair whose candidates settle it skips the search as at 30 um (replays of 640 image pairs, 2 draws: the same
-        # poses, the lemon's pose stage 127 -> 8 ms; docs/sensor.md, stop 14).
-        gate_scale = (hypotheses.fit_noise_m / fit_noise_m) ** 2
         return replace(
             self,
-            decisive_log_likelihood=self.decisive_log_likelihood * gate_scale,
-            search_unless_log_likelihood=self.search_unless_log_likelihood * gate_scale,
             search_config=replace(search, pair_budget=max(search.pair_budget, budget.pair_budget)),
             screened=max(self.screened, budget.screened),
             refine_config=replace(
@@ -176,7 +168,7 @@ class PoseConfig:
                 screen_points=max(refine.screen_points, budget.screen_points),
                 screen_iterations=max(refine.screen_iterations, budget.screen_iterations),
             ),
-            hypotheses=replace(hypotheses, fit_noise_m=fit_noise_m),
+            hypotheses=replace(hypotheses, fit_noise_m=min(hypotheses.fit_noise_m, budget.fit_noise_m)),
         )
 
 
