@@ -368,9 +368,10 @@ def tactile_timing_warnings(
     tactile: dict[str, TactileStream], streams: dict[str, PoseStream], touch_time_s: float, tolerance_s: float = 0.2
 ) -> list[str]:
     """Warnings for tactile frames whose times do not fit the pose streams, each naming its source: frames
-    stamped before the touch (never used) or outside the sensor's pose stream (no pose to register them at),
-    which is what a clock offset between the tactile and the pose recordings looks like; the frames still
-    fit the surface at the wrong sensor poses, so the track would be silently worse."""
+    outside the sensor's pose stream (no pose to register them at), or ending well before it while starting before
+    the touch, which is what a clock offset between the tactile and the pose recordings looks like; the frames still
+    fit the surface at the wrong sensor poses, so the track would be silently worse. Frames before the touch are
+    counted in such a warning (they are never used), but alone they are a camera that ran before the touch."""
     warnings = []
     for side, frames in tactile.items():
         if len(frames) == 0:
@@ -379,9 +380,6 @@ def tactile_timing_warnings(
         poses = streams[side].timestamps_s
         first, last = float(frames.timestamps_s[0]), float(frames.timestamps_s[-1])
         problems = []
-        early = int((frames.timestamps_s < touch_time_s - tolerance_s).sum())
-        if early:
-            problems.append(f"{early} stamped up to {touch_time_s - first:.2f} s before the touch (not used)")
         outside = int(
             ((frames.timestamps_s < poses[0] - tolerance_s) | (frames.timestamps_s > poses[-1] + tolerance_s)).sum()
         )
@@ -389,6 +387,9 @@ def tactile_timing_warnings(
             problems.append(f"{outside} beyond the {side} pose stream's {poses[0]:.3f}-{poses[-1]:.3f} s (not used)")
         if last < poses[-1] - tolerance_s and first < touch_time_s - tolerance_s:
             problems.append(f"the frames end {poses[-1] - last:.2f} s before the pose stream")
+        early = int((frames.timestamps_s < touch_time_s - tolerance_s).sum())
+        if early and problems:  # alone, frames before the touch are a camera that ran before it, not an offset
+            problems.insert(0, f"{early} stamped up to {touch_time_s - first:.2f} s before the touch (not used)")
         if problems:
             warnings.append(
                 f"{side} tactile frames ({source}, {first:.3f}-{last:.3f} s): " + "; ".join(problems) + ": is there a "
