@@ -8,7 +8,7 @@ an image belongs to it (`with_background`, `background_change`).
 from __future__ import annotations
 
 import hashlib
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -160,6 +160,18 @@ def background_change(image: np.ndarray, background: np.ndarray) -> float:
     return float(np.median(change))
 
 
+def _check_known(settings: dict[str, Any], config_type: type, path: Path) -> None:
+    """Refuse settings `config_type` does not have, naming them: a file written by a newer YOTO (or edited)."""
+    unknown = sorted(set(settings) - {f.name for f in fields(config_type)})
+    if unknown:
+        raise InputError(
+            f"sensor calibration file has {config_type.__name__} settings this yoto does not know "
+            f"({', '.join(unknown)}): was it made by a newer version? Recalibrate with this one's `yoto sensor "
+            "calibrate`, or update yoto",
+            path,
+        )
+
+
 def load_calibration(path: str | Path, spec: GelSightSpec | None = None) -> SensorCalibration:
     """Load a calibration file; with `spec`, also check that it was made for that sensor.
 
@@ -188,6 +200,9 @@ def load_calibration(path: str | Path, spec: GelSightSpec | None = None) -> Sens
             mm_per_px=float(sensor["mm_per_px"]),
         )
         model = meta["model"]
+        for settings, config_type in ((model["gradient"], GradientModelConfig), (model["image"], ImageModelConfig)):
+            _check_known(settings, config_type, path)
+        _check_known(meta["mask"], MaskConfig, path)
         gradient_config = GradientModelConfig(**{"anchored": False, **model["gradient"]})  # older files: not anchored
         image_config = ImageModelConfig(**{"gain_degree": 1, **model["image"]})  # files before gain_degree: 1
         mask = MaskConfig(**meta["mask"])
