@@ -216,6 +216,20 @@ class _ForeignBag:
         return types["std_msgs/msg/Header"](stamp=stamp, frame_id="gelsight")
 
 
+def test_an_image_topic_without_messages_is_named(tmp_path):
+    """A bag whose GelSight topic holds no message (a recorder that subscribed and never got a frame): the error names
+    the bag and the topic, not only "no GelSight frames"."""
+    from yoto.rig.streams import read_image_stream
+
+    bag = _ForeignBag(tmp_path / "rec")
+    bag.connections["/gelsight/image_raw"] = bag.writer.add_connection(
+        "/gelsight/image_raw", "sensor_msgs/msg/Image", typestore=bag.store
+    )
+    bag.writer.close()
+    with pytest.raises(InputError, match=r"rec: topic '/gelsight/image_raw' holds no frames"):
+        read_image_stream(tmp_path / "rec", "/gelsight/image_raw")
+
+
 def test_track_reads_tactile_frames_and_a_touch_given_as_images(builtin_models, gelsight, tmp_path, capsys):
     """`yoto track` on a touch whose sides are GelSight images (each naming its calibration), with tactile frames as
     a folder of `left_<t>.png` images and as a bag (left: raw frames tagged rgb8 holding BGR data; right: PNG

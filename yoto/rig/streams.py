@@ -226,10 +226,10 @@ def bag_image_stream(reader: Any, path: Path, topic: str, spec: GelSightSpec) ->
             first.append(message)
         stamps.append(stamp)
         log_times.append(log_time)
-    # Size and encoding, up front (a depth topic, a camera at another size).
-    first_readable(lambda k: decode_image_message(first[k], msgtype, spec, where, path), len(first))
     if not stamps:
         raise InputError(f"topic '{topic}' holds no frames", path)
+    # Size and encoding, up front (a depth topic, a camera at another size).
+    first_readable(lambda k: decode_image_message(first[k], msgtype, spec, where, path), len(first))
     order = stamp_order(np.asarray(stamps))
     times = np.asarray(stamps)[order]
     kept, dropped, rate = clean_timeline(times, np.ones(len(times), bool), path, topic)
