@@ -13,7 +13,8 @@ touch the pose stage's with the benchmark's localizer; both are simulated once a
 ~60 MB a trajectory, ~5 CPU s each to simulate and localize), so later runs only track (~2 CPU s a trajectory).
 The cache is not keyed by code: empty it when the simulator or the pose stage changes. Tracking is done by the
 working tree's code (`yoto.tracking.track`, its default `TrackConfig`; `--correction NAME=VALUE` overrides a
-`CorrectionConfig` field, `pad_error.NAME=VALUE` a `PadErrorConfig` one), BLAS on one thread.
+`CorrectionConfig` field, `pad_error.NAME=VALUE` a `PadErrorConfig` one; `--fusion NAME=VALUE` a `FusionConfig`
+one), BLAS on one thread.
 
 Printed, over the trajectories whose touch was right (within 5 mm and 5 deg):
 - meets: settled drift under 0.5 mm and 0.5 deg (the issue's target: the drift is counted from the last frame
@@ -201,6 +202,9 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
             else:
                 correction = dataclasses.replace(correction, **{field_name: ast.literal_eval(value)})
         config = dataclasses.replace(config, correction=correction)
+    if args.fusion:  # FusionConfig fields overridden, NAME=VALUE
+        changed = {item.split("=", 1)[0]: ast.literal_eval(item.split("=", 1)[1]) for item in args.fusion}
+        config = dataclasses.replace(config, fusion=dataclasses.replace(config.fusion, **changed))
     started = time.process_time()
     result = track(touch, trajectory.streams, model, tactile_streams(trajectory), config)
     cpu_s = time.process_time() - started
@@ -583,6 +587,7 @@ def main() -> None:
     parser.add_argument("--meshes", default=MESHES, help="folder of the shared meshes (NAME/NAME.ply)")
     parser.add_argument("--jobs", type=int, default=1, help="processes (each track's CPU time is its own)")
     parser.add_argument("--correction", nargs="*", help="CorrectionConfig fields overridden: NAME=VALUE")
+    parser.add_argument("--fusion", nargs="*", help="FusionConfig fields overridden: NAME=VALUE")
     parser.add_argument("--build-only", action="store_true", help="simulate and cache, do not track")
     parser.add_argument(
         "--without",
