@@ -13,7 +13,8 @@ touch the pose stage's with the benchmark's localizer; both are simulated once a
 ~60 MB a trajectory, ~5 CPU s each to simulate and localize), so later runs only track (~2 CPU s a trajectory).
 The cache is not keyed by code: empty it when the simulator or the pose stage changes. Tracking is done by the
 working tree's code (`yoto.tracking.track`, its default `TrackConfig`; `--correction NAME=VALUE` overrides a
-`CorrectionConfig` field, `pad_error.NAME=VALUE` a `PadErrorConfig` one), BLAS on one thread.
+`CorrectionConfig` field, `pad_error.NAME=VALUE` a `PadErrorConfig` one; `--fusion NAME=VALUE` a `FusionConfig`
+one), BLAS on one thread.
 
 Printed, over the trajectories whose touch was right (within 5 mm and 5 deg):
 - meets: settled drift under 0.5 mm and 0.5 deg (the issue's target: the drift is counted from the last frame
@@ -38,6 +39,11 @@ Printed, over the trajectories whose touch was right (within 5 mm and 5 deg):
   mm (beside the open loop's slip along the same part) and growth;
 - one row per object, and every miss. `--compare OLD.json` (this script's `--out` of another code) lists the tracks
   that changed in meeting the target and those whose rotation drift moved by more than 0.05 deg.
+
+`--frames-at-truth` also registers every second instant's frames from the truth (`bench.truth_registrations`, the
+pads' maps learnt there) and prints, per band of pinning, the closed loop's final drift against the frames' own change
+over the motion: the drift a loop that believed its frames would show, and (weighed against the slip by their sizes)
+about the least a loop that weighs its frames against its prediction can leave (~4 CPU s more a trajectory).
 
 `--without bias scale pixel` tracks each cached trajectory simulated again with those parts of the tactile frames'
 reconstruction error switched off (the pad's smooth field, the depth scale error, the per-frame pixel noise): the same
@@ -80,6 +86,7 @@ from yoto.tracking.bench import (  # noqa: E402
     scaled_trajectory,
     tactile_streams,
     touch_estimate,
+    truth_registrations,
 )
 from yoto.tracking.evaluate import (  # noqa: E402
     final_drift_twist,
@@ -195,6 +202,9 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
             else:
                 correction = dataclasses.replace(correction, **{field_name: ast.literal_eval(value)})
         config = dataclasses.replace(config, correction=correction)
+    if args.fusion:  # FusionConfig fields overridden, NAME=VALUE
+        changed = {item.split("=", 1)[0]: ast.literal_eval(item.split("=", 1)[1]) for item in args.fusion}
+        config = dataclasses.replace(config, fusion=dataclasses.replace(config.fusion, **changed))
     started = time.process_time()
     result = track(touch, trajectory.streams, model, tactile_streams(trajectory), config)
     cpu_s = time.process_time() - started
@@ -218,6 +228,13 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
     if used:  # the filter's own 1-sigma after its last applied instant (its least certain turn and shift)
         record["sigma"] = {"deg": float(np.degrees(used[-1].sigma_rad)), "mm": 1e3 * used[-1].sigma_m}
     record["pinning"] = pinning_of(touch_trajectory, T_touch, model)
+    if args.frames_at_truth and motion is not None:
+        # the frames' own change over the motion: every second instant's registration started at the truth (the
+        # pads' maps learnt there too), its mean over the settled tail against its mean before the motion
+        stamps, twists = truth_registrations(trajectory, model, config.correction, 2, True, motion)
+        if (stamps < motion[0]).any() and (stamps > motion[1]).any():
+            change = twists[stamps > motion[1]].mean(axis=0) - twists[stamps < motion[0]].mean(axis=0)
+            record["frames_change"] = change.tolist()
     return record
 
 
@@ -458,6 +475,47 @@ def by_pinning(records: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
+FLOOR_BINS = (0.0, 0.25, 1.0, np.inf)  # observable units: pinned to the target, to 2 deg-eq, beyond
+
+
+def frames_floor(records: list[dict[str, Any]]) -> list[str]:
+    """Over the right touches' eigen-directions binned by spread (`--frames-at-truth`): the closed loop's final
+    drift along them against the frames' own change over the motion (`frames_change`, registrations started at the
+    truth) and the open loop's (the slip): root mean squares, their correlation, the closed loop's drift regressed on
+    both, and what a loop that weighs the two (frames and prediction, independent errors of those sizes) would
+    leave at best, F S / sqrt(F^2 + S^2); deg-equivalent."""
+    lines = [
+        "| spread (deg-eq) | directions | closed loop rms | frames' change rms | open loop rms | correlation closed / "
+        "frames | closed = a frames + b open | frames weighed against the slip, rms |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for low, high in zip(FLOOR_BINS[:-1], FLOOR_BINS[1:], strict=True):
+        closed_all, frames_all, open_all = [], [], []
+        for r in records:
+            if not (r["right_touch"] and "pinning" in r and "frames_change" in r):
+                continue
+            p = r["pinning"]
+            directions, unit, spread = np.asarray(p["directions"]), np.asarray(p["unit"]), np.asarray(p["spread"])
+            chosen = (spread > low) & (spread <= high)
+            for values, twist in (
+                (closed_all, r["closed"]["final_drift_twist"]),
+                (frames_all, r["frames_change"]),
+                (open_all, r["open"]["final_drift_twist"]),
+            ):
+                values += list(2.0 * (directions @ (np.asarray(twist) / unit))[chosen])
+        if len(closed_all) < 3:
+            continue
+        c, f, o = np.asarray(closed_all), np.asarray(frames_all), np.asarray(open_all)
+        (a, b), *_ = np.linalg.lstsq(np.stack([f, o], axis=1), c, rcond=None)
+        rms = {name: float(np.sqrt(np.mean(v**2))) for name, v in (("c", c), ("f", f), ("o", o))}
+        weighed = rms["f"] * rms["o"] / np.hypot(rms["f"], rms["o"])
+        lines.append(
+            f"| {2 * low:.2f}-{2 * high:.2f} | {len(c)} | {rms['c']:.3f} | {rms['f']:.3f} | {rms['o']:.3f} | "
+            f"{np.corrcoef(c, f)[0, 1]:+.2f} | {a:+.2f}, {b:+.3f} | {weighed:.3f} |"
+        )
+    return lines
+
+
 SPLIT_HEADER = (
     "| set | weak above (units) | tracks with a weak direction | pinned part: meets | 100 mm deg / mm | 200 mm | "
     "growth deg per 100 mm | weak part: meets | 100 mm | 200 mm | growth |\n"
@@ -476,6 +534,12 @@ def report(records: list[dict[str, Any]], label: str) -> str:
         lines += split_rows(records, label)
         lines += ["", "the final drift along the touch's eigen-directions, by how well each is pinned:"]
         lines += by_pinning(records)
+    if any("frames_change" in r for r in records):
+        lines += [
+            "",
+            "the final drift against the frames' own change at the truth, by how well each direction is pinned:",
+        ]
+        lines += frames_floor(records)
     misses = [r for r in records if r["right_touch"] and not meets(r)]
     lines.append("")
     lines.append(
@@ -523,6 +587,7 @@ def main() -> None:
     parser.add_argument("--meshes", default=MESHES, help="folder of the shared meshes (NAME/NAME.ply)")
     parser.add_argument("--jobs", type=int, default=1, help="processes (each track's CPU time is its own)")
     parser.add_argument("--correction", nargs="*", help="CorrectionConfig fields overridden: NAME=VALUE")
+    parser.add_argument("--fusion", nargs="*", help="FusionConfig fields overridden: NAME=VALUE")
     parser.add_argument("--build-only", action="store_true", help="simulate and cache, do not track")
     parser.add_argument(
         "--without",
@@ -530,6 +595,11 @@ def main() -> None:
         default=[],
         choices=sorted(NOISE_FIELDS),
         help="track the trajectories simulated again without these reconstruction errors (the cached touch kept)",
+    )
+    parser.add_argument(
+        "--frames-at-truth",
+        action="store_true",
+        help="also register the frames from the truth: the final drift against the frames' own change (~4 CPU s more)",
     )
     parser.add_argument("--out", help="JSON of every track's figures")
     parser.add_argument("--compare", help="an earlier --out to compare with")
