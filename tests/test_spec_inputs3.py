@@ -39,9 +39,9 @@ def _sphere_press(
 def test_a_contact_only_cloud_with_a_noisy_rim_keeps_its_rim(tmp_path, rng):
     """A simulator that writes the contact's pixels with noisy heights puts its shallow rim partly above z = 0 (here
     0.2% of the points). Such a cloud was taken for one of the whole pad and every point shallower than the 0.05 mm
-    floor dropped (here 8% of the contact: its outline moved in), and on the figurine the matched filter's first
-    candidate median 6.9 -> 20.4 mm over 20 contacts (docs/formats.md, stop 15). Now it is read as it is; a cloud of
-    the whole pad of the same press is still read as its contact."""
+    floor dropped (here 8% of the contact: its outline moved in); since whole-pad clouds are also cut at a tenth of
+    their depth, it would lose 0.1 mm of its rim. Now it is read as it is; a cloud of the whole pad of the same press
+    is still read as its contact (docs/formats.md, stop 15)."""
     contact = _sphere_press(rng, 2e-5)
     above = int((contact[:, 2] >= 0).sum())
     assert 20 <= above < 0.01 * len(contact)  # more than the old test's 20 points, a small share
