@@ -19,16 +19,17 @@ or binary PLY. Results: docs/formats.md, "Stop 15".
 
 Each pair is written to a folder and read back with `yoto.contacts.read_contact_pair`, then posed by
 `estimate_pose` with the matched filter (`match`) and the default pose stage, as `yoto pose` would. The same
-objects' pairs from YOTO's own simulator (`yoto simulate pairs`' settings, the same calibration error), written
-and read the same way, are the first row of each object.
+objects' pairs from YOTO's own simulator (as `yoto bench` simulates them: its default scenario, the same calibration
+error), written and read the same way, are the first row of each object (`yoto`). Default objects: fruit, figurine,
+tool and ../shared/data/meshes/{mug,cracker_box,banana}; lemon, bunny and drill were held out of every choice.
 
 Prints one table: per object and setting, poses right (5 mm / 5 deg) of N, the localization error of the
 matched filter's first candidate (median and p90 over both contacts, mm), the median pose error (mm / deg), pose
-stage failures, and the median number of points per cloud; then the same pooled over the objects; `--json`
-writes the per-pair figures.
+stage failures, and the median number of points per cloud as read (a whole pad's: its contact); then the same
+pooled over the objects, and the process's CPU time; `--json` writes the per-pair figures.
 
     python benchmarks/foreign_contacts.py                       # the default objects and settings, 10 pairs each
-    python benchmarks/foreign_contacts.py --settings all        # every setting (about 12 minutes)
+    python benchmarks/foreign_contacts.py --settings all        # every setting (about 11 CPU minutes)
     python benchmarks/foreign_contacts.py --objects $M/lemon/lemon.ply $M/bunny/bunny.ply $M/drill/drill.ply
     python benchmarks/foreign_contacts.py --settings rigid whole_pad --objects fruit -n 20 --keep DIR
 """
