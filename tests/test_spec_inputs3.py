@@ -99,3 +99,16 @@ def test_a_whole_pad_cloud_is_read_without_the_gels_sink_in_ring(tmp_path, rng):
     assert len(read) < 1.25 * touching.sum()
     deep = touching & (penetration > 0.0002)
     assert len(read) > deep.sum()  # the contact's deeper part is all there
+
+
+def test_a_whole_pad_whose_gel_lies_below_z_0_is_still_read_as_its_contact(tmp_path):
+    """A reconstruction whose zero level is off by 30 um (its untouched gel at z = -0.03 mm, 10 um of noise) puts only
+    its noise's tail above z = 0 (0.1% of the points): fewer than a whole pad's share, but the cloud spans the pad, so
+    it is still read as its contact, not as 76 800 points of flat gel."""
+    whole = _sphere_press(np.random.default_rng(4), 1e-5, whole_pad=True)
+    whole[:, 2] -= 3e-5
+    assert 20 <= int((whole[:, 2] >= 0).sum()) < 0.01 * len(whole)
+    read = read_tactile_cloud(_ply(tmp_path / "offset.ply", whole))
+    contact = _sphere_press(np.random.default_rng(4), 0.0)
+    assert len(read) < len(contact)
+    assert read[:, 2].max() <= -1e-4  # the floor: a tenth of the 1 mm contact's depth

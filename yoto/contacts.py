@@ -36,6 +36,7 @@ from yoto.geometry import normalize, rotate_vectors, transform_points, validate_
 from yoto.io import read_json, read_ply_points, write_json_atomic, write_ply_points
 from yoto.jit import ENABLED, jit
 from yoto.pointcloud import covariance_eigh
+from yoto.sensor.spec import GELSIGHT_MINI
 
 SIDES = ("left", "right")
 MIN_TACTILE_POINTS = 30  # fewer contact points than this cannot define a local surface
@@ -295,12 +296,12 @@ def without_untouched_gel(points_sensor: np.ndarray) -> np.ndarray:
     only noise puts there: robustly, from at least INDENTATION_POINTS of them, so a few spikes do not count), or than
     SINK_IN_SHARE of the contact's depth: the gel sinks in around a contact, more the deeper it is pressed, and that
     ring is gel, not the object (a cloud of contact points alone, whose writer knew the contact, holds none). A cloud
-    of contact points alone (fewer than INDENTATION_POINTS, or less than UNTOUCHED_SHARE of its points, on or above
-    the gel plane, z >= 0: a noisy contact's shallow rim puts a few there), or one not pressed into the gel
-    (`indentation_m`), is returned as it is."""
+    of contact points alone (fewer than INDENTATION_POINTS, or less than UNTOUCHED_SHARE of its points unless it spans
+    the pad, on or above the gel plane, z >= 0: a noisy contact's shallow rim puts a few there), or one not pressed
+    into the gel (`indentation_m`), is returned as it is."""
     z = points_sensor[:, 2]
     on_gel = int((z >= 0.0).sum())
-    if on_gel < INDENTATION_POINTS or on_gel < UNTOUCHED_SHARE * len(z):
+    if on_gel < INDENTATION_POINTS or (on_gel < UNTOUCHED_SHARE * len(z) and not _spans_the_pad(points_sensor)):
         return points_sensor
     depth, contact_floor = indentation_m(points_sensor)
     if depth <= contact_floor:
@@ -312,6 +313,13 @@ def without_untouched_gel(points_sensor: np.ndarray) -> np.ndarray:
     if pressed.all() or pressed.sum() < INDENTATION_POINTS:
         return points_sensor
     return points_sensor[pressed]
+
+
+def _spans_the_pad(points_sensor: np.ndarray) -> bool:
+    """Whether the cloud reaches across nine tenths of the GelSight Mini's pad both ways: a whole pad, even where its
+    untouched gel lies a little below z = 0 (a reconstruction's offset) and only noise's tail reaches above."""
+    width, height = GELSIGHT_MINI.pad_size_m
+    return bool(np.ptp(points_sensor[:, 0]) > 0.9 * width and np.ptp(points_sensor[:, 1]) > 0.9 * height)
 
 
 def indentation_m(points_sensor: np.ndarray) -> tuple[float, float]:
