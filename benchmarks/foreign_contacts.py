@@ -39,6 +39,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -366,7 +367,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=5)
     parser.add_argument("--no-yoto", action="store_true", help="leave out YOTO's own simulator's row")
     parser.add_argument("--workspace", default=os.environ.get("YOTO_WORKSPACE"))
-    parser.add_argument("--keep", help="write the pair files under this folder (else a temporary one)")
+    parser.add_argument("--keep", help="write the pair files under this folder (else a temporary one, removed)")
     parser.add_argument("--json", help="write every pair's figures here")
     args = parser.parse_args()
     if "all" in args.settings:
@@ -378,24 +379,27 @@ def main() -> None:
 
     config = PoseConfig(suggest_next_touch=False)
     localizer = make_localizer("match")
-    root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="foreign_contacts_"))
     table, pooled, record = [], {}, {}
     tick = time.process_time()
-    for spec in args.objects:
-        model = resolve_object(spec, args.workspace)
-        sources = ([] if args.no_yoto else ["yoto"]) + args.settings
-        for source in sources:
-            folder = root / model.name / source
-            folder.mkdir(parents=True, exist_ok=True)
-            if source == "yoto":
-                paths = yoto_pairs(model, folder, args.n, args.seed)
-            else:
-                paths = foreign_pairs(model, SETTINGS[source], folder, args.n, args.seed)
-            rows = [evaluate(path, model, localizer, config) for path in paths]
-            record[f"{model.name}/{source}"] = rows
-            pooled.setdefault(source, []).extend(rows)
-            table.append(f"| {model.name} | {source} | {summary(rows)} |")
-            print(table[-1], flush=True)
+    with tempfile.TemporaryDirectory(prefix="foreign_contacts_") as scratch:  # ~0.7 MB a pair: removed when read
+        root = Path(args.keep) if args.keep else Path(scratch)
+        for spec in args.objects:
+            model = resolve_object(spec, args.workspace)
+            sources = ([] if args.no_yoto else ["yoto"]) + args.settings
+            for source in sources:
+                folder = root / model.name / source
+                folder.mkdir(parents=True, exist_ok=True)
+                if source == "yoto":
+                    paths = yoto_pairs(model, folder, args.n, args.seed)
+                else:
+                    paths = foreign_pairs(model, SETTINGS[source], folder, args.n, args.seed)
+                rows = [evaluate(path, model, localizer, config) for path in paths]
+                if not args.keep:
+                    shutil.rmtree(folder)
+                record[f"{model.name}/{source}"] = rows
+                pooled.setdefault(source, []).extend(rows)
+                table.append(f"| {model.name} | {source} | {summary(rows)} |")
+                print(table[-1], flush=True)
     header = (
         "| object | contacts | right | loc. median mm | loc. p90 mm | pose median mm / deg | failed | points |\n"
         "|---|---|---|---|---|---|---|---|"
@@ -407,7 +411,7 @@ def main() -> None:
     print(header)
     for source, rows in pooled.items():
         print(f"| all | {source} | {summary(rows)} |")
-    print(f"\nCPU {time.process_time() - tick:.0f} s; pair files under {root}")
+    print(f"\nCPU {time.process_time() - tick:.0f} s" + (f"; pair files under {args.keep}" if args.keep else ""))
     if args.json:
         Path(args.json).write_text(json.dumps(record, indent=1))
 
