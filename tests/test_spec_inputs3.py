@@ -105,6 +105,10 @@ def test_a_whole_pad_whose_gel_lies_below_z_0_is_still_read_as_its_contact(tmp_p
     """A reconstruction whose zero level is off by 30 um (its untouched gel at z = -0.03 mm, 10 um of noise) puts only
     its noise's tail above z = 0 (0.1% of the points): fewer than a whole pad's share, but the cloud spans the pad, so
     it is still read as its contact, not as 76 800 points of flat gel."""
+    from yoto.contacts import MINI_PAD_M
+    from yoto.sensor.spec import GELSIGHT_MINI
+
+    assert MINI_PAD_M == pytest.approx(GELSIGHT_MINI.pad_size_m)  # the core module's copy of SPEC's pad
     whole = _sphere_press(np.random.default_rng(4), 1e-5, whole_pad=True)
     whole[:, 2] -= 3e-5
     assert 20 <= int((whole[:, 2] >= 0).sum()) < 0.01 * len(whole)

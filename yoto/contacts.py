@@ -36,7 +36,6 @@ from yoto.geometry import normalize, rotate_vectors, transform_points, validate_
 from yoto.io import read_json, read_ply_points, write_json_atomic, write_ply_points
 from yoto.jit import ENABLED, jit
 from yoto.pointcloud import covariance_eigh
-from yoto.sensor.spec import GELSIGHT_MINI
 
 SIDES = ("left", "right")
 MIN_TACTILE_POINTS = 30  # fewer contact points than this cannot define a local surface
@@ -58,6 +57,7 @@ UNTOUCHED_SHARE = 0.01
 # the reconstruction's `felt_relative_depth`, left most of a soft gel's sink-in ring; 0.1 took whole-pad poses from
 # 30 to 34 of 40, the contact-only clouds' 35).
 SINK_IN_SHARE = 0.1
+MINI_PAD_M = (320 * 0.0634e-3, 240 * 0.0634e-3)  # SPEC's pad (yoto.sensor.spec's; this core module does not import it)
 HALF_NORMAL_MEDIAN = 0.6745  # the median of |x| for x ~ N(0, 1): noise sigma from the median of its positive half
 
 
@@ -318,7 +318,7 @@ def without_untouched_gel(points_sensor: np.ndarray) -> np.ndarray:
 def _spans_the_pad(points_sensor: np.ndarray) -> bool:
     """Whether the cloud reaches across nine tenths of the GelSight Mini's pad both ways: a whole pad, even where its
     untouched gel lies a little below z = 0 (a reconstruction's offset) and only noise's tail reaches above."""
-    width, height = GELSIGHT_MINI.pad_size_m
+    width, height = MINI_PAD_M
     return bool(np.ptp(points_sensor[:, 0]) > 0.9 * width and np.ptp(points_sensor[:, 1]) > 0.9 * height)
 
 
