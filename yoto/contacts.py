@@ -49,6 +49,15 @@ RECENT_CLOUDS = 4  # contact_in_sensor keeps its answers for this many clouds
 NO_INDENTATION_M = 5e-5
 NOISE_MARGIN = 5.0
 INDENTATION_POINTS = 20
+# A cloud of the whole pad has at least this share of its points on or above the gel plane (the untouched gel's
+# upper half: 4-80% in whole-pad clouds of 0.5-2 mm presses); a cloud of contact points alone with a noisy rim,
+# 0.1-0.4% (20 um noise; docs/formats.md, stop 15).
+UNTOUCHED_SHARE = 0.01
+# A cloud of the whole pad is read as its contact from this share of its depth on (docs/formats.md, stop 15: 0.05,
+# the reconstruction's `felt_relative_depth`, left most of a soft gel's sink-in ring; 0.1 took whole-pad poses from
+# 30 to 34 of 40, the contact-only clouds' 35).
+SINK_IN_SHARE = 0.1
+MINI_PAD_M = (320 * 0.0634e-3, 240 * 0.0634e-3)  # SPEC's pad (yoto.sensor.spec's; this core module does not import it)
 HALF_NORMAL_MEDIAN = 0.6745  # the median of |x| for x ~ N(0, 1): noise sigma from the median of its positive half
 
 
@@ -284,22 +293,33 @@ def without_untouched_gel(points_sensor: np.ndarray) -> np.ndarray:
     reconstructed height map gives it) holds the untouched gel around the contact, z = 0 within the reconstruction's
     noise: not contact surface, and taken for it, it drags the contact's centre and normal to the pad's. Those are the
     points less deep than NO_INDENTATION_M or 5 sigma of that noise (read off the points above the gel, z > 0, which
-    only noise puts there: robustly, from at least INDENTATION_POINTS of them, so a few spikes do not count). A cloud
-    of contact points alone (fewer than INDENTATION_POINTS points on or above the gel plane, z >= 0), or one not
-    pressed into the gel (`indentation_m`), is returned as it is."""
+    only noise puts there: robustly, from at least INDENTATION_POINTS of them, so a few spikes do not count), or than
+    SINK_IN_SHARE of the contact's depth: the gel sinks in around a contact, more the deeper it is pressed, and that
+    ring is gel, not the object (a cloud of contact points alone, whose writer knew the contact, holds none). A cloud
+    of contact points alone (fewer than INDENTATION_POINTS, or less than UNTOUCHED_SHARE of its points unless it spans
+    the pad, on or above the gel plane, z >= 0: a noisy contact's shallow rim puts a few there), or one not pressed
+    into the gel (`indentation_m`), is returned as it is."""
     z = points_sensor[:, 2]
-    if int((z >= 0.0).sum()) < INDENTATION_POINTS:
+    on_gel = int((z >= 0.0).sum())
+    if on_gel < INDENTATION_POINTS or (on_gel < UNTOUCHED_SHARE * len(z) and not _spans_the_pad(points_sensor)):
         return points_sensor
     depth, contact_floor = indentation_m(points_sensor)
     if depth <= contact_floor:
         return points_sensor
     above = z[z > 0]
     noise = float(np.median(above)) / HALF_NORMAL_MEDIAN if len(above) >= INDENTATION_POINTS else 0.0
-    floor = max(NO_INDENTATION_M, NOISE_MARGIN * noise)
+    floor = max(NO_INDENTATION_M, NOISE_MARGIN * noise, SINK_IN_SHARE * depth)
     pressed = z <= -floor
     if pressed.all() or pressed.sum() < INDENTATION_POINTS:
         return points_sensor
     return points_sensor[pressed]
+
+
+def _spans_the_pad(points_sensor: np.ndarray) -> bool:
+    """Whether the cloud reaches across nine tenths of the GelSight Mini's pad both ways: a whole pad, even where its
+    untouched gel lies a little below z = 0 (a reconstruction's offset) and only noise's tail reaches above."""
+    width, height = MINI_PAD_M
+    return bool(np.ptp(points_sensor[:, 0]) > 0.9 * width and np.ptp(points_sensor[:, 1]) > 0.9 * height)
 
 
 def indentation_m(points_sensor: np.ndarray) -> tuple[float, float]:
