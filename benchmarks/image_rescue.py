@@ -10,7 +10,8 @@ default: the pose stage's own, image budget included) and prints, per pair and p
   `rescue_log_likelihood`; "-": not called), the rank of the first hypothesis within 5 mm / 5 deg of the truth;
 - three poses refined as the family step refines a hypothesis (`refined_log_likelihood`), each with its
   log-likelihood split into the fit, free-space and correction terms (the last with the depth scales' prior), each
-  contact's fit RMS (um) and depth scale: the chosen pose, the truth, and the first right hypothesis if any.
+  contact's fit RMS (um) and depth scale, each sensor's correction (rotation deg, translation mm, left/right): the
+  chosen pose, the truth, and the first right hypothesis if any.
 
 Then a summary per path: pairs right, rescue calls, the median fit RMS at the refined truth over the pairs'
 contacts (the residual a right pose leaves, which the likelihood's `fit_noise_m` stands for), the truth's median
@@ -59,6 +60,8 @@ def refit(pair, model, config, T_world_object):
         "corr": float(-0.5 * refined.correction_cost[0]),
         "rms": refined.fit_rms_m[0],
         "scale": refined.depth_scale[0],
+        "rotation_deg": np.degrees(np.linalg.norm(refined.corrections[0, :, :3], axis=1)),
+        "translation_mm": 1000.0 * np.linalg.norm(refined.corrections[0, :, 3:], axis=1),
     }
 
 
@@ -68,7 +71,9 @@ def describe(fitted: dict | None) -> str:
     return (
         f"{fitted['ll']:6.1f} = fit {fitted['fit']:6.1f} free {fitted['free']:5.1f} corr {fitted['corr']:5.1f} "
         f"(rms {1e6 * fitted['rms'][0]:3.0f}/{1e6 * fitted['rms'][1]:3.0f} um, "
-        f"scale {fitted['scale'][0]:.2f}/{fitted['scale'][1]:.2f})"
+        f"scale {fitted['scale'][0]:.2f}/{fitted['scale'][1]:.2f}, corrections "
+        f"{fitted['rotation_deg'][0]:.1f}/{fitted['rotation_deg'][1]:.1f} deg "
+        f"{fitted['translation_mm'][0]:.1f}/{fitted['translation_mm'][1]:.1f} mm)"
     )
 
 
