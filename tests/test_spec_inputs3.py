@@ -116,3 +116,29 @@ def test_a_whole_pad_whose_gel_lies_below_z_0_is_still_read_as_its_contact(tmp_p
     contact = _sphere_press(np.random.default_rng(4), 0.0)
     assert len(read) < len(contact)
     assert read[:, 2].max() <= -1e-4  # the floor: a tenth of the 1 mm contact's depth
+
+
+def test_a_whole_pad_tracking_frame_pressed_nowhere_holds_no_contact(tmp_path, rng):
+    """Tracking frames of the whole pad (`benchmarks/foreign_frames.py`): where the gel lost contact, the frame is the
+    flat gel (10 um of noise, 76 800 points; 5000 of them, decimated) and holds no contact, so the closed loop leaves it
+    out as empty; before, the flat gel was registered as a contact (refused only when it fitted badly). A pressed whole
+    pad with NaN pixels (an organised cloud) still gives its contact, and a shallow noisy frame of contact points alone
+    (30 um deep, not pressed beyond its noise floor) is kept as it is."""
+    from yoto.tracking.streams import read_tactile_folder
+
+    folder = tmp_path / "left_tactile"
+    folder.mkdir()
+    flat = _sphere_press(rng, 1e-5, whole_pad=True, depth_m=0.0)
+    pressed = _sphere_press(rng, 1e-5, whole_pad=True)
+    pressed[::50] = np.nan
+    shallow = _sphere_press(rng, 1e-5, depth_m=3e-5)
+    frames = [flat, flat[rng.choice(len(flat), 5000, replace=False)], pressed, shallow]
+    for k, cloud in enumerate(frames):
+        _ply(folder / f"{1700000000 + k}.ply", cloud)
+    stream = read_tactile_folder(folder)
+    assert len(stream.load(0)) == 0
+    assert len(stream.load(1)) == 0
+    contact = stream.load(2)
+    assert np.isfinite(contact).all()
+    assert 0.5 * (_sphere_press(rng, 0.0)[:, 2] < -1e-4).sum() < len(contact) < len(_sphere_press(rng, 0.0))
+    assert len(stream.load(3)) == len(shallow)

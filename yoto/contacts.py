@@ -301,7 +301,7 @@ def without_untouched_gel(points_sensor: np.ndarray) -> np.ndarray:
     into the gel (`indentation_m`), is returned as it is."""
     z = points_sensor[:, 2]
     on_gel = int((z >= 0.0).sum())
-    if on_gel < INDENTATION_POINTS or (on_gel < UNTOUCHED_SHARE * len(z) and not _spans_the_pad(points_sensor)):
+    if on_gel < INDENTATION_POINTS or (on_gel < UNTOUCHED_SHARE * len(z) and not spans_the_pad(points_sensor)):
         return points_sensor
     depth, contact_floor = indentation_m(points_sensor)
     if depth <= contact_floor:
@@ -315,7 +315,7 @@ def without_untouched_gel(points_sensor: np.ndarray) -> np.ndarray:
     return points_sensor[pressed]
 
 
-def _spans_the_pad(points_sensor: np.ndarray) -> bool:
+def spans_the_pad(points_sensor: np.ndarray) -> bool:
     """Whether the cloud reaches across nine tenths of the GelSight Mini's pad both ways: a whole pad, even where its
     untouched gel lies a little below z = 0 (a reconstruction's offset) and only noise's tail reaches above."""
     width, height = MINI_PAD_M
@@ -543,6 +543,7 @@ __all__ = [
     "read_contact_pair",
     "read_tactile_cloud",
     "validate_tactile_points",
+    "spans_the_pad",
     "without_untouched_gel",
     "write_contact_pair",
 ]

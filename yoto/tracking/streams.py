@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from yoto.contacts import indentation_m, without_untouched_gel
+from yoto.contacts import indentation_m, spans_the_pad, without_untouched_gel
 from yoto.errors import InputError
 from yoto.io import read_ply_points
 from yoto.rig.motive import is_motive_csv
@@ -93,10 +93,12 @@ MAX_FRAME_EXTENT_M = 0.1  # a tactile frame wider than this is no GelSight's (mi
 
 def frame_contact(points_sensor: np.ndarray, path: Path) -> np.ndarray:
     """A tactile frame's contact points: its finite points (an organised cloud marks pixels without data NaN), without
-    the untouched gel of a cloud of the whole pad. A frame in millimetres (or pixels) or with its z flipped raises
-    InputError naming it, so the tracker leaves it out saying why (in millimetres it would size the tracker's sampling
-    grid by metres: an out-of-memory crash)."""
-    points = points_sensor[np.isfinite(points_sensor).all(axis=1)]
+    the untouched gel of a cloud of the whole pad; none of a whole pad (`spans_the_pad`) pressed nowhere: the gel lost
+    contact, and its flat gel is no contact surface (a shallow frame of contact points alone is kept as it is). A frame
+    in millimetres (or pixels) or with its z flipped raises InputError naming it, so the tracker leaves it out saying
+    why (in millimetres it would size the tracker's sampling grid by metres: an out-of-memory crash)."""
+    finite = np.isfinite(points_sensor)
+    points = points_sensor if finite.all() else points_sensor[finite.all(axis=1)]  # a whole pad's copy costs 1 ms
     if len(points) == 0:
         return points
     extent = max(float(np.ptp(points[:, axis])) for axis in range(3))
@@ -106,12 +108,15 @@ def frame_contact(points_sensor: np.ndarray, path: Path) -> np.ndarray:
             path,
         )
     depth, floor = indentation_m(points)
-    if depth <= floor and np.greater(*indentation_m(points * np.array([1.0, 1.0, -1.0]))):
-        raise InputError(
-            "tactile frame is not pressed into the gel but its mirror is: are its z values flipped? "
-            "(SPEC: z <= 0 where the gel is pressed)",
-            path,
-        )
+    if depth <= floor:
+        if np.greater(*indentation_m(points * np.array([1.0, 1.0, -1.0]))):
+            raise InputError(
+                "tactile frame is not pressed into the gel but its mirror is: are its z values flipped? "
+                "(SPEC: z <= 0 where the gel is pressed)",
+                path,
+            )
+        if spans_the_pad(points):
+            return points[:0]  # the whole pad, pressed nowhere: the gel lost contact (else registered as a flat one)
     return without_untouched_gel(points)
 
 
