@@ -43,6 +43,9 @@ def load_image(path: str | Path, spec: GelSightSpec = GELSIGHT_MINI) -> np.ndarr
     path = Path(path)
     if not path.is_file():
         raise InputError("image file not found", path)
+    if _png_colour_type(path) in PNG_GREY_TYPES:
+        # Pillow opens a 16-bit grey + alpha PNG as colour; its header says what it holds
+        raise InputError("expected an 8-bit colour image, got a greyscale PNG (a depth map is no GelSight frame)", path)
     try:
         with Image.open(path) as handle:
             if handle.mode not in COLOUR_IMAGE_MODES:
@@ -52,6 +55,19 @@ def load_image(path: str | Path, spec: GelSightSpec = GELSIGHT_MINI) -> np.ndarr
         raise InputError(f"not a readable image ({exc})", path) from exc
     check_image(image, spec, path)
     return image
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_GREY_TYPES = (0, 4)  # the PNG header's colour types of grey and grey + alpha
+
+
+def _png_colour_type(path: Path) -> int | None:
+    """The colour type byte of a PNG file's header (IHDR, right after the signature), None for another file."""
+    with open(path, "rb") as file:
+        head = file.read(26)
+    if len(head) < 26 or not head.startswith(PNG_SIGNATURE) or head[12:16] != b"IHDR":
+        return None
+    return head[25]
 
 
 def check_image(
