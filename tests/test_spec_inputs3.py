@@ -147,12 +147,16 @@ def test_a_whole_pad_tracking_frame_pressed_nowhere_holds_no_contact(tmp_path, r
 def test_a_16_bit_grey_and_alpha_png_is_refused_as_greyscale(tmp_path):
     """A 16-bit grey + alpha PNG (a depth camera's frame with a mask) is opened by Pillow as colour, so it was refused
     as "another sensor, or the lighting changed" after a reconstruction's worth of checks; the PNG header says it is
-    grey. Written here byte by byte from the PNG specification (colour type 4, bit depth 16), never by Pillow."""
+    grey. Written here byte by byte from the PNG specification (colour type 4, bit depth 16), never by Pillow: as a
+    file, and as a bag's CompressedImage message."""
     import struct
     import zlib
+    from types import SimpleNamespace
 
     from yoto.errors import InputError
+    from yoto.rig.streams import decode_image_message
     from yoto.sensor.presses import load_image
+    from yoto.sensor.spec import GELSIGHT_MINI
 
     def chunk(kind: bytes, data: bytes) -> bytes:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
@@ -161,8 +165,14 @@ def test_a_16_bit_grey_and_alpha_png_is_refused_as_greyscale(tmp_path):
     grey_alpha[..., 0], grey_alpha[..., 1] = 30000, 65535
     rows = b"".join(b"\x00" + row.tobytes() for row in grey_alpha)
     header = struct.pack(">IIBBBBB", 320, 240, 16, 4, 0, 0, 0)
-    path = tmp_path / "depth_with_mask.png"
     chunks = chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(rows)) + chunk(b"IEND", b"")
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunks)
+    png = b"\x89PNG\r\n\x1a\n" + chunks
+    path = tmp_path / "depth_with_mask.png"
+    path.write_bytes(png)
     with pytest.raises(InputError, match="depth_with_mask.png: expected an 8-bit colour image, got a greyscale PNG"):
         load_image(path)
+    message = SimpleNamespace(format="png", data=np.frombuffer(png, dtype=np.uint8))
+    with pytest.raises(
+        InputError, match=r"topic '/gel': a compressed frame \(png\) is not a colour image \(a greyscale PNG\)"
+    ):
+        decode_image_message(message, "sensor_msgs/msg/CompressedImage", GELSIGHT_MINI, "topic '/gel'", tmp_path / "b")

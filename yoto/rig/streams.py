@@ -28,7 +28,7 @@ from yoto.geometry import make_transform, quaternion_xyzw_to_rotation, rotation_
 from yoto.rig import bags
 from yoto.rig.motive import MotiveTake, is_motive_csv, read_motive_csv
 from yoto.rig.timeline import PointStream, PoseStream, Stream, clean_timeline, make_point_stream, make_pose_stream
-from yoto.sensor.presses import COLOUR_IMAGE_MODES, load_image
+from yoto.sensor.presses import COLOUR_IMAGE_MODES, PNG_HEADER_BYTES, is_grey_png, load_image
 from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
 from yoto.trajectory import LARGEST_PLAUSIBLE_TIMESTAMP_S
 
@@ -99,6 +99,12 @@ def decode_image_message(message: Any, msgtype: str, spec: GelSightSpec, where: 
     if msgtype == "sensor_msgs/msg/CompressedImage":
         from PIL import Image, UnidentifiedImageError
 
+        if is_grey_png(bytes(message.data[:PNG_HEADER_BYTES])):
+            raise InputError(
+                f"{where}: a compressed frame ({message.format}) is not a colour image (a greyscale PNG): is this the "
+                "GelSight topic?",
+                path,
+            )
         try:
             with Image.open(io.BytesIO(bytes(message.data))) as image:
                 if image.mode not in COLOUR_IMAGE_MODES:

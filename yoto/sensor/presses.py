@@ -31,6 +31,22 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 COLOUR_IMAGE_MODES = ("RGB", "RGBA", "P")  # Pillow modes of an 8-bit colour frame (a GelSight camera's)
 
 
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_HEADER_BYTES = 26  # the signature and the IHDR chunk up to its colour type byte
+PNG_GREY_TYPES = (0, 4)  # the PNG header's colour types of grey and grey + alpha
+
+
+def is_grey_png(head: bytes) -> bool:
+    """Whether `head` (a file's or message's first PNG_HEADER_BYTES bytes, or more) starts a PNG whose header says
+    grey or grey + alpha. Pillow opens a 16-bit grey + alpha PNG as colour (mode RGBA), so its mode cannot tell."""
+    return (
+        len(head) >= PNG_HEADER_BYTES
+        and head.startswith(PNG_SIGNATURE)
+        and head[12:16] == b"IHDR"
+        and head[25] in PNG_GREY_TYPES
+    )
+
+
 def load_image(path: str | Path, spec: GelSightSpec = GELSIGHT_MINI) -> np.ndarray:
     """Read an image file as (rows, cols, 3) uint8 RGB and check it has the sensor's size.
 
@@ -43,9 +59,11 @@ def load_image(path: str | Path, spec: GelSightSpec = GELSIGHT_MINI) -> np.ndarr
     path = Path(path)
     if not path.is_file():
         raise InputError("image file not found", path)
-    if _png_colour_type(path) in PNG_GREY_TYPES:
-        # Pillow opens a 16-bit grey + alpha PNG as colour; its header says what it holds
-        raise InputError("expected an 8-bit colour image, got a greyscale PNG (a depth map is no GelSight frame)", path)
+    with open(path, "rb") as file:
+        if is_grey_png(file.read(PNG_HEADER_BYTES)):
+            raise InputError(
+                "expected an 8-bit colour image, got a greyscale PNG (a depth map is no GelSight frame)", path
+            )
     try:
         with Image.open(path) as handle:
             if handle.mode not in COLOUR_IMAGE_MODES:
@@ -55,19 +73,6 @@ def load_image(path: str | Path, spec: GelSightSpec = GELSIGHT_MINI) -> np.ndarr
         raise InputError(f"not a readable image ({exc})", path) from exc
     check_image(image, spec, path)
     return image
-
-
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-PNG_GREY_TYPES = (0, 4)  # the PNG header's colour types of grey and grey + alpha
-
-
-def _png_colour_type(path: Path) -> int | None:
-    """The colour type byte of a PNG file's header (IHDR, right after the signature), None for another file."""
-    with open(path, "rb") as file:
-        head = file.read(26)
-    if len(head) < 26 or not head.startswith(PNG_SIGNATURE) or head[12:16] != b"IHDR":
-        return None
-    return head[25]
 
 
 def check_image(
