@@ -1,19 +1,23 @@
 """Tactile frames written by another program: does `yoto track` close the loop on them as on YOTO's own frames?
 
-Every closed-loop figure before used YOTO's simulated frames (contact points alone, every second pixel). This
-benchmark simulates trajectories as `yoto simulate trajectory` does (same seed, same folder) and writes, beside each,
-copies whose tactile frames (`left_tactile/`, `right_tactile/`, same file names) are rewritten as another simulator
-would write them, from the truth alone: at each frame time the sensor's true pose on the object (the pose YOTO's own
-frame was pressed at, slip and settling included: what the gel sees), a 320 x 240 grid of rays at 0.0634 mm through
-the pad into the mesh (benchmarks/foreign_contacts.py's generator: Open3D ray casting, the penetration spread by an
-exponential kernel of 0.5 mm, not YOTO's Gaussian). Settings: `whole_pad` (every pixel, the untouched gel at z = 0,
-the gel's sink-in ring; 10 um white noise), `contact_only` (the noise-free contact's pixels, the same noisy heights),
-`whole_pad_corr` / `contact_only_corr` (the same with 30 um of noise correlated over 1 mm; new each frame, the two
-settings of a pair draw the same fields). These frames carry no fixed per-sensor error (YOTO's frames have a depth
-scale error and a smooth bias field drawn once per sensor): compare the settings with each other for the handling,
-with `yoto` only loosely. The touch (`touch.json`, its clouds), the pose streams and the truth stay YOTO's: the
-folders of a trajectory differ in their frames only. A frame whose pad misses the object is written empty (contact
-points alone) or as the flat pad.
+Every closed-loop figure before used YOTO's simulated frames (contact points alone, every second pixel). This benchmark
+simulates trajectories as `yoto simulate trajectory` does (same seed, same folder) and writes, beside each, copies whose
+tactile frames (`left_tactile/`, `right_tactile/`, same file names) are rewritten as another simulator would write them,
+from the truth alone: at each frame time the sensor's true pose on the object (the pose YOTO's own frame was pressed at,
+slip and settling included: what the gel sees), a 320 x 240 grid of rays at 0.0634 mm through the pad into the mesh
+(benchmarks/foreign_contacts.py's generator: Open3D ray casting, the penetration spread by an exponential kernel of 0.5
+mm, not YOTO's Gaussian). Settings: `whole_pad` (every pixel, the untouched gel at z = 0, the gel's sink-in ring; 10 um
+white noise), `contact_only` (the noise-free contact's pixels, the same noisy heights), `whole_pad_corr` /
+`contact_only_corr` (the same with 30 um of noise correlated over 1 mm; new each frame, the two settings of a pair draw
+the same fields), and `whole_pad_lift` / `contact_only_lift` (not run by default): the first two with the object leaving
+the gel in some frames (the right sensor's frames from 40 to 55% of its frames, the grip slackening on one side, and
+both sensors' last 10%): the object's front moved 0-50 um behind the gel plane (flat gel) or 20-100 um into it (a kiss),
+one or the other at random, the other frames byte for byte the setting's without; the sensor streams and the truth
+unchanged, so a lifted frame registered as a contact pulls the pose off by the press's depth. These frames carry no
+fixed per-sensor error (YOTO's frames have a depth scale error and a smooth bias field drawn once per sensor): compare
+the settings with each other for the handling, with `yoto` only loosely. The touch (`touch.json`, its clouds), the pose
+streams and the truth stay YOTO's: the folders of a trajectory differ in their frames only. A frame whose pad misses the
+object is written empty (contact points alone) or as the flat pad.
 
 Each folder is tracked by the `yoto track` CLI, closed loop, with `--truth` and `--report`; prints one row per
 trajectory and setting, from the report: the closed loop's final drift (mm / deg), its mean and peak error during the
@@ -22,6 +26,7 @@ frames of an instant), and the CLI process's CPU seconds (model loading and the 
 
     python benchmarks/foreign_frames.py --out DIR                         # figurine, fruit, tool; seed 11, 2 each
     python benchmarks/foreign_frames.py --out DIR --objects bunny -n 1 --settings whole_pad contact_only
+    python benchmarks/foreign_frames.py --out DIR -n 1 --settings whole_pad_lift contact_only_lift
 """
 
 from __future__ import annotations
