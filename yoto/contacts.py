@@ -52,8 +52,8 @@ RECENT_CLOUDS = 4  # contact_in_sensor keeps its answers for this many clouds
 # - a whole pad (the untouched gel around the contact in the cloud, not contact points alone): at least
 #   INDENTATION_POINTS and UNTOUCHED_SHARE of its points on or above the gel plane (the untouched gel's upper half:
 #   4-80% in whole-pad clouds of 0.5-2 mm presses; a cloud of contact points alone with a noisy rim, 0.1-0.4% at
-#   20 um noise), or as many and a cloud that spans the pad (`spans_the_pad`: a whole pad whose gel a
-#   reconstruction's offset put below z = 0); docs/formats.md, stop 15;
+#   20 um noise), or at least INDENTATION_POINTS there and a cloud that spans the pad (`spans_the_pad`: a whole
+#   pad whose gel a reconstruction's offset put below z = 0); docs/formats.md, stop 15;
 # - a whole pad's contact: its points deeper than the noise floor and than SINK_IN_SHARE of the depth (the gel sinks
 #   in around a contact without touching the object; 0.05, the reconstruction's `felt_relative_depth`, left most of
 #   a soft gel's ring; 0.1 took whole-pad poses from 30 to 34 of 40, the contact-only clouds' 35).
@@ -568,6 +568,7 @@ __all__ = [
     "WELL_CONDITIONED",
     "ContactEstimate",
     "ContactPair",
+    "GelReading",
     "ImageReconstructor",
     "TactileContact",
     "TactileImage",
@@ -576,7 +577,6 @@ __all__ = [
     "contact_in_world",
     "dual_contact_conditioning",
     "find_pair_files",
-    "GelReading",
     "read_contact_pair",
     "read_gel",
     "read_tactile_cloud",

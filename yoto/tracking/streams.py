@@ -93,12 +93,11 @@ MAX_FRAME_EXTENT_M = 0.1  # a tactile frame wider than this is no GelSight's (mi
 
 def frame_contact(points_sensor: np.ndarray, path: Path) -> np.ndarray:
     """A tactile frame's contact points: its finite points (an organised cloud marks pixels without data NaN), without
-    the untouched gel of a cloud of the whole pad (`GelReading.felt`); none where the object only kisses the gel or
-    the gel is not pressed beyond its noise (`GelReading.kiss`, `pressed`: the gel lost contact, and its flat gel or a
-    speck of a few pixels is no contact surface to register: the closed loop keeps its prediction for that frame,
-    the open loop). A frame in
-    millimetres (or pixels) or with its z flipped raises InputError naming it, so the tracker leaves it out
-    saying why (in millimetres it would size the tracker's sampling grid by metres: an out-of-memory crash)."""
+    the untouched gel of a cloud of the whole pad (`GelReading.felt`); none where the object only kisses the gel or the
+    gel is not pressed beyond its noise (`GelReading.kiss`, `pressed`: the gel lost contact, and its flat gel or a speck
+    of a few pixels is no contact surface to register; the closed loop keeps its prediction, the open loop's, for that
+    frame). A frame in millimetres (or pixels) or with its z flipped raises InputError naming it, so the tracker leaves
+    it out saying why (in millimetres it would size the tracker's sampling grid by metres: an out-of-memory crash)."""
     finite = np.isfinite(points_sensor)
     points = points_sensor if finite.all() else points_sensor[finite.all(axis=1)]  # a whole pad's copy costs 1 ms
     if len(points) == 0:
