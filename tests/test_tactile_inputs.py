@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from yoto.contacts import ContactPair, TactileContact, indentation_m, validate_tactile_points, write_contact_pair
+from yoto.contacts import ContactPair, TactileContact, read_gel, validate_tactile_points, write_contact_pair
 from yoto.errors import DegenerateGeometryError, NoContactError
 
 
@@ -29,8 +29,8 @@ def test_a_cloud_not_pressed_into_the_gel_is_no_contact(rng):
     validate_tactile_points(_grid(-0.3e-3), None)
     dense = _grid(rng.normal(0.0, 1e-5, (60, 60)))
     dense[dent, 2] -= 0.4e-3
-    depth, floor = indentation_m(dense)
-    assert depth > 0.3e-3 > floor and len(validate_tactile_points(dense, None)) == len(dense)
+    gel = read_gel(dense)
+    assert gel.depth_m > 0.3e-3 > gel.floor_m and len(validate_tactile_points(dense, None)) == len(dense)
 
 
 def test_pose_says_a_pair_with_a_flat_side_has_no_contact(builtin_models, tmp_path, capsys):

@@ -86,7 +86,9 @@ def test_tactile_frame_folders(tmp_path, rng):
     folder = tmp_path / "left_tactile"
     stamps = [1_700_000_000.04, 1_700_000_000.0, 1_700_000_000.08]
     for stamp in stamps:
-        write_ply_points(folder / tactile_frame_name(stamp), rng.normal(size=(40, 3)) * 1e-3)
+        points = rng.normal(size=(40, 3)) * 1e-3
+        points[:, 2] = -np.abs(points[:, 2]) - 5e-4  # pressed into the gel (a flat noisy frame is no contact)
+        write_ply_points(folder / tactile_frame_name(stamp), points)
     (folder / "notes.txt").write_text("ignored")
     timestamps, paths = list_tactile_frames(folder)
     assert timestamps.tolist() == sorted(stamps)

@@ -44,19 +44,28 @@ LOCAL_FIT_RADIUS_M = 0.002  # radius of the surface patch fitted at the contact 
 LOCAL_FIT_MIN_POINTS = 12
 LINE_POINTS = 8  # points averaged where the centroid's normal line meets the cloud
 RECENT_CLOUDS = 4  # contact_in_sensor keeps its answers for this many clouds
-# No contact: the cloud's deepest points (the INDENTATION_POINTS-th deepest) are no deeper than this, nor than
-# NOISE_MARGIN times the RMS height of the points above the gel plane (which can only be noise).
+# What the gel felt (`read_gel`, one rule for "is it pressed" and "which points are the untouched gel"):
+# - the noise: 1 sigma of the heights, read off the points above the gel plane (z > 0 can only be noise) as the median
+#   of that half-normal half (HALF_NORMAL_MEDIAN), so a few spikes do not count;
+# - the noise floor: NOISE_MARGIN sigma, and at least NO_INDENTATION_M; the cloud is pressed when its deepest points
+#   (the INDENTATION_POINTS-th deepest) lie deeper than it;
+# - a whole pad (the untouched gel around the contact in the cloud, not contact points alone): at least
+#   INDENTATION_POINTS and UNTOUCHED_SHARE of its points on or above the gel plane (the untouched gel's upper half:
+#   4-80% in whole-pad clouds of 0.5-2 mm presses; a cloud of contact points alone with a noisy rim, 0.1-0.4% at
+#   20 um noise), or at least INDENTATION_POINTS there and a cloud that spans the pad (`spans_the_pad`: a whole
+#   pad whose gel a reconstruction's offset put below z = 0); docs/formats.md, stop 15;
+# - a whole pad's contact: its points deeper than the noise floor and than SINK_IN_SHARE of the depth (the gel sinks
+#   in around a contact without touching the object; 0.05, the reconstruction's `felt_relative_depth`, left most of
+#   a soft gel's ring; 0.1 took whole-pad poses from 30 to 34 of 40, the contact-only clouds' 35).
 NO_INDENTATION_M = 5e-5
 NOISE_MARGIN = 5.0
 INDENTATION_POINTS = 20
-# A cloud of the whole pad has at least this share of its points on or above the gel plane (the untouched gel's
-# upper half: 4-80% in whole-pad clouds of 0.5-2 mm presses); a cloud of contact points alone with a noisy rim,
-# 0.1-0.4% (20 um noise; docs/formats.md, stop 15).
 UNTOUCHED_SHARE = 0.01
-# A cloud of the whole pad is read as its contact from this share of its depth on (docs/formats.md, stop 15: 0.05,
-# the reconstruction's `felt_relative_depth`, left most of a soft gel's sink-in ring; 0.1 took whole-pad poses from
-# 30 to 34 of 40, the contact-only clouds' 35).
 SINK_IN_SHARE = 0.1
+# A tactile frame during motion whose deepest points lie less deep than this shows the object leaving the gel (a kiss
+# over a few pixels, or no press at all): the closed loop does not register it (`GelReading.kiss`; docs/formats.md,
+# stop 16). YOTO's own frames lie at least 0.51 mm deep (12 825 frames of the tracking benchmark's seed 11).
+KISS_DEPTH_M = 1e-4
 MINI_PAD_M = (320 * 0.0634e-3, 240 * 0.0634e-3)  # SPEC's pad (yoto.sensor.spec's; this core module does not import it)
 HALF_NORMAL_MEDIAN = 0.6745  # the median of |x| for x ~ N(0, 1): noise sigma from the median of its positive half
 
@@ -231,6 +240,11 @@ def validate_tactile_points(points: np.ndarray, source: str | Path | None) -> np
     """Check a tactile cloud is (N, 3), finite and large enough; return it as float64. Points whose three
     coordinates are all NaN are dropped: an organised cloud (one point per pixel, PCL's convention) marks the
     pixels without data so."""
+    return _validated(points, source)[0]
+
+
+def _validated(points: np.ndarray, source: str | Path | None) -> tuple[np.ndarray, GelReading]:
+    """`validate_tactile_points`, and what the gel felt (`read_gel`), read once for the check and the contact."""
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise InputError(f"tactile cloud must be (N, 3), got shape {points.shape}", source)
@@ -258,27 +272,27 @@ def validate_tactile_points(points: np.ndarray, source: str | Path | None) -> np
         )
     if extent < 1e-4:
         raise InputError(f"tactile cloud spans only {extent * 1e3:.3f} mm: it holds no contact surface", source)
-    depth, floor = indentation_m(points)
-    if depth <= floor:
-        mirrored_depth, mirrored_floor = indentation_m(points * np.array([1.0, 1.0, -1.0]))
+    gel = read_gel(points)
+    if not gel.pressed:
         hint = (
             " (are its z values flipped? SPEC: z <= 0 where the gel is pressed)"
-            if mirrored_depth > mirrored_floor
+            if read_gel(points * np.array([1.0, 1.0, -1.0])).pressed
             else ""
         )
         raise NoContactError(
             f"no contact: the tactile cloud is not pressed into the gel (its deepest points are "
-            f"{max(depth, 0.0) * 1e3:.3f} mm deep, within the {floor * 1e3:.3f} mm noise floor of the undeformed "
-            f"gel){hint}",
+            f"{max(gel.depth_m, 0.0) * 1e3:.3f} mm deep, within the {gel.floor_m * 1e3:.3f} mm noise floor of the "
+            f"undeformed gel){hint}",
             source,
         )
-    return points
+    return points, gel
 
 
 def read_tactile_cloud(path: Path) -> np.ndarray:
     """A tactile cloud file (PLY, sensor frame, metres), validated, and read as its contact when it covers the whole
     pad (`without_untouched_gel`). Errors name the file."""
-    points = without_untouched_gel(validate_tactile_points(read_ply_points(path)[0], path))
+    points, gel = _validated(read_ply_points(path)[0], path)
+    points = gel.felt(points)
     if len(points) < MIN_TACTILE_POINTS:
         raise InputError(
             f"tactile cloud has only {len(points)} points pressed into the gel (the rest lie on the undeformed gel); "
@@ -289,52 +303,75 @@ def read_tactile_cloud(path: Path) -> np.ndarray:
 
 
 def without_untouched_gel(points_sensor: np.ndarray) -> np.ndarray:
-    """The cloud without its points on the undeformed gel. A cloud of the whole pad (a point per pixel, as a
-    reconstructed height map gives it) holds the untouched gel around the contact, z = 0 within the reconstruction's
-    noise: not contact surface, and taken for it, it drags the contact's centre and normal to the pad's. Those are the
-    points less deep than NO_INDENTATION_M or 5 sigma of that noise (read off the points above the gel, z > 0, which
-    only noise puts there: robustly, from at least INDENTATION_POINTS of them, so a few spikes do not count), or than
-    SINK_IN_SHARE of the contact's depth: the gel sinks in around a contact, more the deeper it is pressed, and that
-    ring is gel, not the object (a cloud of contact points alone, whose writer knew the contact, holds none). A cloud
-    of contact points alone (fewer than INDENTATION_POINTS, or less than UNTOUCHED_SHARE of its points unless it spans
-    the pad, on or above the gel plane, z >= 0: a noisy contact's shallow rim puts a few there), or one not pressed
-    into the gel (`indentation_m`), is returned as it is."""
+    """The cloud's contact: without the untouched gel of a cloud of the whole pad (`read_gel`, `GelReading.felt`)."""
+    return read_gel(points_sensor).felt(points_sensor)
+
+
+@dataclass(frozen=True)
+class GelReading:
+    """What a tactile cloud says the gel felt (`read_gel`): how deep it is pressed, over what noise, and whether the
+    cloud holds the untouched gel around the contact (the whole pad) or the contact's points alone."""
+
+    depth_m: float  # the INDENTATION_POINTS-th deepest point's -z (a few spikes do not make a contact)
+    noise_m: float  # 1 sigma of the heights' noise, from the points above the gel plane (0 when none lies there)
+    whole_pad: bool  # the cloud holds the untouched gel around its contact
+
+    @property
+    def floor_m(self) -> float:
+        """The depth above which a point may be the undeformed gel's noise."""
+        return max(NO_INDENTATION_M, NOISE_MARGIN * self.noise_m)
+
+    @property
+    def pressed(self) -> bool:
+        """Whether the cloud's deepest points lie beyond the noise floor: a flat noisy cloud on the gel plane is not,
+        whether or not it is dense."""
+        return self.depth_m > self.floor_m
+
+    @property
+    def contact_from_m(self) -> float:
+        """The depth from which a whole pad's points are the object's: beyond the noise floor and SINK_IN_SHARE of the
+        contact's depth (the ring where the gel sinks in around a contact without touching the object; a cloud of
+        contact points alone, whose writer knew the contact, holds none)."""
+        return max(self.floor_m, SINK_IN_SHARE * self.depth_m)
+
+    @property
+    def kiss(self) -> bool:
+        """Whether the object only kisses the gel (its deepest points less than KISS_DEPTH_M deep), if it touches at
+        all: a tracking frame so read shows the object leaving the gel. (The pose stage still matches such a side
+        as a small contact, with the low belief of its area: `localize.scaled_match`.)"""
+        return self.depth_m < KISS_DEPTH_M
+
+    def felt(self, points_sensor: np.ndarray) -> np.ndarray:
+        """The read cloud's contact points: a pressed whole pad's points deeper than `contact_from_m`; a cloud of
+        contact points alone, or one not pressed (which holds no contact: `pressed`), as it is."""
+        if not (self.pressed and self.whole_pad):
+            return points_sensor
+        pressed = points_sensor[:, 2] <= -self.contact_from_m
+        if pressed.all() or pressed.sum() < INDENTATION_POINTS:
+            return points_sensor
+        return points_sensor[pressed]
+
+
+def read_gel(points_sensor: np.ndarray) -> GelReading:
+    """The one rule by which a tactile cloud is read as a contact (constants above; docs/formats.md, stop 16):
+    its depth, its noise and noise floor, whether it is pressed, and whether it holds the untouched gel."""
     z = points_sensor[:, 2]
-    on_gel = int((z >= 0.0).sum())
-    if on_gel < INDENTATION_POINTS or (on_gel < UNTOUCHED_SHARE * len(z) and not spans_the_pad(points_sensor)):
-        return points_sensor
-    depth, contact_floor = indentation_m(points_sensor)
-    if depth <= contact_floor:
-        return points_sensor
+    k = min(INDENTATION_POINTS, len(z))
+    depth = float(-np.partition(z, k - 1)[k - 1]) if k else 0.0
     above = z[z > 0]
-    noise = float(np.median(above)) / HALF_NORMAL_MEDIAN if len(above) >= INDENTATION_POINTS else 0.0
-    floor = max(NO_INDENTATION_M, NOISE_MARGIN * noise, SINK_IN_SHARE * depth)
-    pressed = z <= -floor
-    if pressed.all() or pressed.sum() < INDENTATION_POINTS:
-        return points_sensor
-    return points_sensor[pressed]
+    noise = float(np.median(above)) / HALF_NORMAL_MEDIAN if len(above) else 0.0
+    on_gel = int((z >= 0.0).sum())
+    whole_pad = on_gel >= INDENTATION_POINTS and (on_gel >= UNTOUCHED_SHARE * len(z) or spans_the_pad(points_sensor))
+    return GelReading(depth, noise, whole_pad)
 
 
 def spans_the_pad(points_sensor: np.ndarray) -> bool:
     """Whether the cloud reaches across nine tenths of the GelSight Mini's pad both ways: a whole pad, even where its
     untouched gel lies a little below z = 0 (a reconstruction's offset) and only noise's tail reaches above."""
     width, height = MINI_PAD_M
+    if len(points_sensor) == 0:
+        return False
     return bool(np.ptp(points_sensor[:, 0]) > 0.9 * width and np.ptp(points_sensor[:, 1]) > 0.9 * height)
-
-
-def indentation_m(points_sensor: np.ndarray) -> tuple[float, float]:
-    """(depth, floor): how deep a tactile cloud's deepest points are pressed, and the depth below which that is noise.
-
-    depth: the INDENTATION_POINTS-th deepest point's -z (a few spikes do not make a contact). floor: the larger of
-    NO_INDENTATION_M and NOISE_MARGIN x the RMS height of the points above the gel plane (z > 0 can only be
-    noise), so a flat noisy cloud lying on the gel plane is no contact, whether or not it is dense.
-    """
-    z = points_sensor[:, 2]
-    k = min(INDENTATION_POINTS, len(z))
-    depth = float(-np.partition(z, k - 1)[k - 1])
-    above = z[z > 0]
-    noise = float(np.sqrt(np.mean(above * above))) if len(above) else 0.0
-    return depth, max(NO_INDENTATION_M, NOISE_MARGIN * noise)
 
 
 LARGEST_PLAUSIBLE_POSITION_M = 50.0  # a pose further from the world origin is most likely in millimetres
@@ -531,6 +568,7 @@ __all__ = [
     "WELL_CONDITIONED",
     "ContactEstimate",
     "ContactPair",
+    "GelReading",
     "ImageReconstructor",
     "TactileContact",
     "TactileImage",
@@ -539,8 +577,8 @@ __all__ = [
     "contact_in_world",
     "dual_contact_conditioning",
     "find_pair_files",
-    "indentation_m",
     "read_contact_pair",
+    "read_gel",
     "read_tactile_cloud",
     "validate_tactile_points",
     "spans_the_pad",

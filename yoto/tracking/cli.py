@@ -122,18 +122,8 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from yoto.errors import InputError
     from yoto.tracking.job import Source, TrackJob, run_track_job
 
-    for what, suffix in (("pose streams", ""), ("tactile frames", "_tactile")):
-        left, right = (getattr(args, f"{side}{suffix}") for side in ("left", "right"))
-        topics = [getattr(args, f"{side}{suffix}_topic") for side in ("left", "right")]
-        if left and right and Path(left).resolve() == Path(right).resolve() and topics[0] == topics[1]:
-            where = f" (topic {topics[0]})" if topics[0] else ""
-            raise InputError(
-                f"the left and right {what} are the same source, {left}{where}: give each sensor its own "
-                + ("topic" if topics[0] else "file" if not suffix else "folder or topic")
-            )
     tactile = {}
     if not args.open_loop:
         for side in ("left", "right"):

@@ -169,10 +169,25 @@ def touch_pose(job: TrackJob, pair: ContactPair, model: ObjectModel) -> tuple[np
     return estimate.T_world_object, source, estimate.confidence
 
 
+def check_sources_distinct(job: TrackJob) -> None:
+    """Refuse one source for both sensors (the same pose file, tactile folder, or recording and topic), before anything
+    is read: the left sensor's stream would be taken for the right one's too, silently."""
+    for what, sources in (("pose streams", job.sensors), ("tactile frames", job.tactile)):
+        left, right = sources.get("left"), sources.get("right")
+        if left is None or right is None or left.path.resolve() != right.path.resolve() or left.topic != right.topic:
+            continue
+        where = f" (topic {left.topic})" if left.topic else ""
+        own = "topic" if left.topic else "file" if what == "pose streams" else "folder or topic"
+        raise InputError(
+            f"the left and right {what} are the same source, {left.path}{where}: give each sensor its own {own}"
+        )
+
+
 def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOutcome:
     """Read the job's files, track, write the tracked poses (and report, figure); return what happened."""
     from yoto.objects.build import load_object_model
 
+    check_sources_distinct(job)
     images = ImageSides(job.calibration)  # the touch's image sides and image tactile frames
     pair = read_contact_pair(job.pair, images)
     model = load_object_model(job.model or pair.object_name, job.workspace)

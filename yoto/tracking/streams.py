@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from yoto.contacts import indentation_m, spans_the_pad, without_untouched_gel
+from yoto.contacts import read_gel
 from yoto.errors import InputError
 from yoto.io import read_ply_points
 from yoto.rig.motive import is_motive_csv
@@ -93,10 +93,11 @@ MAX_FRAME_EXTENT_M = 0.1  # a tactile frame wider than this is no GelSight's (mi
 
 def frame_contact(points_sensor: np.ndarray, path: Path) -> np.ndarray:
     """A tactile frame's contact points: its finite points (an organised cloud marks pixels without data NaN), without
-    the untouched gel of a cloud of the whole pad; none of a whole pad (`spans_the_pad`) pressed nowhere: the gel lost
-    contact, and its flat gel is no contact surface (a shallow frame of contact points alone is kept as it is). A frame
-    in millimetres (or pixels) or with its z flipped raises InputError naming it, so the tracker leaves it out saying
-    why (in millimetres it would size the tracker's sampling grid by metres: an out-of-memory crash)."""
+    the untouched gel of a cloud of the whole pad (`GelReading.felt`); none where the object only kisses the gel or the
+    gel is not pressed beyond its noise (`GelReading.kiss`, `pressed`: the gel lost contact, and its flat gel or a speck
+    of a few pixels is no contact surface to register; the closed loop keeps its prediction, the open loop's, for that
+    frame). A frame in millimetres (or pixels) or with its z flipped raises InputError naming it, so the tracker leaves
+    it out saying why (in millimetres it would size the tracker's sampling grid by metres: an out-of-memory crash)."""
     finite = np.isfinite(points_sensor)
     points = points_sensor if finite.all() else points_sensor[finite.all(axis=1)]  # a whole pad's copy costs 1 ms
     if len(points) == 0:
@@ -107,17 +108,16 @@ def frame_contact(points_sensor: np.ndarray, path: Path) -> np.ndarray:
             f"tactile frame spans {extent * 1e3:.0f} mm, more than any GelSight pad: is it in metres, sensor frame?",
             path,
         )
-    depth, floor = indentation_m(points)
-    if depth <= floor:
-        if np.greater(*indentation_m(points * np.array([1.0, 1.0, -1.0]))):
-            raise InputError(
-                "tactile frame is not pressed into the gel but its mirror is: are its z values flipped? "
-                "(SPEC: z <= 0 where the gel is pressed)",
-                path,
-            )
-        if spans_the_pad(points):
-            return points[:0]  # the whole pad, pressed nowhere: the gel lost contact (else registered as a flat one)
-    return without_untouched_gel(points)
+    gel = read_gel(points)  # one reading decides both: is it pressed, and which points are the contact
+    if not gel.pressed and read_gel(points * np.array([1.0, 1.0, -1.0])).pressed:
+        raise InputError(
+            "tactile frame is not pressed into the gel but its mirror is: are its z values flipped? "
+            "(SPEC: z <= 0 where the gel is pressed)",
+            path,
+        )
+    if gel.kiss or not gel.pressed:
+        return points[:0]  # the object leaves the gel: its flat gel or a speck would be registered as the contact
+    return gel.felt(points)
 
 
 def read_tactile_folder(folder: str | Path, name: str | None = None) -> TactileStream:
