@@ -632,6 +632,8 @@ def test_frames_through_gelsight_images_are_tracked_from_a_folder_of_pngs(
     cloud = reconstruct(frame.image, gelsight).points_sensor
     assert len(cloud) > 1000 and np.median(np.abs(cloud[:, 2])) > 1e-4  # a pressed contact, every pixel kept
     assert trajectory.summary["frames_via"] == "images"
+    at_rest = [f.image for f in trajectory.tactile["left"] if f.timestamp_s <= trajectory.summary["motion_start_s"]]
+    assert len(at_rest) >= 2 and not np.array_equal(at_rest[0], at_rest[1])  # the camera's noise is new every frame
 
     folder = write_trajectory(trajectory, model, tmp_path / "traj")
     tactile = {}
