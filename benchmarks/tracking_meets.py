@@ -45,6 +45,15 @@ pads' maps learnt there) and prints, per band of pinning, the closed loop's fina
 over the motion: the drift a loop that believed its frames would show, and (weighed against the slip by their sizes)
 about the least a loop that weighs its frames against its prediction can leave (~4 CPU s more a trajectory).
 
+`--frames-via SOURCE` tracks each cached trajectory simulated again with its tactile frames (and the touch's clouds,
+which only the pinning reads: the cached touch estimate is kept) rendered to GelSight images from the gel's height
+map and reconstructed by the sensor stage (`yoto.sensor.optical.image_route(SOURCE)`: a calibration file, its fitted
+renderer, or `shading[:SEED]`); the tracker reconstructs each image when it loads the frame, so the time per instant
+includes image -> cloud. The same seed, path, slip and sensor streams (checked: the truth is identical). ~30-60 CPU s
+more a trajectory to render; `--images-cache DIR` keeps them (~100 MB each). `--lengths 100` keeps one path length.
+Printed with every run: the frames used and refused (why), the time per instant (wall, median and 90th percentile)
+and the open loop's final drift.
+
 `--without bias scale pixel` tracks each cached trajectory simulated again with those parts of the tactile frames'
 reconstruction error switched off (the pad's smooth field, the depth scale error, the per-frame pixel noise): the same
 seed, path, slip and sensor streams, the cached touch estimate and its pinning (the touch's own clouds keep their
@@ -126,8 +135,10 @@ def _localizer(method: str):
     return make_localizer(method)
 
 
-def jobs_of(seeds: list[int], objects: list[str] | None) -> list[tuple[int, str, int, int]]:
-    """(seed, object, path length mm, index) of every trajectory of the seeds' sets."""
+def jobs_of(
+    seeds: list[int], objects: list[str] | None, only_lengths: list[int] | None = None
+) -> list[tuple[int, str, int, int]]:
+    """(seed, object, path length mm, index) of every trajectory of the seeds' sets (of `only_lengths`, if given)."""
     return [
         (seed, name, length, index)
         for seed in seeds
@@ -135,6 +146,7 @@ def jobs_of(seeds: list[int], objects: list[str] | None) -> list[tuple[int, str,
         for name in names
         if not objects or name in objects
         for length in lengths
+        if not only_lengths or length in only_lengths
         for index in range(count)
     ]
 
@@ -180,6 +192,41 @@ def without_errors(trajectory: Any, job: tuple[int, str, int, int], args: argpar
     return dataclasses.replace(again, touch=trajectory.touch, touch_time_s=trajectory.touch_time_s)
 
 
+@functools.cache
+def _image_route(source: str):
+    from yoto.sensor.optical import image_route
+
+    return image_route(source)
+
+
+def via_images(trajectory: Any, job: tuple[int, str, int, int], args: argparse.Namespace) -> Any:
+    """The job's trajectory simulated again with its tactile frames rendered to GelSight images and reconstructed
+    by the sensor stage (`image_route(args.frames_via)`; the same seed: path, slip and streams are drawn from their
+    own random streams, checked by the truth); the cached touch (its clouds and estimate) is kept."""
+    from yoto.simulate.trajectory import TrajectorySimulator
+
+    seed, name, length, index = job
+    stored = None
+    if args.images_cache:
+        source = "".join(c if c.isalnum() else "_" for c in Path(args.frames_via).name)
+        stored = Path(args.images_cache) / f"seed{seed}" / f"{name}_{length}mm_{index:03d}_{source}.pkl"
+    if stored is not None and stored.exists():
+        with stored.open("rb") as stream:
+            again = pickle.load(stream)
+    else:
+        config = scaled_trajectory(TrackBenchConfig().trajectory, length / 1e3)
+        model = _model(object_spec(name, args.meshes), args.workspace)
+        again = TrajectorySimulator(model, config, _image_route(args.frames_via)).trajectory(seed, index)
+        if stored is not None:
+            stored.parent.mkdir(parents=True, exist_ok=True)
+            with stored.with_suffix(".part").open("wb") as stream:
+                pickle.dump(again, stream, protocol=pickle.HIGHEST_PROTOCOL)
+            stored.with_suffix(".part").replace(stored)
+    if not np.allclose(again.truth.T_world_frame, trajectory.truth.T_world_frame, atol=1e-12):
+        raise SystemExit(f"{key_of(dict(seed=seed, object=name, length_mm=length, index=index))}: the truth changed")
+    return dataclasses.replace(again, touch=trajectory.touch, touch_time_s=trajectory.touch_time_s)
+
+
 def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[str, Any]:
     """Track one cached trajectory closed loop with the working tree's code: its figures and CPU time."""
     trajectory, T_touch = cached(job, args)
@@ -188,6 +235,8 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
     touch_trajectory = trajectory
     if args.without:
         trajectory = without_errors(trajectory, job, args)
+    if args.frames_via:
+        trajectory = via_images(trajectory, job, args)
     touch = touch_from_pair(trajectory.touch.pair, T_touch, trajectory.touch_time_s, "simulated")
     config = TrackBenchConfig().track
     if args.correction:  # CorrectionConfig fields overridden, NAME=VALUE (a Python literal; pad_error.NAME too)
@@ -213,6 +262,8 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
     record: dict[str, Any] = {"seed": seed, "object": name, "length_mm": length, "index": index}
     if args.without:
         record["without"] = list(args.without)
+    if args.frames_via:
+        record["frames_via"] = args.frames_via
     for loop, poses in (("open", result.T_world_object_open_loop), ("closed", result.T_world_object)):
         errors = tracking_errors(result.timestamps_s, poses, truth, T_touch, trajectory.touch.T_world_object)
         summary = summarize_errors(errors, motion)
@@ -222,7 +273,11 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
     record["right_touch"] = bool(
         touch_error["mm"] <= 1e3 * RIGHT_TOUCH_M and touch_error["deg"] <= np.degrees(RIGHT_TOUCH_RAD)
     )
-    record["frames"] = result.correction_summary()["frames"]
+    frames = result.correction_summary()
+    record["frames"] = frames["frames"]
+    record["frames_used"] = frames["frames_used"]
+    record["unusable"] = frames["unusable"]
+    record["instant_ms"] = [c.latency_ms for c in result.corrections]  # wall time, loading (reconstruction) included
     record["cpu_s"] = cpu_s
     used = [c for c in result.corrections if c.used]
     if used:  # the filter's own 1-sigma after its last applied instant (its least certain turn and shift)
@@ -516,6 +571,29 @@ def frames_floor(records: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
+def frames_line(records: list[dict[str, Any]]) -> str:
+    """The frames the closed loop used and refused (why), the time per tactile instant (wall, the frame's loading and
+    reconstruction included: median and 90th percentile over every instant) and the open loop's final drift, over
+    the right touches (records of an earlier run without them: the frame counts alone)."""
+    right = [r for r in records if r["right_touch"]]
+    if not right or "frames_used" not in right[0]:
+        return f"frames: {sum(r['frames'] for r in records)}"
+    reasons: dict[str, int] = {}
+    for r in right:
+        for reason, count in r["unusable"].items():
+            reasons[reason] = reasons.get(reason, 0) + count
+    refused = ", ".join(f"{reason} {count}" for reason, count in sorted(reasons.items())) or "none"
+    instants = np.concatenate([r["instant_ms"] for r in right])
+    opened = [r["open"]["final_drift"] for r in right]
+    return (
+        f"frames (right touches): used {sum(r['frames_used'] for r in right)} of {sum(r['frames'] for r in right)} "
+        f"(refused: {refused}); time per instant {np.median(instants):.1f} ms median, "
+        f"{np.percentile(instants, 90):.1f} ms p90 (wall, loading included); open loop final drift "
+        f"{np.mean([d['deg'] for d in opened]):.3f} deg / {np.mean([d['mm'] for d in opened]):.3f} mm, "
+        f"{sum(map(drift_meets_target, opened))} of {len(opened)} under the target"
+    )
+
+
 SPLIT_HEADER = (
     "| set | weak above (units) | tracks with a weak direction | pinned part: meets | 100 mm deg / mm | 200 mm | "
     "growth deg per 100 mm | weak part: meets | 100 mm | 200 mm | growth |\n"
@@ -540,6 +618,7 @@ def report(records: list[dict[str, Any]], label: str) -> str:
             "the final drift against the frames' own change at the truth, by how well each direction is pinned:",
         ]
         lines += frames_floor(records)
+    lines += ["", frames_line(records)]
     misses = [r for r in records if r["right_touch"] and not meets(r)]
     lines.append("")
     lines.append(
@@ -596,6 +675,18 @@ def main() -> None:
         choices=sorted(NOISE_FIELDS),
         help="track the trajectories simulated again without these reconstruction errors (the cached touch kept)",
     )
+    parser.add_argument("--lengths", nargs="*", type=int, help="only these path lengths (mm) of the seeds' sets")
+    parser.add_argument(
+        "--frames-via",
+        metavar="SOURCE",
+        help="track the trajectories' frames rendered to GelSight images and reconstructed (`image_route(SOURCE)`: a "
+        "calibration file or shading[:SEED]; the cached touch kept; ~30 CPU s more a trajectory, not cached)",
+    )
+    parser.add_argument(
+        "--images-cache",
+        help="folder keeping the --frames-via trajectories (~200 MB each; keyed by seed, object, "
+        "length, index and the source's file name, not by code)",
+    )
     parser.add_argument(
         "--frames-at-truth",
         action="store_true",
@@ -618,7 +709,7 @@ def main() -> None:
             Path(args.out).write_text(json.dumps({"seeds": args.seeds, "records": records}, indent=1))
         return
 
-    jobs = jobs_of(args.seeds, args.objects)
+    jobs = jobs_of(args.seeds, args.objects, args.lengths)
     worker = _build if args.build_only else tracked
     started = time.perf_counter()
     if args.jobs > 1:

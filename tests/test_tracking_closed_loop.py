@@ -15,7 +15,7 @@ from yoto.geometry import invert_transform, rotation_angle_rad, transform_points
 from yoto.io import write_ply_points
 from yoto.simulate.trajectory import TrajectoryConfig, TrajectorySimulator, write_trajectories, write_trajectory
 from yoto.tracking import track as track_module
-from yoto.tracking.bench import registration_at_truth, tactile_streams
+from yoto.tracking.bench import registration_at_truth, tactile_streams, truth_registrations
 from yoto.tracking.evaluate import motion_interval, summarize_errors, tracking_errors
 from yoto.tracking.pad_error import PadErrorConfig
 from yoto.tracking.streams import TactileStream
@@ -276,6 +276,22 @@ def test_the_benchmark_measures_how_far_the_frames_themselves_move_from_the_trut
     assert measured["noise-free"]["offset_before"]["mm"] < 0.03
     assert measured["noise-free"]["change"]["deg"] < 0.1
     assert measured["noisy"]["offset_before"]["deg"] > 3 * measured["noise-free"]["offset_before"]["deg"]
+
+
+def test_the_frames_from_the_truth_skip_an_instant_whose_frame_has_no_contact(builtin_models, fruit_trajectory):
+    """A frame without contact (the gel lost it, or its image reconstructs to none: an empty cloud) leaves its instant
+    out of the registrations from the truth (it raised on the empty cloud)."""
+    trajectory, model = fruit_trajectory, builtin_models["fruit"]
+    emptied = dataclasses.replace(
+        trajectory, tactile={side: list(frames) for side, frames in trajectory.tactile.items()}
+    )
+    frame = emptied.tactile["left"][4]
+    emptied.tactile["left"][4] = dataclasses.replace(frame, points_sensor=np.empty((0, 3)))
+    config = CorrectionConfig()
+    stamps, twists = truth_registrations(trajectory, model, config, 1)
+    kept, kept_twists = truth_registrations(emptied, model, config, 1)
+    assert len(kept) == len(stamps) - 1 and frame.timestamp_s not in kept
+    assert np.allclose(kept_twists, twists[np.isin(stamps, kept)])
 
 
 def test_the_pad_error_learnt_at_rest_keeps_the_frames_from_moving_as_the_contact_slides(builtin_models):
@@ -577,3 +593,77 @@ def test_the_registrations_bias_follows_what_a_pad_map_changes_under_the_rest_co
     before = corrector.bias.copy()
     corrector._follow_pads()
     assert np.array_equal(corrector.bias, before)
+
+
+@pytest.fixture(scope="module")
+def gelsight():
+    """A GelSight calibration of the synthetic sensor of tests/test_sensor_pipeline.py (8 rendered presses)."""
+    from test_sensor_pipeline import BALL_RADIUS_M, _press_circles, synthetic_background, synthetic_sensor_image
+
+    from yoto.sensor.ball_calibration import calibrate
+    from yoto.sensor.sphere import press_height_map
+
+    rng = np.random.default_rng(7)
+    background = synthetic_background()
+    images = [
+        synthetic_sensor_image(press_height_map(cx, cy, a, BALL_RADIUS_M), background, rng)
+        for cx, cy, a in _press_circles(rng, 8)
+    ]
+    return calibrate(background, images, 2 * BALL_RADIUS_M)[0]
+
+
+def test_frames_through_gelsight_images_are_tracked_from_a_folder_of_pngs(
+    builtin_models, fruit_trajectory, gelsight, tmp_path
+):
+    """Frames rendered to GelSight images and reconstructed by the sensor stage (`TrajectorySimulator(...,
+    images=...)`): the same path and slip as with simulated errors; written as `<timestamp>.png` folders with the
+    calibration, read back (as `yoto track --calibration` reads them) into the clouds the benchmark's in-memory
+    stream gives, and tracked closed loop."""
+    from yoto.sensor.optical import image_path_reconstructor
+    from yoto.sensor.reconstruction import reconstruct
+    from yoto.tracking.streams import read_tactile_stream
+
+    model = builtin_models["fruit"]
+    config = dataclasses.replace(SHORT, tactile_rate_hz=5.0)
+    trajectory = TrajectorySimulator(model, config, image_path_reconstructor(gelsight)).trajectory(3, 1)
+    assert np.array_equal(trajectory.truth.T_world_frame, fruit_trajectory.truth.T_world_frame)  # same seed: path, slip
+    assert all(frame.image is None for frame in fruit_trajectory.tactile["left"])
+    frame = trajectory.tactile["left"][3]
+    cloud = reconstruct(frame.image, gelsight).points_sensor
+    assert len(cloud) > 1000 and np.median(np.abs(cloud[:, 2])) > 1e-4  # a pressed contact, every pixel kept
+    assert trajectory.summary["frames_via"] == "images"
+    at_rest = [f.image for f in trajectory.tactile["left"] if f.timestamp_s <= trajectory.summary["motion_start_s"]]
+    assert len(at_rest) >= 2 and not np.array_equal(at_rest[0], at_rest[1])  # the camera's noise is new every frame
+
+    folder = write_trajectory(trajectory, model, tmp_path / "traj")
+    tactile = {}
+    for side in SIDES:
+        files = sorted((folder / f"{side}_tactile").iterdir())
+        assert [p.suffix for p in files] == [".png"] * len(trajectory.tactile[side])
+        tactile[side] = read_tactile_stream(folder / f"{side}_tactile", calibration=folder / "calibration.npz")
+        assert np.array_equal(tactile[side].timestamps_s, [f.timestamp_s for f in trajectory.tactile[side]])
+    assert np.array_equal(tactile["left"].load(3), cloud)
+    assert np.array_equal(tactile_streams(trajectory)["left"].load(3), cloud)
+    try:  # the same frames as a bag's image topic
+        from yoto.rig.bags import BagWriter
+
+        with BagWriter(tmp_path / "gel.bag", "ros1") as writer:
+            for f in trajectory.tactile["left"]:
+                writer.write(
+                    "/gel/image_raw",
+                    "sensor_msgs/msg/Image",
+                    f.timestamp_s,
+                    writer.image(f.timestamp_s, "gel", f.image),
+                )
+        bag = read_tactile_stream(tmp_path / "gel.bag", "/gel/image_raw", folder / "calibration.npz")
+        assert np.array_equal(bag.timestamps_s, tactile["left"].timestamps_s) and np.array_equal(bag.load(3), cloud)
+    except ImportError:  # rosbags is the rig extra
+        pass
+
+    touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
+    result = track(touch, trajectory.streams, model, tactile)
+    summary = result.correction_summary()  # every frame used but one after the last sensor pose
+    assert summary["frames"] == sum(len(trajectory.tactile[side]) for side in SIDES) == summary["frames_used"] + 1
+    assert list(summary["unusable"]) == ["no sensor pose at the frame's time"]
+    closed, opened = (settled(trajectory, result, T) for T in (result.T_world_object, result.T_world_object_open_loop))
+    assert closed["settled"]["mm"] < 0.5 * opened["settled"]["mm"]

@@ -77,6 +77,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     trajectory.add_argument("--jitter-mm", type=float, help="per-axis jitter of each sensor pose (default 0.2)")
     trajectory.add_argument("--sensor-noise-mm", type=float, default=0.0, help="sensor calibration error, position")
     trajectory.add_argument("--sensor-noise-deg", type=float, default=0.0, help="sensor calibration error, rotation")
+    trajectory.add_argument(
+        "--frames-via",
+        metavar="SOURCE",
+        help="tactile frames as GelSight images (<timestamp>.png, and the calibration.npz that reconstructs them) "
+        "rendered from the gel's height map: a sensor calibration file (its fitted optical model) or shading[:SEED]",
+    )
     trajectory.add_argument("--overwrite", action="store_true", help="regenerate trajectories that already exist")
     trajectory.set_defaults(run=_run_trajectory)
 
@@ -218,7 +224,14 @@ def _run_trajectory(args: argparse.Namespace) -> int:
         config = dataclasses.replace(config, jitter_translation_m=args.jitter_mm * 1e-3)
     out_dir = args.out or workspace_dir(args.workspace) / "trajectories" / model.name
     report = write_trajectories(
-        model, out_dir, args.count, seed=args.seed, config=config, overwrite=args.overwrite, progress=not args.quiet
+        model,
+        out_dir,
+        args.count,
+        seed=args.seed,
+        config=config,
+        overwrite=args.overwrite,
+        progress=not args.quiet,
+        frames_via=args.frames_via,
     )
     print(report.summary())
     return 0

@@ -13,7 +13,10 @@ The paper's tracking experiment (Sec. 4.3): both gels touch the object once, the
   force-controlled grasp would: its true pose includes that settling). Reconstruction errors follow
   `gel.ReconstructionNoise`, split by where they come from: the depth scale error and the smooth bias field belong
   to a sensor's calibration and lighting, so each sensor draws them once and keeps them on its pad for the whole
-  trajectory (a sliding contact meets other parts of the field); pixel noise is new every frame.
+  trajectory (a sliding contact meets other parts of the field); pixel noise is new every frame. Or, with a GelSight
+  image route (`TrajectorySimulator(..., images=yoto.sensor.optical.image_route(SOURCE))`), each frame's gel height
+  map is rendered to a GelSight image and reconstructed by the sensor stage instead (the touch's own clouds too):
+  the frames then carry the real reconstruction's errors, and keep their images.
 
 Timeline (seconds): streams start at `start_time_s`; the touch is `before_touch_s` later; the motion starts
 `hold_s` after the touch, lasts `motion_s` (minimum-jerk time law) and is followed by `settle_s` of rest.
@@ -24,7 +27,9 @@ A simulated trajectory folder (`write_trajectory`):
     touch.json, touch_left.ply, touch_right.ply   the touch (a SPEC contact pair, with ground truth and "timestamp")
     left.tum, right.tum                           the reported sensor pose streams T_world_sensor (TUM)
     object_true.tum                               the true T_world_mesh at every stream timestamp
-    left_tactile/, right_tactile/                 tactile frames during motion, <timestamp>.ply (sensor frame)
+    left_tactile/, right_tactile/                 tactile frames during motion, <timestamp>.ply (sensor frame), or
+                                                  with an image route <timestamp>.png GelSight images ...
+    calibration.npz                               ... and the sensor calibration that reconstructs them
     trajectory.json                               settings and what was simulated (slip, lag, path); written last
 """
 
@@ -36,7 +41,7 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.interpolate import CubicSpline
@@ -51,16 +56,21 @@ from yoto.geometry import (
     so3_exp,
     so3_log,
 )
-from yoto.io import read_json, settings_changed, write_json_atomic, write_ply_points
+from yoto.io import read_json, settings_changed, write_bytes_atomic, write_json_atomic, write_ply_points
 from yoto.objects.model import ObjectModel
 from yoto.simulate.gel import bias_field, gel_surface, reconstruct_points
 from yoto.simulate.press import SIMULATOR_VERSION
 from yoto.simulate.scenarios import PairSimulator, ScenarioConfig, SimulatedPair
 from yoto.trajectory import PoseStream, tactile_frame_name, write_tum
 
+if TYPE_CHECKING:
+    from yoto.sensor.calibration import SensorCalibration
+    from yoto.sensor.optical import ImagePath
+
 TRAJECTORY_STREAM = 1  # third entry of the seed sequence: the trajectory's random streams, apart from the touch's
 SUMMARY_FILE = "trajectory.json"
 FOLDER_SETTINGS_FILE = "trajectories.json"
+CALIBRATION_FILE = "calibration.npz"  # frames through images: the sensor calibration that reconstructs them
 
 
 @dataclass(frozen=True)
@@ -98,6 +108,8 @@ class TactileFrame:
     timestamp_s: float
     points_sensor: np.ndarray  # (N, 3) reconstructed tactile cloud, sensor frame; empty where the gel lost contact
     T_object_sensor_true: np.ndarray  # (4, 4) where the sensor really was on the object (canonical frame)
+    image: np.ndarray | None = None  # (rows, cols, 3) uint8 RGB GelSight image the cloud was reconstructed from
+    # (frames through images); None for frames with simulated reconstruction errors
 
 
 @dataclass
@@ -111,6 +123,7 @@ class SimulatedTrajectory:
     truth: PoseStream  # true T_world_object (canonical frame) at the union of the stream timestamps
     tactile: dict[str, list[TactileFrame]]  # side -> frames from the touch on
     summary: dict[str, Any] = field(default_factory=dict)  # path, slip, lag, motion times (for reports)
+    calibration: SensorCalibration | None = None  # reconstructs the frames' images (frames through images)
 
     def truth_mesh(self, model: ObjectModel) -> PoseStream:
         """The true object poses in the mesh file's frame, `T_world_mesh`."""
@@ -261,7 +274,12 @@ def _keep_pixel_stride(points_sensor: np.ndarray, stride: int, pixel_size_m: flo
 class TrajectorySimulator:
     """Draws trajectories after simulated touches on one object. Build once per object."""
 
-    def __init__(self, model: ObjectModel, config: TrajectoryConfig = TrajectoryConfig()):
+    def __init__(
+        self, model: ObjectModel, config: TrajectoryConfig = TrajectoryConfig(), images: ImagePath | None = None
+    ):
+        """`images`: the frames' (and the touch's) clouds are reconstructed from the GelSight images their gel height
+        maps render to (`yoto.sensor.optical.image_route`) instead of drawn from the simulated reconstruction errors;
+        the touch, path, slip and streams stay the same (they draw from their own random streams)."""
         if config.motion_s <= 0 or config.path_length_m <= 0:
             raise InputError(
                 f"a trajectory needs a positive motion time and path length (got {config.motion_s} s, "
@@ -271,6 +289,7 @@ class TrajectorySimulator:
         self.config = config
         self.pairs = PairSimulator(model, config.scenario)
         self.presses = self.pairs.presses
+        self.images = images
 
     def streams(self, seed: int, index: int) -> dict[str, np.random.Generator]:
         """The trajectory's own random streams (the touch draws from the pair simulator's): by purpose, so that
@@ -359,13 +378,14 @@ class TrajectorySimulator:
             )
             # The touch's own cloud is this sensor's first frame: the same calibration errors as the ones after it.
             touch_press = touch.contacts[side].press
-            touch_cloud = self._reconstruct(
+            touch_cloud, _ = self._reconstruct(
                 touch_press.height_map_m, touch_press.contact_mask, calibration_error, rng["tactile"]
             )
             if len(touch_cloud) >= MIN_TACTILE_POINTS:
                 touch.contacts[side].points_sensor = touch_cloud
                 touch.pair.contact(side).points_sensor = touch_cloud
-                touch.pair.extra["simulation"][side]["scale_error"] = calibration_error[0]
+                if self.images is None:
+                    touch.pair.extra["simulation"][side]["scale_error"] = calibration_error[0]
             T_object_sensor_start = invert_transform(object_true(tactile_times)) @ commanded(side, tactile_times)
             depth = touch.contacts[side].press.depth_m
             frames[side], shifts = [], []
@@ -413,8 +433,10 @@ class TrajectorySimulator:
             "arm_lag_ms": 1e3 * config.arm_lag_s,
             "tactile_frames": {side: len(frames[side]) for side in SIDES},
             "frames_without_contact": {side: sum(len(f.points_sensor) == 0 for f in frames[side]) for side in SIDES},
+            "frames_via": "images" if self.images is not None else "simulated reconstruction errors",
         }
-        return SimulatedTrajectory(touch, touch_time, streams, sensors_true, truth, frames, summary)
+        calibration = self.images.calibration if self.images is not None else None
+        return SimulatedTrajectory(touch, touch_time, streams, sensors_true, truth, frames, summary, calibration)
 
     def _frame(
         self,
@@ -429,18 +451,32 @@ class TrajectorySimulator:
         `calibration_error`: the sensor's depth scale error and bias field (metres, (H, W)), the same every frame."""
         press = self.presses.press(T_object_sensor_start, depth_m)
         spec = self.config.scenario.press.spec
-        if press.rejection == "no_contact":
-            return TactileFrame(timestamp, np.empty((0, 3)), T_object_sensor_start), 0.0
+        if press.rejection == "no_contact":  # the camera still sees the gel: flat, untouched
+            flat = None if self.images is None else self._image(np.zeros((spec.height_px, spec.width_px)), rng)
+            return TactileFrame(timestamp, np.empty((0, 3)), T_object_sensor_start, flat), 0.0
         if press.accepted:
             height_map, mask = press.height_map_m, press.contact_mask
         else:  # a contact the simulator would not accept as a new touch (border, thin edge...): the gel still sees it
             height_map, mask, _ = gel_surface(press.object_z_m, self.config.scenario.press.gel, spec)
-        points = self._reconstruct(height_map, mask, calibration_error, rng)
-        points = _keep_pixel_stride(
+        points, image = self._reconstruct(height_map, mask, calibration_error, rng)
+        points = _keep_pixel_stride(  # a frame's image keeps every pixel: its reader reconstructs them all
             points, self.config.tactile_pixel_stride, spec.pixel_size_m, spec.width_px, spec.height_px
         )
         shift = float((invert_transform(T_object_sensor_start) @ press.T_object_sensor)[2, 3])
-        return TactileFrame(timestamp, points, press.T_object_sensor), shift
+        return TactileFrame(timestamp, points, press.T_object_sensor, image), shift
+
+    def _image(self, height_map: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """The GelSight image of a gel height map through `images`' renderer, the camera's noise new in every frame
+        (`ImagePath.image` seeds it from the height map: every frame at rest would repeat the same noise)."""
+        from yoto.sensor.optical import render_image, render_varied
+
+        assert self.images is not None
+        noise = rng if self.images.sensor_noise else None
+        if self.images.render is not None:
+            return self.images.render(height_map, noise)
+        if not self.images.variation.none:
+            return render_varied(height_map, self.images.calibration, rng, self.images.variation)
+        return render_image(height_map, self.images.calibration, noise)
 
     def _reconstruct(
         self,
@@ -448,14 +484,24 @@ class TrajectorySimulator:
         mask: np.ndarray,
         calibration_error: tuple[float, np.ndarray | float],
         rng: np.random.Generator,
-    ) -> np.ndarray:
-        """The tactile cloud of a noise-free height map: the sensor's fixed scale error and bias, new pixel noise."""
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The tactile cloud of a noise-free height map, and the GelSight image it came from (None without images):
+        reconstructed from the image the height map renders to (with `images`; a frame the reconstruction refuses
+        gives no cloud, as a lab's pipeline would), else the sensor's fixed scale error and bias, new pixel noise."""
         spec, noise = self.config.scenario.press.spec, self.config.scenario.press.noise
+        if self.images is not None:
+            from yoto.sensor.reconstruction import reconstruct
+
+            image = self._image(height_map, rng)
+            try:
+                return reconstruct(image, self.images.calibration).points_sensor, image
+            except InputError:
+                return np.empty((0, 3)), image
         if noise.is_noise_free:
-            return spec.height_map_to_points(height_map, mask)
+            return spec.height_map_to_points(height_map, mask), None
         scale_error, bias = calibration_error
         per_frame = dataclasses.replace(noise, scale_std=0.0, bias_std_m=0.0)
-        return reconstruct_points(height_map * (1.0 + scale_error) + bias, mask, per_frame, rng, spec)[0]
+        return reconstruct_points(height_map * (1.0 + scale_error) + bias, mask, per_frame, rng, spec)[0], None
 
 
 # ------------------------------------------------------------------------------------------------ files
@@ -475,6 +521,17 @@ def trajectory_settings(model: ObjectModel, seed: int, config: TrajectoryConfig)
     )
 
 
+def write_png(path: Path, image: np.ndarray) -> Path:
+    """An RGB uint8 image as a PNG file (atomic)."""
+    import io
+
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(image, dtype=np.uint8)).save(buffer, format="PNG", compress_level=1)
+    return write_bytes_atomic(path, buffer.getvalue())
+
+
 def write_trajectory(trajectory: SimulatedTrajectory, model: ObjectModel, folder: str | Path) -> Path:
     """Write one simulated trajectory as the files `yoto track` reads (see the module docstring). Returns the
     folder. `trajectory.json` is written last: a folder without it is unfinished."""
@@ -488,7 +545,13 @@ def write_trajectory(trajectory: SimulatedTrajectory, model: ObjectModel, folder
         tactile = folder / f"{side}_tactile"
         tactile.mkdir(exist_ok=True)
         for frame in trajectory.tactile[side]:
-            write_ply_points(tactile / tactile_frame_name(frame.timestamp_s), frame.points_sensor)
+            name = tactile_frame_name(frame.timestamp_s)
+            if frame.image is not None:  # a GelSight image, as the camera gives it: `yoto track --calibration` reads it
+                write_png(tactile / Path(name).with_suffix(".png").name, frame.image)
+            else:
+                write_ply_points(tactile / name, frame.points_sensor)
+    if trajectory.calibration is not None:
+        trajectory.calibration.save(folder / CALIBRATION_FILE)
     write_tum(
         folder / "object_true.tum",
         trajectory.truth_mesh(model),
@@ -536,14 +599,19 @@ def write_trajectories(
     config: TrajectoryConfig = TrajectoryConfig(),
     overwrite: bool = False,
     progress: bool = False,
+    frames_via: str | None = None,
 ) -> TrajectoryReport:
     """Write trajectories 0..count-1 into `out_dir/traj_NNNN/`; resumable and idempotent.
 
     Finished trajectories (with their `trajectory.json`) are kept unless `overwrite`; an unfinished folder is
-    redone from scratch. A folder made with other settings is refused unless `overwrite`.
+    redone from scratch. A folder made with other settings is refused unless `overwrite`. `frames_via`: the tactile
+    frames are GelSight images (`<timestamp>.png`, with the `calibration.npz` that reconstructs them) rendered by
+    `yoto.sensor.optical.image_route(frames_via)` (a calibration file, or `shading[:SEED]`).
     """
     out_dir = Path(out_dir)
     settings = trajectory_settings(model, seed, config)
+    if frames_via is not None:
+        settings["frames_via"] = frames_via
     settings_path = out_dir / FOLDER_SETTINGS_FILE
     stored = read_json(settings_path) if settings_path.exists() else None
     settings_changed(out_dir, stored, settings, "trajectories", overwrite)
@@ -559,7 +627,12 @@ def write_trajectories(
             todo.append(index)
     if not todo:
         return report
-    simulator = TrajectorySimulator(model, config)
+    images = None
+    if frames_via is not None:
+        from yoto.sensor.optical import image_route
+
+        images = image_route(frames_via)
+    simulator = TrajectorySimulator(model, config, images)
     bar = None
     if progress:
         from tqdm import tqdm

@@ -14,22 +14,23 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from yoto.contacts import SIDES
+from yoto.contacts import MIN_TACTILE_POINTS, SIDES
 from yoto.geometry import transform_points, twist_of_pose
 from yoto.io import read_json, write_json_atomic, write_text_atomic
 from yoto.objects.model import ObjectModel
 from yoto.provenance import run_info
 from yoto.registration import point_to_plane_gauss_newton
-from yoto.simulate.trajectory import SimulatedTrajectory, TrajectoryConfig, TrajectorySimulator
+from yoto.simulate.trajectory import SimulatedTrajectory, TactileFrame, TrajectoryConfig, TrajectorySimulator
 from yoto.tracking.evaluate import ErrorCurve, motion_interval, plot_tracking, summarize_errors, tracking_errors
 from yoto.tracking.pad_error import PadError
-from yoto.tracking.streams import TactileStream
+from yoto.tracking.streams import TactileStream, image_frames
 from yoto.tracking.track import (
     CorrectionConfig,
     TrackConfig,
@@ -72,7 +73,23 @@ def scaled_trajectory(config: TrajectoryConfig, path_length_m: float) -> Traject
 
 
 def tactile_streams(trajectory: SimulatedTrajectory) -> dict[str, TactileStream]:
-    """The simulated tactile frames as in-memory streams."""
+    """The simulated tactile frames as in-memory streams; frames through images as their GelSight images, each
+    reconstructed with the trajectory's calibration when the tracker loads it (as from a lab's folder of PNGs)."""
+    if trajectory.calibration is not None:
+        calibration = trajectory.calibration
+
+        def images(frames: list[TactileFrame]) -> Callable[[int], np.ndarray]:
+            return lambda index: np.asarray(frames[index].image)
+
+        return {
+            side: image_frames(
+                np.array([frame.timestamp_s for frame in trajectory.tactile[side]]),
+                images(trajectory.tactile[side]),
+                calibration,
+                f"{side} tactile",
+            )
+            for side in SIDES
+        }
     return {
         side: TactileStream.in_memory(
             np.array([frame.timestamp_s for frame in trajectory.tactile[side]]),
@@ -165,10 +182,11 @@ def truth_registrations(
                 samples = contact_samples(f.points_sensor, config)
                 pads[side].add_rest_frame(model, samples, f.T_object_sensor_true, pad_rest_solver(config))
             pads[side].settle(pad_rest_solver(config))
-    instants = [
+    instants = [  # both frames pressed: a frame without contact (the gel lost it, or its image shows none) has no fit
         frames
         for _, frames in group_frames(tactile, trajectory.touch_time_s, config.sync_tolerance_s)
         if len(frames) == 2
+        and all(len(trajectory.tactile[side][index].points_sensor) >= MIN_TACTILE_POINTS for side, index in frames)
     ]
     solver = registration_solver(config)
     times, offsets = [], []

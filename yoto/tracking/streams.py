@@ -170,8 +170,7 @@ def read_tactile_stream(
             'or a "calibration" entry in the touch\'s side)',
             path,
         )
-    from yoto.sensor import load_calibration, reconstruct
-    from yoto.sensor.pair_images import in_rgb_order
+    from yoto.sensor import load_calibration
 
     sensor = calibration if isinstance(calibration, SensorCalibration) else load_calibration(calibration)
     if from_bag:
@@ -181,7 +180,6 @@ def read_tactile_stream(
     else:
         images = read_image_stream(path, str(path), spec=sensor.spec)
     files = images.details.get("files")
-    swapped: list[str] = []  # frames read in BGR order: warned about once
     ahead: dict[int, np.ndarray] = {}  # frames read ahead: the tracker asks for them in time order
 
     def frame(index: int) -> np.ndarray:
@@ -194,13 +192,35 @@ def read_tactile_stream(
                     ahead[k] = image
         return ahead[index] if index in ahead else images.frame(index)
 
-    def load(index: int) -> np.ndarray:
-        where = str(files[index]) if files else f"{path}:{topic} frame {index}"
-        image = frame(index)
-        rgb = in_rgb_order(image, sensor.background, where, warn=not swapped)
-        if rgb is not image:
-            swapped.append(where)
-        return reconstruct(rgb, sensor, source=where).points_sensor
+    def where(index: int) -> str:
+        return str(files[index]) if files else f"{path}:{topic} frame {index}"
 
     label = f"{path.name}:{topic}" if from_bag else path.name
-    return TactileStream(np.asarray(images.timestamps_s, dtype=np.float64), load, name or label, path)
+    return image_frames(np.asarray(images.timestamps_s, dtype=np.float64), frame, sensor, name or label, path, where)
+
+
+def image_frames(
+    timestamps_s: np.ndarray,
+    image: Callable[[int], np.ndarray],
+    sensor: SensorCalibration,
+    name: str = "",
+    source: Path | None = None,
+    where: Callable[[int], str] | None = None,
+) -> TactileStream:
+    """GelSight images (`image(index)`: (rows, cols, 3) uint8, sorted by time) as tactile frames: each reconstructed
+    with the sensor's calibration when the tracker asks for it (the contact's points; none where it finds no
+    contact). `where(index)` names a frame in errors and warnings."""
+    from yoto.sensor import reconstruct
+    from yoto.sensor.pair_images import in_rgb_order
+
+    swapped: list[str] = []  # frames read in BGR order: warned about once
+
+    def load(index: int) -> np.ndarray:
+        named = where(index) if where is not None else f"{name or 'image'} frame {index}"
+        raw = image(index)
+        rgb = in_rgb_order(raw, sensor.background, named, warn=not swapped)
+        if rgb is not raw:
+            swapped.append(named)
+        return reconstruct(rgb, sensor, source=named).points_sensor
+
+    return TactileStream(np.asarray(timestamps_s, dtype=np.float64), load, name, source)
