@@ -129,12 +129,14 @@ class ImagePath:
         self.render = render
         self.variation = variation
 
-    def image(self, height_map_m: np.ndarray) -> np.ndarray:
-        """The GelSight image of a gel height map, its noise seeded from the height map."""
+    def image(self, height_map_m: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
+        """The GelSight image of a gel height map, its noise (and variation) drawn from `rng`, else seeded from the
+        height map (the same press gives the same image; a sequence of frames at rest needs an `rng` of its own)."""
         import hashlib
 
-        rng = None
-        if self.sensor_noise or not self.variation.none:
+        if not (self.sensor_noise or not self.variation.none):
+            rng = None
+        elif rng is None:
             digest = hashlib.sha256(np.ascontiguousarray(height_map_m, dtype=np.float64).tobytes()).digest()
             rng = np.random.default_rng(int.from_bytes(digest[:8], "little"))
         if self.render is not None:

@@ -452,7 +452,7 @@ class TrajectorySimulator:
         press = self.presses.press(T_object_sensor_start, depth_m)
         spec = self.config.scenario.press.spec
         if press.rejection == "no_contact":  # the camera still sees the gel: flat, untouched
-            flat = None if self.images is None else self._image(np.zeros((spec.height_px, spec.width_px)), rng)
+            flat = None if self.images is None else self.images.image(np.zeros((spec.height_px, spec.width_px)), rng)
             return TactileFrame(timestamp, np.empty((0, 3)), T_object_sensor_start, flat), 0.0
         if press.accepted:
             height_map, mask = press.height_map_m, press.contact_mask
@@ -464,19 +464,6 @@ class TrajectorySimulator:
         )
         shift = float((invert_transform(T_object_sensor_start) @ press.T_object_sensor)[2, 3])
         return TactileFrame(timestamp, points, press.T_object_sensor, image), shift
-
-    def _image(self, height_map: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """The GelSight image of a gel height map through `images`' renderer, the camera's noise new in every frame
-        (`ImagePath.image` seeds it from the height map: every frame at rest would repeat the same noise)."""
-        from yoto.sensor.optical import render_image, render_varied
-
-        assert self.images is not None
-        noise = rng if self.images.sensor_noise else None
-        if self.images.render is not None:
-            return self.images.render(height_map, noise)
-        if not self.images.variation.none:
-            return render_varied(height_map, self.images.calibration, rng, self.images.variation)
-        return render_image(height_map, self.images.calibration, noise)
 
     def _reconstruct(
         self,
@@ -492,7 +479,7 @@ class TrajectorySimulator:
         if self.images is not None:
             from yoto.sensor.reconstruction import reconstruct
 
-            image = self._image(height_map, rng)
+            image = self.images.image(height_map, rng)  # the camera's noise new every frame
             try:
                 return reconstruct(image, self.images.calibration).points_sensor, image
             except InputError:
