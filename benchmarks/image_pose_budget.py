@@ -139,6 +139,8 @@ def main() -> None:
         cache = None
         if args.cache:
             renderer = Path(args.renderer).stem.replace(":", "_")
+            if args.renderer.startswith("table:"):  # table:FOLDER
+                renderer = "table_" + Path(args.renderer.partition(":")[2]).name
             cache = Path(args.cache) / f"{model.name}_{renderer}_seed{args.seed}_n{args.n}.pkl"
         if cache is not None and cache.exists():
             with open(cache, "rb") as file:
