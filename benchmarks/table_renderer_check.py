@@ -60,8 +60,10 @@ def main() -> None:
         radii.append(r)
         heights.append(press_height_map(cx, cy, a, diameter_m / 2, spec))
     noise = np.median([np.std(c[r > 3 * a], axis=0) for c, r, (_, _, a) in zip(real_changes, radii, circles)], axis=0)
-    print(f"{len(images)} presses, {args.folds} folds; real frames' noise against the background (std per channel): "
-          f"{np.round(noise, 2)}")
+    print(
+        f"{len(images)} presses, {args.folds} folds; real frames' noise against the background (std per channel): "
+        f"{np.round(noise, 2)}"
+    )
 
     settings = [
         (step, places, blur, depth)
@@ -80,8 +82,15 @@ def main() -> None:
         calibration, _ = calibrate(background, [images[i] for i in train], diameter_m)
         for (step, places, blur, depth), label in zip(settings, errors):
             sensor = fit_table_sensor(
-                background, [images[i] for i in train], [circles[i] for i in train], diameter_m / 2, spec,
-                step=step, places=places, blur_px=blur, pressed_depth_m=depth * 1e-3,
+                background,
+                [images[i] for i in train],
+                [circles[i] for i in train],
+                diameter_m / 2,
+                spec,
+                step=step,
+                places=places,
+                blur_px=blur,
+                pressed_depth_m=depth * 1e-3,
             )
             for i in held:
                 rendered = sensor.render(heights[i], None)

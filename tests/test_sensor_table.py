@@ -68,3 +68,26 @@ def test_place_weights_blend_to_one_and_follow_the_pad():
 def test_a_press_folder_needs_its_catalog(tmp_path):
     with pytest.raises(InputError, match="catalog"):
         read_press_folder(tmp_path)
+
+
+def test_pressed_flat_gel_keeps_the_presses_zero_slope_change_faded_in_by_depth(presses):
+    """Real presses change colour where the ball's slope is zero (the gel pressed flat, not untouched): the table
+    keeps it there, in proportion to the depth up to `pressed_depth_m`, and untouched gel stays the background."""
+    _, background, images, circles = presses
+    ys, xs = np.mgrid[:240, :320]
+    offset = np.array([12, 0, 0], np.int16)  # a press's contact shows +12 levels of red beyond its shading
+    tinted = []
+    for image, (cx, cy, a) in zip(images, circles, strict=True):
+        inside = np.hypot(xs - cx, ys - cy) < a
+        tinted.append(np.clip(image.astype(np.int16) + inside[..., None] * offset, 0, 255).astype(np.uint8))
+    settings = {"places": 1, "blur_px": 0.0, "pressed_depth_m": 8e-4}
+    table = fit_table_sensor(background, tinted, circles, BALL_RADIUS_M, **settings)
+    untinted = fit_table_sensor(background, images, circles, BALL_RADIUS_M, **settings)
+    plateau = np.zeros((240, 320))
+    plateau[60:180, 80:240] = -1e-3  # pressed flat 1 mm deep: the full change
+    plateau[100:140, 120:200] = -4e-4  # 0.4 mm: half of it
+    change = table.render(plateau).astype(float) - background
+    tint = change - (untinted.render(plateau).astype(float) - background)
+    assert np.median(tint[70:90, 90:110], axis=(0, 1)) == pytest.approx([12.0, 0.0, 0.0], abs=1.0)
+    assert np.median(tint[110:130, 140:180], axis=(0, 1)) == pytest.approx([6.0, 0.0, 0.0], abs=1.0)
+    assert np.abs(change[5:40, 5:60]).max() == 0.0

@@ -61,12 +61,16 @@ class TableSensor:
         tx, ty = (fx - ix)[..., None], (fy - iy)[..., None]
         change = np.zeros(gx.shape + (3,), np.float32)
         for place_row, place_col, weight in self._place_weights():
-            table = self.table
-            blended = (1 - ty) * (
-                (1 - tx) * table[place_row, place_col, iy, ix] + tx * table[place_row, place_col, iy, ix + 1]
-            ) + ty * ((1 - tx) * table[place_row, place_col, iy + 1, ix] + tx * table[place_row, place_col, iy + 1, ix + 1])
+            cell = functools.partial(self._cell, place_row, place_col)
+            blended = (1 - ty) * ((1 - tx) * cell(iy, ix) + tx * cell(iy, ix + 1)) + ty * (
+                (1 - tx) * cell(iy + 1, ix) + tx * cell(iy + 1, ix + 1)
+            )
             change += weight[..., None] * blended
         return change
+
+    def _cell(self, place_row: np.ndarray, place_col: np.ndarray, bin_y: np.ndarray, bin_x: np.ndarray) -> np.ndarray:
+        """The table's colour change at each pixel's place and gradient bin, (rows, cols, 3)."""
+        return self.table[place_row, place_col, bin_y, bin_x]
 
     def render(self, height_map_m: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
         """The (rows, cols, 3) uint8 RGB image of a gel height map (metres, <= 0 where pressed); `rng`: noise."""
@@ -167,22 +171,24 @@ def fit_table_sensor(
             np.add.at(sums, index, w[:, None] * change)
     table = np.zeros_like(sums, dtype=np.float32)
     reached = np.zeros((places, places), bool)
-    for place_row in range(places):
-        for place_col in range(places):
-            filled = weights[place_row, place_col] >= min_weight
+    for row in range(places):
+        for col in range(places):
+            filled = weights[row, col] >= min_weight
             if not filled.any():
                 continue
-            reached[place_row, place_col] = True
-            mean = sums[place_row, place_col] / np.maximum(weights[place_row, place_col], 1e-12)[..., None]
+            reached[row, col] = True
+            mean = sums[row, col] / np.maximum(weights[row, col], 1e-12)[..., None]
             _, (near_rows, near_cols) = ndimage.distance_transform_edt(~filled, return_indices=True)
-            table[place_row, place_col] = mean[near_rows, near_cols]
+            table[row, col] = mean[near_rows, near_cols]
     if not reached.any():
         raise InputError("no ball press gives a usable contact: the table renderer has nothing to read")
     _, (place_rows, place_cols) = ndimage.distance_transform_edt(~reached, return_indices=True)
     table = table[place_rows, place_cols]  # a place no press reached copies the nearest one that was
     differences = np.concatenate(far).astype(np.float64)
     low, high = np.percentile(differences, [0.5, 99.5], axis=0)
-    noise_std = np.array([differences[(differences[:, c] >= low[c]) & (differences[:, c] <= high[c]), c].std() for c in range(3)])
+    noise_std = np.array(
+        [differences[(differences[:, c] >= low[c]) & (differences[:, c] <= high[c]), c].std() for c in range(3)]
+    )
     return TableSensor(spec, background.copy(), table, step, float(limit), blur_px, noise_std, pressed_depth_m)
 
 
