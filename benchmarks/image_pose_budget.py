@@ -102,7 +102,7 @@ def pose_outcome(pair, model, candidates, world, config) -> tuple[bool, bool, fl
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--renderer", required=True, help="calibration file or shading[:SEED]")
+    parser.add_argument("--renderer", required=True, help="calibration file, shading[:SEED] or table:FOLDER")
     parser.add_argument("--objects", nargs="+", required=True)
     parser.add_argument("-n", type=int, default=40)
     parser.add_argument("--seed", type=int, default=7, help="the benchmark's evaluation seed (yoto bench --seed)")
