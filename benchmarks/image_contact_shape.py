@@ -122,7 +122,7 @@ def summary(label: str, contacts: list[dict]) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--renderer", required=True, help="calibration file, or shading[:SEED]")
+    parser.add_argument("--renderer", required=True, help="calibration file, shading[:SEED] or table:FOLDER")
     parser.add_argument("--objects", nargs="+", required=True)
     parser.add_argument("-n", type=int, default=20, help="pairs per object (two contacts each)")
     parser.add_argument("--seed", type=int, default=7)

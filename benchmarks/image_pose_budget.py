@@ -102,7 +102,7 @@ def pose_outcome(pair, model, candidates, world, config) -> tuple[bool, bool, fl
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--renderer", required=True, help="calibration file or shading[:SEED]")
+    parser.add_argument("--renderer", required=True, help="calibration file, shading[:SEED] or table:FOLDER")
     parser.add_argument("--objects", nargs="+", required=True)
     parser.add_argument("-n", type=int, default=40)
     parser.add_argument("--seed", type=int, default=7, help="the benchmark's evaluation seed (yoto bench --seed)")
@@ -139,6 +139,8 @@ def main() -> None:
         cache = None
         if args.cache:
             renderer = Path(args.renderer).stem.replace(":", "_")
+            if args.renderer.startswith("table:"):  # table:FOLDER
+                renderer = "table_" + Path(args.renderer.partition(":")[2]).name
             cache = Path(args.cache) / f"{model.name}_{renderer}_seed{args.seed}_n{args.n}.pkl"
         if cache is not None and cache.exists():
             with open(cache, "rb") as file:

@@ -90,7 +90,8 @@ class BenchConfig:
     search: str = "auto"  # the pose stage's joint search: "auto", "always" or "never"
     retouch: bool = True  # simulate the suggested re-touch of ambiguous pairs and fuse it
     pose_stages: tuple[str, ...] = ("full", "paper")  # pose stages to report for every method (same localizations)
-    image_calibration: str | None = None  # rows "via images": a calibration file or "shading[:SEED]" (image_route)
+    image_calibration: str | None = None  # rows "via images": a calibration file, "shading[:SEED]" or
+    # "table:FOLDER" (image_route)
     image_variation: float = 0.0  # how much each rendered image's lighting, noise and gel stray from the sensor's
     both_cores: bool = False  # localize each pair's right contact in a helper process while this one localizes
     # the left, and compute half of the pose stage's batches there (the same poses, bitwise): a pose's latency is

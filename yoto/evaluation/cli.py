@@ -75,8 +75,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="CALIBRATION",
         help="add a row per method on the same pairs with every contact sent through a rendered GelSight image "
         "and its reconstruction: a calibration file from `yoto sensor calibrate` (images from its own optical "
-        "model), or 'shading[:SEED]' (images from a second, physically based optical model, calibrated from ball "
-        "presses it renders)",
+        "model), 'shading[:SEED]' (images from a second, physically based optical model, calibrated from ball "
+        "presses it renders), or 'table:FOLDER' (a lookup table read off the real ball presses in FOLDER, laid out "
+        "as the shared gelsight_mini data, reconstructed with a calibration from the same presses)",
     )
     parser.add_argument(
         "--image-variation",

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -185,7 +186,10 @@ def image_route(source: str, variation: float = 0.0) -> ImagePath:
 
     `source`: a calibration file (images from its own fitted optical model), or `shading[:SEED]`: images from the
     second optical model (`shading.ShadingSensor`: the nominal sensor for seed 0, else one varied by the seed),
-    reconstructed with a calibration made from 44 ball presses it renders, as a lab calibrates a new sensor.
+    reconstructed with a calibration made from 44 ball presses it renders, as a lab calibrates a new sensor, or
+    `table:FOLDER`: images from the third (`table.TableSensor`, a lookup table read off the real ball presses in
+    FOLDER, laid out as ../shared/data/gelsight_mini), reconstructed with the calibration `yoto sensor calibrate`
+    makes from the same presses.
     `variation` (0: none, 1: large) varies lighting, noise, blur and gel response per image around that sensor.
     """
     if source == "shading" or source.startswith("shading:"):
@@ -201,6 +205,13 @@ def image_route(source: str, variation: float = 0.0) -> ImagePath:
             return varied.render(height_map_m, image_rng)
 
         return image_path_reconstructor(calibration, render=render)
+    if source.startswith("table:"):
+        from yoto.sensor.table import table_sensor_and_calibration
+
+        if variation > 0:
+            raise InputError("the table renderer (table:FOLDER) renders one sensor's optics; it takes no variation")
+        table_sensor, table_calibration = table_sensor_and_calibration(str(Path(source.partition(":")[2]).resolve()))
+        return image_path_reconstructor(table_calibration, render=table_sensor.render)
     from yoto.sensor.calibration import load_calibration
 
     return image_path_reconstructor(load_calibration(source), variation=OpticsVariation.of(variation))
