@@ -18,19 +18,9 @@ pytest.importorskip("rosbags")
 @pytest.fixture(scope="module")
 def gelsight():
     """A GelSight calibration of the synthetic sensor of tests/test_sensor_pipeline.py (12 rendered presses)."""
-    from test_sensor_pipeline import BALL_RADIUS_M, _press_circles, synthetic_background, synthetic_sensor_image
+    from test_sensor_pipeline import synthetic_calibration
 
-    from yoto.sensor.ball_calibration import calibrate
-    from yoto.sensor.sphere import press_height_map
-
-    rng = np.random.default_rng(7)
-    background = synthetic_background()
-    images = [
-        synthetic_sensor_image(press_height_map(cx, cy, a, BALL_RADIUS_M), background, rng)
-        for cx, cy, a in _press_circles(rng, 12)
-    ]
-    calibration, _ = calibrate(background, images, 2 * BALL_RADIUS_M)
-    return calibration
+    return synthetic_calibration(12)
 
 
 @pytest.fixture(scope="module")

@@ -60,6 +60,17 @@ def _press_circles(rng, count):
     return circles
 
 
+def synthetic_calibration(presses: int) -> SensorCalibration:
+    """A calibration of the synthetic sensor from `presses` rendered ball presses (seed 7), for other stages' tests."""
+    rng = np.random.default_rng(7)
+    background = synthetic_background()
+    images = [
+        synthetic_sensor_image(press_height_map(cx, cy, a, BALL_RADIUS_M), background, rng)
+        for cx, cy, a in _press_circles(rng, presses)
+    ]
+    return calibrate(background, images, 2 * BALL_RADIUS_M)[0]
+
+
 @pytest.fixture(scope="module")
 def synthetic():
     """A calibration of the synthetic sensor from 16 presses, and 6 held-out presses with their truth."""

@@ -598,18 +598,9 @@ def test_the_registrations_bias_follows_what_a_pad_map_changes_under_the_rest_co
 @pytest.fixture(scope="module")
 def gelsight():
     """A GelSight calibration of the synthetic sensor of tests/test_sensor_pipeline.py (8 rendered presses)."""
-    from test_sensor_pipeline import BALL_RADIUS_M, _press_circles, synthetic_background, synthetic_sensor_image
+    from test_sensor_pipeline import synthetic_calibration
 
-    from yoto.sensor.ball_calibration import calibrate
-    from yoto.sensor.sphere import press_height_map
-
-    rng = np.random.default_rng(7)
-    background = synthetic_background()
-    images = [
-        synthetic_sensor_image(press_height_map(cx, cy, a, BALL_RADIUS_M), background, rng)
-        for cx, cy, a in _press_circles(rng, 8)
-    ]
-    return calibrate(background, images, 2 * BALL_RADIUS_M)[0]
+    return synthetic_calibration(8)
 
 
 def test_frames_through_gelsight_images_are_tracked_from_a_folder_of_pngs(
