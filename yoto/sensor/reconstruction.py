@@ -388,10 +388,11 @@ def reconstruct(
         mask = core = np.zeros(shape, dtype=bool)
     else:
         x, y = _pixel_xy(spec)
-        points = np.empty((int(np.count_nonzero(mask)), 3))
-        points[:, 0] = x[mask]
-        points[:, 1] = y[mask]
-        points[:, 2] = height[mask]
+        pixels = np.flatnonzero(mask)  # row-major, as boolean indexing orders them: found once, gathered thrice
+        points = np.empty((len(pixels), 3))
+        points[:, 0] = x.ravel().take(pixels)
+        points[:, 1] = y.ravel().take(pixels)
+        points[:, 2] = height.ravel().take(pixels)
     return Reconstruction(
         height, mask, core, points, bool(mask.any()), reason, box, (gx, gy) if keep_gradients else None
     )
