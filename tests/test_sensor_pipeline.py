@@ -498,3 +498,29 @@ def test_image_path_reconstructor_feeds_the_contact_simulator(synthetic, builtin
         press = simulated.contacts[side].press
         centroid = transform_points(press.T_object_sensor, simulated.pair.contact(side).points_sensor.mean(axis=0))
         assert np.linalg.norm(press.p_object - model.nearest_surface_point(centroid)) < 1.5 * model.point_spacing_m
+
+
+@pytest.mark.parametrize("unknown_box", [(5, 12, 2, 38), (1, 29, 17, 21), (0, 30, 0, 40)])
+def test_harmonic_fill_solves_the_five_point_equations(unknown_box):
+    """Each unknown cell: (neighbours on the grid + 1e-6) * u = sum of its neighbours (known: their values), whether
+    the unknowns are numbered along rows (a wide region) or along columns (a tall one), and with no known cell."""
+    from yoto.sensor.reconstruction import _harmonic_fill
+
+    rng = np.random.default_rng(4)
+    known = np.ones((30, 40), bool)
+    row0, row1, col0, col1 = unknown_box
+    known[row0:row1, col0:col1] = rng.random((row1 - row0, col1 - col0)) < (0.0 if row1 - row0 == 30 else 0.1)
+    values = rng.normal(0.0, 1e-4, known.shape)
+    filled = np.where(known, values, 0.0)
+    filled[~known] = _harmonic_fill(known, values)
+    worst = 0.0
+    for r, c in zip(*np.nonzero(~known), strict=True):
+        neighbours = [(r + dr, c + dc) for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1))]
+        neighbours = [(i, j) for i, j in neighbours if 0 <= i < 30 and 0 <= j < 40]
+        residual = (len(neighbours) + 1e-6) * filled[r, c] - sum(filled[i, j] for i, j in neighbours)
+        worst = max(worst, abs(residual))
+    assert worst < 1e-15
+    if not known.any():  # nothing known: the small diagonal term holds everything at zero
+        assert np.abs(filled).max() == 0.0
+    else:
+        assert np.abs(filled[~known]).max() > 1e-6  # the known values reach the unknown cells

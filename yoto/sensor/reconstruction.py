@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 import scipy.fft
+import scipy.linalg
 from scipy import ndimage
 
 from yoto.errors import InputError
@@ -387,10 +388,11 @@ def reconstruct(
         mask = core = np.zeros(shape, dtype=bool)
     else:
         x, y = _pixel_xy(spec)
-        points = np.empty((int(np.count_nonzero(mask)), 3))
-        points[:, 0] = x[mask]
-        points[:, 1] = y[mask]
-        points[:, 2] = height[mask]
+        pixels = np.flatnonzero(mask)  # row-major, as boolean indexing orders them: found once, gathered thrice
+        points = np.empty((len(pixels), 3))
+        points[:, 0] = x.ravel().take(pixels)
+        points[:, 1] = y.ravel().take(pixels)
+        points[:, 2] = height.ravel().take(pixels)
     return Reconstruction(
         height, mask, core, points, bool(mask.any()), reason, box, (gx, gy) if keep_gradients else None
     )
@@ -457,11 +459,23 @@ def anchor_untouched(height: np.ndarray, blocks: np.ndarray, box: tuple[int, int
     """
     row0, row1, col0, col1 = box
     grid_rows, grid_cols = blocks.shape
-    means = height[: grid_rows * BLOCK_PX, : grid_cols * BLOCK_PX]
-    means = means.reshape(grid_rows, BLOCK_PX, grid_cols, BLOCK_PX).mean(axis=(1, 3))
     centre_rows = np.arange(grid_rows) * BLOCK_PX + (BLOCK_PX - 1) / 2
     centre_cols = np.arange(grid_cols) * BLOCK_PX + (BLOCK_PX - 1) / 2
-    in_box = ((centre_rows >= row0) & (centre_rows < row1))[:, None] & ((centre_cols >= col0) & (centre_cols < col1))
+    box_rows = np.flatnonzero((centre_rows >= row0) & (centre_rows < row1))
+    box_cols = np.flatnonzero((centre_cols >= col0) & (centre_cols < col1))
+    if len(box_rows) == 0 or len(box_cols) == 0:
+        return
+    in_box = np.zeros((grid_rows, grid_cols), bool)
+    block_rows = slice(box_rows[0], box_rows[-1] + 1)
+    block_cols = slice(box_cols[0], box_cols[-1] + 1)
+    in_box[block_rows, block_cols] = True
+    # Block means inside the box only (the rest is never read): the same reduction, the same float32 sums.
+    means = np.zeros((grid_rows, grid_cols), np.float32)
+    pixels = height[
+        block_rows.start * BLOCK_PX : block_rows.stop * BLOCK_PX,
+        block_cols.start * BLOCK_PX : block_cols.stop * BLOCK_PX,
+    ]
+    means[block_rows, block_cols] = pixels.reshape(len(box_rows), BLOCK_PX, len(box_cols), BLOCK_PX).mean(axis=(1, 3))
     untouched = untouched_blocks(blocks) & in_box
     known = gel_level_blocks(means, untouched, float(height.min())) | ~in_box
     if not (known & in_box).any():
@@ -480,9 +494,8 @@ def anchor_untouched(height: np.ndarray, blocks: np.ndarray, box: tuple[int, int
     c0 = np.minimum(np.floor(pixel_cols).astype(int), grid_cols - 2)
     wr = (pixel_rows - r0)[:, None]
     wc = (pixel_cols - c0)[None, :]
-    top = correction[r0][:, c0] * (1 - wc) + correction[r0][:, c0 + 1] * wc
-    bottom = correction[r0 + 1][:, c0] * (1 - wc) + correction[r0 + 1][:, c0 + 1] * wc
-    height[row0:row1, col0:col1] -= (top * (1 - wr) + bottom * wr).astype(np.float32)
+    along_cols = correction[:, c0] * (1 - wc) + correction[:, c0 + 1] * wc  # separable: block rows first
+    height[row0:row1, col0:col1] -= (along_cols[r0] * (1 - wr) + along_cols[r0 + 1] * wr).astype(np.float32)
 
 
 def gel_level_blocks(means: np.ndarray, untouched: np.ndarray, deepest_z: float) -> np.ndarray:
@@ -514,40 +527,53 @@ def gel_level_blocks(means: np.ndarray, untouched: np.ndarray, deepest_z: float)
 
 
 def _harmonic_fill(known: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Values at the unknown cells of a grid that make them harmonic (5-point Laplace), given the known cells.
+    """Values at the unknown cells of a grid (row-major order) that make them harmonic (5-point Laplace), given the
+    known cells.
 
     Neighbours beyond the grid's edge are left out (zero normal slope there). A small diagonal term keeps a region
-    that no known cell reaches at zero instead of undetermined.
+    that no known cell reaches at zero instead of undetermined. The system is symmetric positive definite and banded
+    (unknowns numbered along the grid's shorter extent of them): one banded Cholesky solve (LAPACK pbsv).
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.linalg import spsolve
-
     grid_rows, grid_cols = known.shape
-    index = np.full(known.shape, -1, dtype=np.int64)
     unknown = ~known
-    index[unknown] = np.arange(int(unknown.sum()))
     rows_u, cols_u = np.nonzero(unknown)
     n = len(rows_u)
-    entries_i, entries_j, entries_v = [np.arange(n)], [np.arange(n)], [np.full(n, 1e-6)]
+    # Number the unknowns along the axis they span less of: the band is at most that span wide.
+    transposed = int(np.ptp(rows_u)) < int(np.ptp(cols_u))
+    if transposed:
+        unknown, values = unknown.T, values.T
+        grid_rows, grid_cols = grid_cols, grid_rows
+        order_rows, order_cols = np.nonzero(unknown)
+    else:
+        order_rows, order_cols = rows_u, cols_u
+    index = np.full(unknown.shape, -1, dtype=np.int64)
+    index[order_rows, order_cols] = np.arange(n)
+    diagonal = np.full(n, 1e-6)
     rhs = np.zeros(n)
+    upper: list[tuple[np.ndarray, np.ndarray]] = []  # (row index i, offset j - i > 0) of the -1 entries
     for d_row, d_col in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-        r, c = rows_u + d_row, cols_u + d_col
+        r, c = order_rows + d_row, order_cols + d_col
         on_grid = (r >= 0) & (r < grid_rows) & (c >= 0) & (c < grid_cols)
         me = np.flatnonzero(on_grid)
         r, c = r[on_grid], c[on_grid]
-        entries_i.append(me)
-        entries_j.append(me)
-        entries_v.append(np.ones(len(me)))
+        diagonal[me] += 1.0
         neighbour = index[r, c]
         unknown_neighbour = neighbour >= 0
-        entries_i.append(me[unknown_neighbour])
-        entries_j.append(neighbour[unknown_neighbour])
-        entries_v.append(-np.ones(int(unknown_neighbour.sum())))
-        np.add.at(rhs, me[~unknown_neighbour], values[r[~unknown_neighbour], c[~unknown_neighbour]])
-    matrix = coo_matrix(
-        (np.concatenate(entries_v), (np.concatenate(entries_i), np.concatenate(entries_j))), shape=(n, n)
-    ).tocsc()
-    return np.asarray(spsolve(matrix, rhs, permc_spec="NATURAL"))  # banded: the natural order is the fastest
+        rhs_cells = me[~unknown_neighbour]
+        rhs[rhs_cells] += values[r[~unknown_neighbour], c[~unknown_neighbour]]  # one neighbour per cell and side
+        if d_row > 0 or d_col > 0:  # each symmetric pair once: the neighbour after this cell
+            upper.append((me[unknown_neighbour], neighbour[unknown_neighbour] - me[unknown_neighbour]))
+    width = max([int(offset.max()) for _, offset in upper if len(offset)], default=0)
+    band = np.zeros((width + 1, n))  # LAPACK upper band storage: band[width + i - j, j] = A[i, j]
+    band[width] = diagonal
+    for i, offset in upper:
+        band[width - offset, i + offset] = -1.0
+    solution = scipy.linalg.solveh_banded(band, rhs, check_finite=False)
+    if not transposed:
+        return solution
+    filled = np.zeros(unknown.shape)  # back to the caller's row-major order of the unknowns
+    filled[order_rows, order_cols] = solution
+    return filled.T[rows_u, cols_u]
 
 
 def colour_distance2(change: np.ndarray) -> np.ndarray:
