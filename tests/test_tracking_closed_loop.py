@@ -703,14 +703,14 @@ def test_a_frame_reading_its_press_much_shallower_than_at_rest_is_left_out(built
 
 
 def test_a_pad_misreading_the_press_at_rest_is_left_out_of_the_motion(builtin_models, fruit_trajectory):
-    """A pad whose frames read from the touch on a fifth of the press the touch's pose puts on it (through images,
+    """A pad whose frames read from the touch on a tenth of the press the touch's pose puts on it (through images,
     a flat face read as a partial contact) cannot tell where the surface is: none of its frames is registered."""
     trajectory, model = fruit_trajectory, builtin_models["fruit"]
     misread = dataclasses.replace(
         trajectory, tactile={side: list(frames) for side, frames in trajectory.tactile.items()}
     )
     misread.tactile["right"] = [
-        dataclasses.replace(frame, points_sensor=frame.points_sensor * [1, 1, 0.2])
+        dataclasses.replace(frame, points_sensor=frame.points_sensor * [1, 1, 0.1])
         for frame in trajectory.tactile["right"]
     ]
     touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
