@@ -180,6 +180,8 @@ def test_track_command_on_written_files(builtin_models, fruit_trajectory, tmp_pa
     assert report["mode"] == "closed loop" and report["errors"]["closed_loop"]["settled"]["mm"] < 0.5
     assert "pinned by the contacts" in out and len(report["pinning"]["directions"]) == 6
     assert all("sigma_deg" in c for c in report["corrections"] if c["used"])
+    # each frame's read press: the fruit's simulated presses are about a millimetre deep
+    assert all(0.3 < depth < 3.0 for c in report["corrections"] for depth in c["read_mm"].values())
     # the fruit's weakest direction is pinned worse than the target: where a contact would see it, on the surface
     retouch = report["retouch"]
     assert report["pinning"]["spread"][0] > 0.25 and "touch again there" in out
