@@ -180,6 +180,8 @@ def test_track_command_on_written_files(builtin_models, fruit_trajectory, tmp_pa
     assert report["mode"] == "closed loop" and report["errors"]["closed_loop"]["settled"]["mm"] < 0.5
     assert "pinned by the contacts" in out and len(report["pinning"]["directions"]) == 6
     assert all("sigma_deg" in c for c in report["corrections"] if c["used"])
+    # each frame's read press: the fruit's simulated presses are about a millimetre deep
+    assert all(0.3 < depth < 3.0 for c in report["corrections"] for depth in c["read_mm"].values())
     # the fruit's weakest direction is pinned worse than the target: where a contact would see it, on the surface
     retouch = report["retouch"]
     assert report["pinning"]["spread"][0] > 0.25 and "touch again there" in out
@@ -229,8 +231,10 @@ def test_a_registration_the_filter_does_not_expect_counts_less(builtin_models, f
     touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
     moved = {}
     for label, bound in (("robust", TrackConfig().correction.innovation_bound), ("plain", np.inf)):
-        config = TrackConfig(correction=dataclasses.replace(TrackConfig().correction, innovation_bound=bound))
-        result = track(touch, trajectory.streams, model, tactile_streams(shifted), config)
+        # the left frame, lifted 0.7 mm, reads its press a fifth as deep as at rest: the shallow-read check (off
+        # here) would leave it out
+        correction = dataclasses.replace(TrackConfig().correction, innovation_bound=bound, shallow_read_fraction=0.0)
+        result = track(touch, trajectory.streams, model, tactile_streams(shifted), TrackConfig(correction=correction))
         stamp = shifted.tactile["left"][index].timestamp_s
         (instant,) = [c for c in result.corrections if abs(c.timestamp_s - stamp) < 0.03]
         moved[label] = instant.correction_m
@@ -658,3 +662,64 @@ def test_frames_through_gelsight_images_are_tracked_from_a_folder_of_pngs(
     assert list(summary["unusable"]) == ["no sensor pose at the frame's time"]
     closed, opened = (settled(trajectory, result, T) for T in (result.T_world_object, result.T_world_object_open_loop))
     assert closed["settled"]["mm"] < 0.5 * opened["settled"]["mm"]
+
+
+def test_a_frame_reading_its_press_much_shallower_than_at_rest_is_left_out(builtin_models, fruit_trajectory):
+    """Frames through GelSight images can lose most of a flat or wide contact mid-motion: a press read a fraction
+    as deep as at rest while the sensors stay as close. Registered, it reads as a slide; left out, the pose rests on
+    its prediction and the other pad."""
+    trajectory, model = fruit_trajectory, builtin_models["fruit"]
+    moving_from_s = trajectory.touch_time_s + SHORT.hold_s + 0.3
+    partial = dataclasses.replace(
+        trajectory, tactile={side: list(frames) for side, frames in trajectory.tactile.items()}
+    )
+    streams_end_s = min(stream.timestamps_s[-1] for stream in trajectory.streams.values())
+    changed = 0
+    for i, frame in enumerate(partial.tactile["left"]):
+        if moving_from_s < frame.timestamp_s < streams_end_s - 0.2:  # the left frames in the motion read a fifth
+            partial.tactile["left"][i] = dataclasses.replace(frame, points_sensor=frame.points_sensor * [1, 1, 0.2])
+            changed += 1
+    touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
+    checked = track(touch, trajectory.streams, model, tactile_streams(partial))
+    unchecked = track(
+        touch,
+        trajectory.streams,
+        model,
+        tactile_streams(partial),
+        TrackConfig(correction=CorrectionConfig(shallow_read_fraction=0.0)),
+    )
+    assert checked.correction_summary()["unusable"].get("shallow read") == changed
+    assert "shallow read" not in unchecked.correction_summary()["unusable"]
+    checked_mm = settled(trajectory, checked, checked.T_world_object)["settled"]["mm"]
+    unchecked_mm = settled(trajectory, unchecked, unchecked.T_world_object)["settled"]["mm"]
+    assert checked_mm < 0.5 < unchecked_mm
+
+
+def test_a_pad_misreading_the_press_at_rest_is_left_out_of_the_motion(builtin_models, fruit_trajectory):
+    """A pad whose frames read from the touch on a tenth of the press the touch's pose puts on it (through images,
+    a flat face read as a partial contact) cannot tell where the surface is: none of its frames is registered."""
+    trajectory, model = fruit_trajectory, builtin_models["fruit"]
+    misread = dataclasses.replace(
+        trajectory, tactile={side: list(frames) for side, frames in trajectory.tactile.items()}
+    )
+    misread.tactile["right"] = [
+        dataclasses.replace(frame, points_sensor=frame.points_sensor * [1, 1, 0.1])
+        for frame in trajectory.tactile["right"]
+    ]
+    touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
+    result = track(touch, trajectory.streams, model, tactile_streams(misread))
+    assert not any("right" in correction.used for correction in result.corrections)
+    assert all(
+        correction.unusable["right"].startswith("shallow read")
+        for correction in result.corrections
+        if "right" in correction.indentation_m and not correction.unusable["right"].startswith("no sensor pose")
+    )
+    unchecked = track(
+        touch,
+        trajectory.streams,
+        model,
+        tactile_streams(misread),
+        TrackConfig(correction=CorrectionConfig(shallow_read_fraction=0.0)),
+    )
+    checked_mm = settled(trajectory, result, result.T_world_object)["settled"]["mm"]
+    assert checked_mm < 0.5 < settled(trajectory, unchecked, unchecked.T_world_object)["settled"]["mm"]

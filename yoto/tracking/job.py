@@ -340,6 +340,7 @@ def report_payload(job: TrackJob, model: ObjectModel, outcome: TrackOutcome) -> 
                 "sigma_deg": float(np.degrees(c.sigma_rad)),
                 "sigma_mm": 1e3 * c.sigma_m,
                 "latency_ms": c.latency_ms,
+                "read_mm": {side: 1e3 * depth for side, depth in c.indentation_m.items()},  # each frame's press
             }
             for c in result.corrections
         ],

@@ -49,7 +49,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from yoto.contacts import MIN_TACTILE_POINTS, SIDES, ContactPair
+from yoto.contacts import MIN_TACTILE_POINTS, MINI_PAD_M, SIDES, ContactPair
 from yoto.errors import InputError
 from yoto.geometry import (
     invert_transform,
@@ -148,6 +148,13 @@ class CorrectionConfig:
     # scanned mesh's tilted planes claim a spin its surface of revolution leaves free), the information there is
     # scaled down to what re-matching shows (0: off)
     secant_step: float = 0.5  # that step, in observable units (`observable_rotation_rad`, `observable_translation_m`)
+    shallow_read_fraction: float = 0.5  # a frame reading its press shallower than this share of what it should is
+    # left out (0: off): in motion, of what its pad read at rest (median) while the sensors stand no further apart
+    # than then (within `shallow_gap_m`): the reconstruction lost part of the contact, and would read as a slide ...
+    misread_fraction: float = 0.25  # ... at rest, of the press the touch's pose puts on its pad; a pad whose rest
+    # frames read that shallow (median) is left out of the motion too: it misreads this contact's shape (0.5 also
+    # drops the cracker box's left pad through `shading:3`, 0.42 of its press, whose track met the target)
+    shallow_gap_m: float = 0.001  # (the reported sensor poses put the sensors' distance a few tenths off)
 
 
 @dataclass(frozen=True)
@@ -249,6 +256,7 @@ class Correction:
     # "re-anchored" (they fit as well from open loop: the loop moved back onto that fit)
     sigma_rad: float = 0.0  # the filter's 1-sigma of the object's pose after the instant, along its least certain
     sigma_m: float = 0.0  # turn and shift (what it believes; the weakly pinned directions of `TrackResult.pinning`)
+    indentation_m: dict[str, float] = field(default_factory=dict)  # side -> how deep its frame read the press
 
 
 @dataclass
@@ -459,6 +467,26 @@ def contact_samples(points_sensor: np.ndarray, config: CorrectionConfig) -> np.n
     if len(points) > config.points_per_contact:
         points = points[np.random.default_rng(0).choice(len(points), config.points_per_contact, replace=False)]
     return points
+
+
+def frame_indentation_m(points_sensor: np.ndarray) -> float:
+    """How deep a tactile frame reads its press: its deepest points' depth (the 99th percentile, against pixel
+    noise; the gel's rest surface is z = 0, pressed points lie below it)."""
+    return max(float(np.percentile(-points_sensor[:, 2], 99.0)), 0.0)
+
+
+def predicted_indentation_m(model: ObjectModel, T_object_sensor: np.ndarray) -> float:
+    """How deep the object, placed at T_object_sensor, presses into the pad: the deepest of its surface points that
+    face the sensor over the pad (sensor frame, below the gel's rest surface z = 0; negative: the gap to the pad);
+    nan where no surface faces the pad."""
+    half = np.array(MINI_PAD_M) / 2.0
+    near = model.kdtree.query_ball_point(T_object_sensor[:3, 3], float(np.hypot(*half)))
+    if not near:
+        return float("nan")
+    points = transform_points(invert_transform(T_object_sensor), model.points_object[near].astype(np.float64))
+    facing = model.normals_object[near] @ T_object_sensor[:3, 2] < 0.0  # outward normal against the sensor's z
+    over = facing & (np.abs(points[:, 0]) <= half[0]) & (np.abs(points[:, 1]) <= half[1])
+    return float(-points[over, 2].min()) if over.any() else float("nan")
 
 
 def registration_solver(config: CorrectionConfig) -> GaussNewtonConfig:
@@ -706,6 +734,13 @@ class _Corrector:
         self.touch_sensors = self.last_sensors
         self.pads = {side: PadError(c.pad_error) for side in SIDES} if c.pad_error.enabled else {}
         self.moving = False  # a sensor has left its pose at the touch: the pads' errors are set
+        self.rest_over = False  # ... for the shallow-read check (`_shallow`), whether pads are learnt or not
+        self.rest_reads: dict[str, list[tuple[float, float]]] = {side: [] for side in SIDES}  # per side, at rest:
+        # (how deep its frame read the press, the distance between the sensors then)
+        self.reads: dict[str, float] = {}  # this instant's reads, per side
+        self.touch_press = {  # per side, how deep the object at the touch's pose presses the pad (nan: no surface)
+            side: predicted_indentation_m(model, invert_transform(grasp)) for side, grasp in self.grasps.items()
+        }
         # per side, the last frame used at rest: its samples (sensor frame), its registered T_object_sensor, and the
         # pad's error removed from them as the bias now holds it (`bias_follows_pads`)
         self.rest_reference: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
@@ -893,6 +928,8 @@ class _Corrector:
             for resting in self.pads.values():
                 resting.settle(self.rest_solver)
         predicted = fuse_object_poses(sensors, self.grasps)[0]
+        self.reads = {}
+        shallow = self._shallow(clouds, sensors)
         points_predicted: dict[str, np.ndarray] = {}
         points_sensor: dict[str, np.ndarray] = {}  # each side's registered samples (pad error removed), sensor frame
         raw_samples: dict[str, np.ndarray] = {}  # ... and as the frame gave them
@@ -902,6 +939,9 @@ class _Corrector:
         for row, (side, (_, points)) in enumerate(clouds.items()):
             if not sensors.covered[side][row]:
                 unusable[side] = "no sensor pose at the frame's time"
+                continue
+            if side in shallow:
+                unusable[side] = shallow[side]
                 continue
             T_predicted_sensor = invert_transform(predicted[row]) @ sensors.T_world_sensor[side][row]
             sampled = contact_samples(points, c)
@@ -915,7 +955,7 @@ class _Corrector:
             points_sensor[side], T_predicted_sensors[side] = sampled, T_predicted_sensor
             pose_noise[side] = self._pose_noise(side, T_predicted_sensor)
 
-        record = Correction(timestamp_s=instant_s, used=(), unusable=unusable)
+        record = Correction(timestamp_s=instant_s, used=(), unusable=unusable, indentation_m=self.reads)
         if points_predicted:
             correction, fractions = self._register(points_predicted, T_predicted_sensors)
             bad = {side for side, fraction in fractions.items() if fraction < c.min_inlier_fraction}
@@ -964,6 +1004,42 @@ class _Corrector:
         record.slip_rad = rotation_angle_rad(slip, np.eye(4))
         record.latency_ms = 1000.0 * (time.perf_counter() - started)
         return record
+
+    def _shallow(self, clouds: dict[str, tuple[float, np.ndarray]], sensors: SensorPoses) -> dict[str, str]:
+        """The frames that read their press much shallower than they should, each with why; every frame's read goes
+        to `reads`. At rest a frame should read the press the touch's pose puts on its pad (`misread_fraction`); a
+        pad whose rest frames read it that shallow (their median) is left out of the motion as well: its
+        reconstruction misreads this contact's shape (a flat face read as a partial one). In motion a frame should
+        read about what its pad read at rest while the sensors stand no further apart (`shallow_gap_m`): a rigid
+        grasp keeps its press as the object slips along the pads, and a frame far below it is the reconstruction
+        losing part of the contact, which registered reads as a slide."""
+        c = self.config.correction
+        gap = float(
+            np.linalg.norm(sensors.T_world_sensor["left"][-1][:3, 3] - sensors.T_world_sensor["right"][-1][:3, 3])
+        )
+        if not self.rest_over and self._left_rest(sensors):
+            self.rest_over = True
+        shallow = {}
+        for side, (_, points) in clouds.items():
+            read = frame_indentation_m(points)
+            self.reads[side] = read
+            if not self.rest_over:
+                self.rest_reads[side].append((read, gap))
+            if c.shallow_read_fraction <= 0.0:
+                continue
+            press = self.touch_press[side]
+            if not self.rest_over:
+                if press > 0.0 and read < c.misread_fraction * press:
+                    shallow[side] = f"shallow read ({read * 1e3:.2f} mm, the touch presses {press * 1e3:.2f})"
+                continue
+            if not self.rest_reads[side]:
+                continue
+            rest_read, rest_gap = np.median(np.array(self.rest_reads[side]), axis=0)
+            if press > 0.0 and rest_read < c.misread_fraction * press:
+                shallow[side] = f"shallow read ({rest_read * 1e3:.2f} mm at rest, the touch presses {press * 1e3:.2f})"
+            elif gap <= rest_gap + c.shallow_gap_m and read < c.shallow_read_fraction * rest_read:
+                shallow[side] = f"shallow read ({read * 1e3:.2f} mm, {rest_read * 1e3:.2f} at rest)"
+        return shallow
 
     def _follow_pads(self) -> None:
         """Move the registrations' bias by the shift the pads' maps, as they are now, would make to the registration
