@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from yoto.errors import InputError, MissingDependencyError
+from yoto.io import png_bytes
 
 BAG_KINDS = ("ros1", "ros2-db3", "ros2-mcap")
 POSE_TYPES = (
@@ -364,14 +365,8 @@ class BagWriter:
 
     def compressed_image(self, stamp_s: float, frame_id: str, rgb: np.ndarray) -> Any:
         """A sensor_msgs/CompressedImage holding the frame as PNG (lossless)."""
-        import io
-
-        from PIL import Image
-
-        buffer = io.BytesIO()
-        Image.fromarray(np.ascontiguousarray(rgb, dtype=np.uint8)).save(buffer, format="PNG", compress_level=1)
         return self.typestore.types["sensor_msgs/msg/CompressedImage"](
             header=self._header(stamp_s, frame_id),
             format="rgb8; png compressed bgr8",
-            data=np.frombuffer(buffer.getvalue(), dtype=np.uint8),
+            data=np.frombuffer(png_bytes(rgb), dtype=np.uint8),
         )

@@ -22,7 +22,6 @@ When trials of both rigs hold at the same time, they also form a dual contact (a
 
 from __future__ import annotations
 
-import io
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,7 +32,7 @@ import numpy as np
 from yoto.contacts import SIDES, TactileContact
 from yoto.errors import InputError
 from yoto.geometry import make_transform, procrustes_rotation, so3_log, transform_points
-from yoto.io import write_bytes_atomic, write_json_atomic, write_ply_points
+from yoto.io import png_bytes, write_bytes_atomic, write_json_atomic, write_ply_points
 from yoto.objects.model import ObjectModel
 from yoto.rig.beads import ObjectCalibration
 from yoto.rig.calibration import RigCalibration
@@ -475,14 +474,6 @@ def match_pairs(left: list[TrialResult], right: list[TrialResult], config: Label
 
 # ---------------------------------------------------------------------------------------------------------
 # Files
-
-
-def png_bytes(frame: np.ndarray) -> bytes:
-    from PIL import Image
-
-    buffer = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(frame, dtype=np.uint8)).save(buffer, format="PNG", compress_level=1)
-    return buffer.getvalue()
 
 
 def write_labels(report: LabelReport, out_dir: str | Path, prefix: str) -> dict[str, list[Path]]:

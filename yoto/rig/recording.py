@@ -45,7 +45,7 @@ from yoto.geometry import (
     so3_exp,
     transform_points,
 )
-from yoto.io import write_bytes_atomic, write_json_atomic
+from yoto.io import png_bytes, write_bytes_atomic, write_json_atomic
 from yoto.objects.model import ObjectModel
 from yoto.rig.bags import BagWriter
 from yoto.rig.beads import pick_vertices_mesh
@@ -355,8 +355,6 @@ class Outputs:
                 message = writer.image(stamp, f"gelsight_{side}", frame, encoding)
                 writer.write(IMAGE_TOPIC.format(side), "sensor_msgs/msg/Image", stamp, message)
         if "motive" in self.formats:
-            from yoto.rig.labelling import png_bytes
-
             folder = self.out_dir / "motive" / f"{self.name}_{side}"
             write_bytes_atomic(folder / f"{t:.6f}.png", png_bytes(frame))
 

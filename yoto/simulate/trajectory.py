@@ -56,7 +56,7 @@ from yoto.geometry import (
     so3_exp,
     so3_log,
 )
-from yoto.io import read_json, settings_changed, write_bytes_atomic, write_json_atomic, write_ply_points
+from yoto.io import png_bytes, read_json, settings_changed, write_bytes_atomic, write_json_atomic, write_ply_points
 from yoto.objects.model import ObjectModel
 from yoto.simulate.gel import bias_field, gel_surface, reconstruct_points
 from yoto.simulate.press import SIMULATOR_VERSION
@@ -508,17 +508,6 @@ def trajectory_settings(model: ObjectModel, seed: int, config: TrajectoryConfig)
     )
 
 
-def write_png(path: Path, image: np.ndarray) -> Path:
-    """An RGB uint8 image as a PNG file (atomic)."""
-    import io
-
-    from PIL import Image
-
-    buffer = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(image, dtype=np.uint8)).save(buffer, format="PNG", compress_level=1)
-    return write_bytes_atomic(path, buffer.getvalue())
-
-
 def write_trajectory(trajectory: SimulatedTrajectory, model: ObjectModel, folder: str | Path) -> Path:
     """Write one simulated trajectory as the files `yoto track` reads (see the module docstring). Returns the
     folder. `trajectory.json` is written last: a folder without it is unfinished."""
@@ -534,7 +523,7 @@ def write_trajectory(trajectory: SimulatedTrajectory, model: ObjectModel, folder
         for frame in trajectory.tactile[side]:
             name = tactile_frame_name(frame.timestamp_s)
             if frame.image is not None:  # a GelSight image, as the camera gives it: `yoto track --calibration` reads it
-                write_png(tactile / Path(name).with_suffix(".png").name, frame.image)
+                write_bytes_atomic(tactile / Path(name).with_suffix(".png").name, png_bytes(frame.image))
             else:
                 write_ply_points(tactile / name, frame.points_sensor)
     if trajectory.calibration is not None:
