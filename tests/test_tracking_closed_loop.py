@@ -664,6 +664,16 @@ def test_frames_through_gelsight_images_are_tracked_from_a_folder_of_pngs(
     assert closed["settled"]["mm"] < 0.5 * opened["settled"]["mm"]
 
 
+def tracked_with_and_without_shallow_check(trajectory, model, altered):
+    """The trajectory's touch tracked over the `altered` trajectory's frames, with the shallow-read check (the
+    default) and without it."""
+    touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
+    return tuple(
+        track(touch, trajectory.streams, model, tactile_streams(altered), config)
+        for config in (TrackConfig(), TrackConfig(correction=CorrectionConfig(shallow_read_fraction=0.0)))
+    )
+
+
 def test_a_frame_reading_its_press_much_shallower_than_at_rest_is_left_out(builtin_models, fruit_trajectory):
     """Frames through GelSight images can lose most of a flat or wide contact mid-motion: a press read a fraction
     as deep as at rest while the sensors stay as close. Registered, it reads as a slide; left out, the pose rests on
@@ -679,15 +689,7 @@ def test_a_frame_reading_its_press_much_shallower_than_at_rest_is_left_out(built
         if moving_from_s < frame.timestamp_s < streams_end_s - 0.2:  # the left frames in the motion read a fifth
             partial.tactile["left"][i] = dataclasses.replace(frame, points_sensor=frame.points_sensor * [1, 1, 0.2])
             changed += 1
-    touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
-    checked = track(touch, trajectory.streams, model, tactile_streams(partial))
-    unchecked = track(
-        touch,
-        trajectory.streams,
-        model,
-        tactile_streams(partial),
-        TrackConfig(correction=CorrectionConfig(shallow_read_fraction=0.0)),
-    )
+    checked, unchecked = tracked_with_and_without_shallow_check(trajectory, model, partial)
     assert checked.correction_summary()["unusable"].get("shallow read") == changed
     assert "shallow read" not in unchecked.correction_summary()["unusable"]
     checked_mm = settled(trajectory, checked, checked.T_world_object)["settled"]["mm"]
@@ -706,20 +708,12 @@ def test_a_pad_misreading_the_press_at_rest_is_left_out_of_the_motion(builtin_mo
         dataclasses.replace(frame, points_sensor=frame.points_sensor * [1, 1, 0.1])
         for frame in trajectory.tactile["right"]
     ]
-    touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
-    result = track(touch, trajectory.streams, model, tactile_streams(misread))
+    result, unchecked = tracked_with_and_without_shallow_check(trajectory, model, misread)
     assert not any("right" in correction.used for correction in result.corrections)
     assert all(
         correction.unusable["right"].startswith("shallow read")
         for correction in result.corrections
         if "right" in correction.indentation_m and not correction.unusable["right"].startswith("no sensor pose")
-    )
-    unchecked = track(
-        touch,
-        trajectory.streams,
-        model,
-        tactile_streams(misread),
-        TrackConfig(correction=CorrectionConfig(shallow_read_fraction=0.0)),
     )
     checked_mm = settled(trajectory, result, result.T_world_object)["settled"]["mm"]
     assert checked_mm < 0.5 < settled(trajectory, unchecked, unchecked.T_world_object)["settled"]["mm"]

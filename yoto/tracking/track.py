@@ -733,11 +733,10 @@ class _Corrector:
         self.last_sensors = sensor_poses(streams, np.array([touch.time_s]), config.fusion, jitter)
         self.touch_sensors = self.last_sensors
         self.pads = {side: PadError(c.pad_error) for side in SIDES} if c.pad_error.enabled else {}
-        self.moving = False  # a sensor has left its pose at the touch: the pads' errors are set
-        self.rest_over = False  # ... for the shallow-read check (`_shallow`), whether pads are learnt or not
+        self.moving = False  # a sensor has left its pose at the touch: the pads' errors are set, the rest reads too
         self.rest_reads: dict[str, list[tuple[float, float]]] = {side: [] for side in SIDES}  # per side, at rest:
-        # (how deep its frame read the press, the distance between the sensors then)
-        self.reads: dict[str, float] = {}  # this instant's reads, per side
+        # (how deep its frame read the press, the distance between the sensors then) ...
+        self.rest_read: dict[str, np.ndarray] = {}  # ... and their median, per side that had any, once moving
         self.touch_press = {  # per side, how deep the object at the touch's pose presses the pad (nan: no surface)
             side: predicted_indentation_m(model, invert_transform(grasp)) for side, grasp in self.grasps.items()
         }
@@ -923,13 +922,15 @@ class _Corrector:
         stamps = np.array([stamp for stamp, _ in clouds.values()] + [instant_s])
         sensors = sensor_poses(self.streams, stamps, self.config.fusion, self.jitter)
         self._predict(sensors, instant_s)
-        if self.pads and not self.moving and self._left_rest(sensors):
+        if not self.moving and self._left_rest(sensors):
             self.moving = True
             for resting in self.pads.values():
                 resting.settle(self.rest_solver)
+            self.rest_read = {
+                side: np.median(np.array(reads), axis=0) for side, reads in self.rest_reads.items() if reads
+            }
         predicted = fuse_object_poses(sensors, self.grasps)[0]
-        self.reads = {}
-        shallow = self._shallow(clouds, sensors)
+        shallow, reads = self._shallow(clouds, sensors)
         points_predicted: dict[str, np.ndarray] = {}
         points_sensor: dict[str, np.ndarray] = {}  # each side's registered samples (pad error removed), sensor frame
         raw_samples: dict[str, np.ndarray] = {}  # ... and as the frame gave them
@@ -955,7 +956,7 @@ class _Corrector:
             points_sensor[side], T_predicted_sensors[side] = sampled, T_predicted_sensor
             pose_noise[side] = self._pose_noise(side, T_predicted_sensor)
 
-        record = Correction(timestamp_s=instant_s, used=(), unusable=unusable, indentation_m=self.reads)
+        record = Correction(timestamp_s=instant_s, used=(), unusable=unusable, indentation_m=reads)
         if points_predicted:
             correction, fractions = self._register(points_predicted, T_predicted_sensors)
             bad = {side for side, fraction in fractions.items() if fraction < c.min_inlier_fraction}
@@ -1005,11 +1006,14 @@ class _Corrector:
         record.latency_ms = 1000.0 * (time.perf_counter() - started)
         return record
 
-    def _shallow(self, clouds: dict[str, tuple[float, np.ndarray]], sensors: SensorPoses) -> dict[str, str]:
-        """The frames that read their press much shallower than they should, each with why; every frame's read goes
-        to `reads`. At rest a frame should read the press the touch's pose puts on its pad (`misread_fraction`); a
-        pad whose rest frames read it that shallow (their median) is left out of the motion as well: its
-        reconstruction misreads this contact's shape (a flat face read as a partial one). In motion a frame should
+    def _shallow(
+        self, clouds: dict[str, tuple[float, np.ndarray]], sensors: SensorPoses
+    ) -> tuple[dict[str, str], dict[str, float]]:
+        """The frames that read their press much shallower than they should, each with why, and how deep every
+        frame reads its press (`frame_indentation_m`), per side. At rest a frame should read the press the touch's
+        pose puts on its pad (`misread_fraction`); a pad whose rest frames read it that shallow (their median) is
+        left out of the motion as well: its reconstruction misreads this contact's shape (a flat face read as a
+        partial one). In motion a frame should
         read about what its pad read at rest while the sensors stand no further apart (`shallow_gap_m`): a rigid
         grasp keeps its press as the object slips along the pads, and a frame far below it is the reconstruction
         losing part of the contact, which registered reads as a slide."""
@@ -1017,29 +1021,27 @@ class _Corrector:
         gap = float(
             np.linalg.norm(sensors.T_world_sensor["left"][-1][:3, 3] - sensors.T_world_sensor["right"][-1][:3, 3])
         )
-        if not self.rest_over and self._left_rest(sensors):
-            self.rest_over = True
-        shallow = {}
+        shallow, reads = {}, {}
         for side, (_, points) in clouds.items():
             read = frame_indentation_m(points)
-            self.reads[side] = read
-            if not self.rest_over:
+            reads[side] = read
+            if not self.moving:
                 self.rest_reads[side].append((read, gap))
             if c.shallow_read_fraction <= 0.0:
                 continue
             press = self.touch_press[side]
-            if not self.rest_over:
+            if not self.moving:
                 if press > 0.0 and read < c.misread_fraction * press:
                     shallow[side] = f"shallow read ({read * 1e3:.2f} mm, the touch presses {press * 1e3:.2f})"
                 continue
-            if not self.rest_reads[side]:
+            if side not in self.rest_read:
                 continue
-            rest_read, rest_gap = np.median(np.array(self.rest_reads[side]), axis=0)
+            rest_read, rest_gap = self.rest_read[side]
             if press > 0.0 and rest_read < c.misread_fraction * press:
                 shallow[side] = f"shallow read ({rest_read * 1e3:.2f} mm at rest, the touch presses {press * 1e3:.2f})"
             elif gap <= rest_gap + c.shallow_gap_m and read < c.shallow_read_fraction * rest_read:
                 shallow[side] = f"shallow read ({read * 1e3:.2f} mm, {rest_read * 1e3:.2f} at rest)"
-        return shallow
+        return shallow, reads
 
     def _follow_pads(self) -> None:
         """Move the registrations' bias by the shift the pads' maps, as they are now, would make to the registration
