@@ -135,7 +135,7 @@ class ImagePath:
         height map (the same press gives the same image; a sequence of frames at rest needs an `rng` of its own)."""
         import hashlib
 
-        if not (self.sensor_noise or not self.variation.none):
+        if self.variation.none and not self.sensor_noise:  # a noise-free image of the sensor as calibrated
             rng = None
         elif rng is None:
             digest = hashlib.sha256(np.ascontiguousarray(height_map_m, dtype=np.float64).tobytes()).digest()
