@@ -165,12 +165,26 @@ def cached(job: tuple[int, str, int, int], args: argparse.Namespace) -> tuple[An
     scenario = scaled_trajectory(bench.trajectory, length / 1e3)
     trajectory = TrajectorySimulator(model, scenario).trajectory(seed, index)
     T_touch = touch_estimate(trajectory, model, _localizer(bench.method))
+    store(path, (trajectory, T_touch))
+    return trajectory, T_touch
+
+
+def store(path: Path, value: Any) -> None:
+    """Pickle `value` to `path` whole or not at all (a run stopped midway leaves no truncated cache entry)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_suffix(".part")
     with partial.open("wb") as stream:
-        pickle.dump((trajectory, T_touch), stream, protocol=pickle.HIGHEST_PROTOCOL)
+        pickle.dump(value, stream, protocol=pickle.HIGHEST_PROTOCOL)
     partial.replace(path)
-    return trajectory, T_touch
+
+
+def same_path(again: Any, trajectory: Any, job: tuple[int, str, int, int]) -> Any:
+    """A trajectory simulated again (`again`) with the cached one's touch, after checking that its path, slip and
+    streams are the cached one's (the truth identical)."""
+    seed, name, length, index = job
+    if not np.allclose(again.truth.T_world_frame, trajectory.truth.T_world_frame, atol=1e-12):
+        raise SystemExit(f"{key_of(dict(seed=seed, object=name, length_mm=length, index=index))}: the truth changed")
+    return dataclasses.replace(again, touch=trajectory.touch, touch_time_s=trajectory.touch_time_s)
 
 
 NOISE_FIELDS = {"bias": "bias_std_m", "scale": "scale_std", "pixel": "pixel_std_m"}  # --without -> the press's noise
@@ -187,9 +201,7 @@ def without_errors(trajectory: Any, job: tuple[int, str, int, int], args: argpar
     scenario = dataclasses.replace(scenario, press=dataclasses.replace(scenario.press, noise=noise))
     config = scaled_trajectory(dataclasses.replace(TrackBenchConfig().trajectory, scenario=scenario), length / 1e3)
     again = TrajectorySimulator(_model(object_spec(name, args.meshes), args.workspace), config).trajectory(seed, index)
-    if not np.allclose(again.truth.T_world_frame, trajectory.truth.T_world_frame, atol=1e-12):
-        raise SystemExit(f"{key_of(dict(seed=seed, object=name, length_mm=length, index=index))}: the truth changed")
-    return dataclasses.replace(again, touch=trajectory.touch, touch_time_s=trajectory.touch_time_s)
+    return same_path(again, trajectory, job)
 
 
 @functools.cache
@@ -218,13 +230,8 @@ def via_images(trajectory: Any, job: tuple[int, str, int, int], args: argparse.N
         model = _model(object_spec(name, args.meshes), args.workspace)
         again = TrajectorySimulator(model, config, _image_route(args.frames_via)).trajectory(seed, index)
         if stored is not None:
-            stored.parent.mkdir(parents=True, exist_ok=True)
-            with stored.with_suffix(".part").open("wb") as stream:
-                pickle.dump(again, stream, protocol=pickle.HIGHEST_PROTOCOL)
-            stored.with_suffix(".part").replace(stored)
-    if not np.allclose(again.truth.T_world_frame, trajectory.truth.T_world_frame, atol=1e-12):
-        raise SystemExit(f"{key_of(dict(seed=seed, object=name, length_mm=length, index=index))}: the truth changed")
-    return dataclasses.replace(again, touch=trajectory.touch, touch_time_s=trajectory.touch_time_s)
+            store(stored, again)
+    return same_path(again, trajectory, job)
 
 
 def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[str, Any]:
