@@ -261,9 +261,8 @@ def _run_bench(args: argparse.Namespace) -> int:
 
 def _run_render(args: argparse.Namespace) -> int:
     import numpy as np
-    from PIL import Image
 
-    from yoto.io import write_bytes_atomic
+    from yoto.io import png_bytes, write_bytes_atomic
     from yoto.sensor.calibration import load_calibration
     from yoto.sensor.optical import render_image
     from yoto.sensor.sphere import press_height_map
@@ -274,10 +273,6 @@ def _run_render(args: argparse.Namespace) -> int:
     height = press_height_map(cx, cy, args.contact_radius_mm / spec.mm_per_px, args.ball_diameter_mm * 5e-4, spec)
     rng = None if args.seed is None else np.random.default_rng(args.seed)
     image = render_image(height, calibration, rng)
-    import io
-
-    buffer = io.BytesIO()
-    Image.fromarray(image).save(buffer, format="PNG")
-    write_bytes_atomic(args.out, buffer.getvalue())
+    write_bytes_atomic(args.out, png_bytes(image))
     print(f"wrote {args.out} (press depth {-height.min() * 1e3:.3f} mm)")
     return 0
