@@ -61,8 +61,8 @@ class TableSensor:
         return place_weights(self.table.shape[0], self.spec.height_px, self.spec.width_px)
 
     def lookup(self, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
-        """(rows, cols, 3) colour change of each pixel's gradient (bilinear in gradient and place, clamped); `gx`,
-        `gy` are whole frames ((rows, cols) of `spec`), as a pixel's place is its position."""
+        """(rows, cols, 3) colour change of each pixel's gradient (bilinear in gradient and place, clamped), before the
+        per-pixel `gain`; `gx`, `gy` are whole frames ((rows, cols) of `spec`), as a pixel's place is its position."""
         bins = self.table.shape[2]
         fx = (np.clip(gx, -self.limit, self.limit) + self.limit) / self.step
         fy = (np.clip(gy, -self.limit, self.limit) + self.limit) / self.step
