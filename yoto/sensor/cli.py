@@ -26,6 +26,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     calibrate.add_argument("--out", help="calibration file to write (default: WORKSPACE/sensors/SENSOR.npz)")
     calibrate.add_argument("--workspace", help="workspace folder (default: $YOTO_WORKSPACE or ./yoto_workspace)")
     calibrate.add_argument("--overwrite", action="store_true", help="replace an existing calibration file")
+    calibrate.add_argument("--pressed-gel", action="store_true", help=PRESSED_GEL_HELP)
     calibrate.set_defaults(run=_run_calibrate)
 
     recon = commands.add_parser(
@@ -47,6 +48,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="figure to write (default sensor_validation.png in the current folder; '' for none)",
     )
     validate.add_argument("--table", help="also write the Markdown table here")
+    validate.add_argument("--pressed-gel", action="store_true", help=PRESSED_GEL_HELP)
     validate.set_defaults(run=_run_validate)
 
     bench = commands.add_parser("bench", help="time image -> point cloud (median, p90, per step)")
@@ -88,6 +90,18 @@ def _load_presses(args: argparse.Namespace):
     return background, [load_image(p) for p in paths], names
 
 
+PRESSED_GEL_HELP = (
+    "learn the colour change a gel pressed flat shows and take it off before reading slopes (off by default: it "
+    "helps where object contacts show the presses' change, and costs where they do not; docs/sensor.md stop 17)"
+)
+
+
+def _calibration_config(args: argparse.Namespace):
+    from yoto.sensor.ball_calibration import PRESSED_GEL_DEGREES, CalibrationConfig
+
+    return CalibrationConfig(pressed_gel_degrees=PRESSED_GEL_DEGREES if args.pressed_gel else ())
+
+
 def _run_calibrate(args: argparse.Namespace) -> int:
     from yoto.errors import InputError
     from yoto.sensor.ball_calibration import calibrate
@@ -98,7 +112,12 @@ def _run_calibrate(args: argparse.Namespace) -> int:
         raise InputError("calibration file exists; pass --overwrite to replace it", out)
     background, presses, names = _load_presses(args)
     calibration, report = calibrate(
-        background, presses, args.ball_diameter_mm * 1e-3, names=names, background_path=args.background
+        background,
+        presses,
+        args.ball_diameter_mm * 1e-3,
+        _calibration_config(args),
+        names=names,
+        background_path=args.background,
     )
     for press in report.presses:
         if press.used:
@@ -227,6 +246,7 @@ def _run_validate(args: argparse.Namespace) -> int:
         presses,
         args.ball_diameter_mm * 1e-3,
         folds=args.folds,
+        config=_calibration_config(args),
         names=names,
         figure=args.figure or None,
     )

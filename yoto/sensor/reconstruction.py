@@ -379,8 +379,10 @@ def reconstruct(
         # whole frame is integrated, its level set by the least-pressed block (every block counts as touched).
         box = (0, shape[0], 0, shape[1])
         gx, gy, changed = box_gradients(image, calibration, box)
-        height = integrate_box(gx, gy, box, np.full_like(blocks, np.inf), spec.pixel_size_m)
-    else:
+        blocks = np.full_like(blocks, np.inf)
+    height = integrate_box(gx, gy, box, blocks, spec.pixel_size_m)
+    if calibration.pressed_gel is not None:  # the pressed gel's own colour change, at the depth just read, is no slope
+        gx, gy, _ = box_gradients(image, calibration, box, height)
         height = integrate_box(gx, gy, box, blocks, spec.pixel_size_m)
     mask, core, reason = contact_masks(changed, height, calibration.mask, box, faint)
     if mask is None or core is None:
@@ -399,16 +401,25 @@ def reconstruct(
 
 
 def box_gradients(
-    image: np.ndarray, calibration: SensorCalibration, box: tuple[int, int, int, int]
+    image: np.ndarray,
+    calibration: SensorCalibration,
+    box: tuple[int, int, int, int],
+    height_m: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """Full-frame gradient maps, zero outside `box`, and the number of pixels whose colour changed by at
-    least the mask's colour threshold."""
+    least the mask's colour threshold.
+
+    With a first solve's full-frame `height_m` and a calibration that models the pressed gel's colour change at zero
+    slope (`calibration.PressedGelChange`), that change at those depths is taken off the colour change first.
+    """
     row0, row1, col0, col1 = box
     rows, cols = image.shape[:2]
     # One extra pixel around the box so the 3x3 smoothing inside it matches a full-frame smoothing.
     r0, r1, c0, c1 = max(0, row0 - 1), min(rows, row1 + 1), max(0, col0 - 1), min(cols, col1 + 1)
     change = model_colour_change(image[r0:r1, c0:c1], calibration.background_i16[r0:r1, c0:c1], calibration.smooth)
     change = change[row0 - r0 : row1 - r0, col0 - c0 : col1 - c0]
+    if height_m is not None and calibration.pressed_gel is not None:
+        change = change - calibration.pressed_gel.change(height_m[row0:row1, col0:col1], (row0, col0), (rows, cols))
     box_gx, box_gy = calibration.gradient_model.predict(change, origin=(row0, col0))
     gx = np.zeros((rows, cols), np.float32)
     gy = np.zeros((rows, cols), np.float32)
