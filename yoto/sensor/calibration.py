@@ -75,7 +75,9 @@ class PressedGelChange:
             self._levels[shape] = (basis @ self.coefficients).reshape(*shape, 3).astype(np.float32)
         return self._levels[shape]
 
-    def change(self, height_m: np.ndarray, origin: tuple[int, int] = (0, 0), shape: tuple[int, int] | None = None):
+    def change(
+        self, height_m: np.ndarray, origin: tuple[int, int] = (0, 0), shape: tuple[int, int] | None = None
+    ) -> np.ndarray:
         """(rows, cols, 3) int16 change (rounded levels) of a gel at heights `height_m` (metres, <= 0 pressed).
 
         `height_m` may be a window of the frame whose top-left pixel is `origin`; `shape` is the frame's shape

@@ -14,7 +14,9 @@ Steps, for one 320x240 RGB frame:
    gradients, solved with discrete cosine/sine transforms using precomputed eigenvalues, float32; box edges
    inside the frame lie on flat gel (zero height), edges on the frame's border are free (a press cut by the
    frame's edge is not forced to zero there). Where an edge is free, untouched gel inside the box is brought back
-   to zero by a harmonic correction (`anchor_untouched`). Heights are then clamped to z <= 0.
+   to zero by a harmonic correction (`anchor_untouched`). With a calibration that models the pressed gel's colour
+   change at zero slope (`calibration.PressedGelChange`, opt-in), that change at the depths just read is taken off the
+   colour change and steps 2-3 run again. Heights are then clamped to z <= 0.
 4. contact masks: if at least `min_area_px` pixels changed colour by `colour_threshold` (or the frame is a faint
    contact: a tilted face's colour change of a few levels over many blocks that no lighting change explains,
    integrated over the whole frame), the core (pixels
