@@ -4,6 +4,8 @@ must not read it as slope."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from test_sensor_pipeline import BALL_RADIUS_M, SPEC, _press_circles, synthetic_background, synthetic_sensor_image
@@ -11,7 +13,7 @@ from test_sensor_pipeline import BALL_RADIUS_M, SPEC, _press_circles, synthetic_
 from yoto.sensor.ball_calibration import PRESSED_GEL_DEGREES, CalibrationConfig, calibrate
 from yoto.sensor.calibration import load_calibration
 from yoto.sensor.optical import render_image
-from yoto.sensor.reconstruction import reconstruct
+from yoto.sensor.reconstruction import box_gradients, pressed_gel_amount, reconstruct
 from yoto.sensor.sphere import press_height_map
 from yoto.sensor.validation import evaluate_press
 
@@ -62,8 +64,8 @@ def test_calibration_learns_the_pressed_gel_change(pressed):
 
 def test_held_out_presses_read_true_with_the_change_modelled(pressed):
     """Shallow held-out presses show part of the change: modelled, their sphere's radius and Hertz profile come back
-    (measured: 8% and 2.6 um); read as slope, as calibrations before it did, the radius is 66% off and the profile
-    error four times as large."""
+    (measured: 19% and 4.8 um with the amount read per frame; 8% and 2.6 um when the whole change was taken off at
+    every depth); read as slope, as calibrations before it did, the radius is 67% off and the profile 11.3 um."""
     errors = {}
     for key in ("modelled", "unmodelled"):
         rows = []
@@ -72,8 +74,8 @@ def test_held_out_presses_read_true_with_the_change_modelled(pressed):
             assert result.found
             rows.append((abs(result.fitted_radius_mm / (BALL_RADIUS_M * 1e3) - 1), result.profile_rmse_mm))
         errors[key] = np.median(rows, axis=0)
-    assert errors["modelled"][0] < 0.15 and errors["modelled"][1] < 0.005  # small caps: radius known to ~10%
-    assert errors["unmodelled"][0] > 0.3 and errors["unmodelled"][1] > 2.5 * errors["modelled"][1]
+    assert errors["modelled"][0] < 0.25 and errors["modelled"][1] < 0.006  # small caps: radius known to ~10%
+    assert errors["unmodelled"][0] > 0.3 and errors["unmodelled"][1] > 2 * errors["modelled"][1]
 
 
 def test_a_calibration_without_the_change_reads_as_before(pressed, tmp_path):
@@ -101,3 +103,29 @@ def test_rendering_shows_the_pressed_gel_change(pressed):
         pressed_fraction = min(-height.min() / calibration.pressed_gel.full_depth_m, 1.0)
         expected = calibration.pressed_gel.levels((SPEC.height_px, SPEC.width_px))[middle] * pressed_fraction
         assert np.abs((rendered - expected).mean(axis=(0, 1))).max() < 1.5
+
+
+def test_each_frame_reads_how_much_of_the_change_it_shows(pressed):
+    """Reconstruction reads per frame how much of the learnt change the gel shows (`pressed_gel_amount`): the change
+    lies off the colours a slope makes. Presses rendered by the calibration's own optical model with the whole learnt
+    change, half of it and none read about 1, 0.5 and 0 at the true depths (measured: 1.01-1.04, 0.50-0.55,
+    0.00-0.03). At the first solve's depths, which the change makes shallow, the amount reads larger (1.6-2.7 here
+    before the MAX_PRESSED_GEL_AMOUNT clip: it scales a fade read too small); a frame without it still reads ~0."""
+    calibration = pressed["modelled"]
+    change = calibration.pressed_gel
+    at_truth: dict[float, list[float]] = {1.0: [], 0.5: [], 0.0: []}
+    at_first_solve: dict[float, list[float]] = {1.0: [], 0.5: [], 0.0: []}
+    for cx, cy, a in pressed["circles"][:6]:
+        height = press_height_map(cx, cy, a, BALL_RADIUS_M)
+        for shown in at_truth:
+            optics = replace(calibration, pressed_gel=replace(change, coefficients=change.coefficients * shown))
+            image = render_image(height, optics, np.random.default_rng(1))
+            read = reconstruct(image, calibration)
+            at_first_solve[shown].append(read.pressed_gel_amount)
+            assert read.box is not None
+            gx, gy, _ = box_gradients(image, calibration, read.box)
+            at_truth[shown].append(pressed_gel_amount(image, calibration, read.box, height.astype(np.float32), gx, gy))
+    truth = {shown: float(np.median(values)) for shown, values in at_truth.items()}
+    assert 0.9 < truth[1.0] < 1.1 and 0.4 < truth[0.5] < 0.6 and truth[0.0] < 0.05
+    first = {shown: float(np.median(values)) for shown, values in at_first_solve.items()}
+    assert first[1.0] > 0.9 and first[0.5] > 0.5 and first[0.0] < 0.1

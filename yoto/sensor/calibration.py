@@ -76,17 +76,27 @@ class PressedGelChange:
         return self._levels[shape]
 
     def change(
-        self, height_m: np.ndarray, origin: tuple[int, int] = (0, 0), shape: tuple[int, int] | None = None
+        self,
+        height_m: np.ndarray,
+        origin: tuple[int, int] = (0, 0),
+        shape: tuple[int, int] | None = None,
+        amount: float = 1.0,
     ) -> np.ndarray:
         """(rows, cols, 3) int16 change (rounded levels) of a gel at heights `height_m` (metres, <= 0 pressed).
 
         `height_m` may be a window of the frame whose top-left pixel is `origin`; `shape` is the frame's shape
-        (default: the window's).
+        (default: the window's). `amount` scales the change (1: as the calibration presses show it).
         """
+        return np.rint(self.change_levels(height_m, origin, shape) * np.float32(amount)).astype(np.int16)
+
+    def change_levels(
+        self, height_m: np.ndarray, origin: tuple[int, int] = (0, 0), shape: tuple[int, int] | None = None
+    ) -> np.ndarray:
+        """`change` before rounding: (rows, cols, 3) float32 levels."""
         rows, cols = height_m.shape
         levels = self.levels(shape or (rows, cols))[origin[0] : origin[0] + rows, origin[1] : origin[1] + cols]
         pressed = np.clip(height_m * np.float32(-1.0 / self.full_depth_m), 0.0, 1.0).astype(np.float32)
-        return np.rint(levels * pressed[..., None]).astype(np.int16)
+        return levels * pressed[..., None]
 
 
 @dataclass

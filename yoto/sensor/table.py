@@ -6,24 +6,26 @@ read off real ball presses with no model form at all, as a lab would build a loo
 
 - each press's contact circle (from `ball_calibration.calibrate`, which also gives the calibration a benchmark
   reconstructs with) gives the true gel gradients inside the contact (the ball's sphere, `sphere_gradients`);
-- the colour change against the background at those pixels (each press's small lighting drift removed) is averaged
-  in bins of (dz/dx, dz/dy) (`step` wide), separately for a coarse `places` x `places` grid of places on the pad
-  (samples shared between neighbouring places by their bilinear weights), and bins no press reached copy the
+- the colour change against the background at those pixels (each press's small lighting drift removed), divided by
+  the pixel's gain (its background level over the pad's mean, per channel: the lighting that reaches that pixel), is
+  averaged in bins of (dz/dx, dz/dy) (`step` wide), separately for a coarse `places` x `places` grid of places on the
+  pad (samples shared between neighbouring places by their bilinear weights), and bins no press reached copy the
   nearest bin that one did: slopes beyond the steepest seen saturate, nothing is extrapolated;
-- rendering looks each pixel's gradient up (bilinear in the gradient and between places), blurs the colour change
-  (`blur_px`, chosen against held-out real presses: `benchmarks/table_renderer_check.py`), adds the real
-  background and Gaussian noise of the level measured between the real presses and the background.
+- rendering looks each pixel's gradient up (bilinear in the gradient and between places), multiplies it by the
+  pixel's gain, blurs the colour change (`blur_px`, chosen against held-out real presses:
+  `benchmarks/table_renderer_check.py`), adds the real background and Gaussian noise of the level measured between
+  the real presses and the background.
 
 Unlike our polynomial model, the table keeps what the real presses show at the bottom of a press: a pressed but
 flat gel is not the background (median +5 / +5 / +10 levels on the 44 example presses where the ball's gradient is
 zero). Untouched gel must render as the background, so that zero-gradient change is faded in with the depth of the
 press (full at `pressed_depth_m` and deeper).
 
-The defaults (0.05 bins, 5 x 5 places, 2 px blur, 0.8 mm) are the held-out check's best: colour RMS 6.35 levels
-against the real presses (the fitted renderer 6.59). Known limit (docs/sensor.md, stop 16): a press's colours are its
-place's average lighting, so our calibration, which knows the real lighting per pixel, reads the table's held-out ball
-presses 12% off (median |radius error|; real presses 3.3%, fitted renderer 4.4%): poses through it are a pessimistic
-bound.
+The defaults (0.05 bins, 5 x 5 places, 2 px blur, 0.8 mm, the per-pixel gain) are the held-out check's best: colour
+RMS 6.19 levels against the real presses (the fitted renderer 6.59), and our calibration reads its held-out ball
+presses about as it reads the real ones (median |radius error| 4.7%; real presses 3.3%, fitted renderer 4.4%). Without
+the per-pixel gain (stop 16's table, `per_pixel_gain=False`) a press's colours were its place's average lighting, which
+our calibration, knowing the real lighting per pixel, read 12% off (docs/sensor.md, stops 16 and 17).
 """
 
 from __future__ import annotations
@@ -52,14 +54,15 @@ class TableSensor:
     blur_px: float  # Gaussian blur of the colour change (pixels)
     noise_std: np.ndarray  # (3,) per-channel noise of a real frame against the background
     pressed_depth_m: float  # the zero-gradient change is faded in from no depth to this depth
+    gain: np.ndarray | None = None  # (rows, cols, 3) per-pixel gain the table's change is multiplied by (None: 1)
 
     def _place_weights(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Per pixel, the (row place, col place, weight) of the up to 4 places it blends (bilinear)."""
         return place_weights(self.table.shape[0], self.spec.height_px, self.spec.width_px)
 
     def lookup(self, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
-        """(rows, cols, 3) colour change of each pixel's gradient (bilinear in gradient and place, clamped); `gx`,
-        `gy` are whole frames ((rows, cols) of `spec`), as a pixel's place is its position."""
+        """(rows, cols, 3) colour change of each pixel's gradient (bilinear in gradient and place, clamped), before the
+        per-pixel `gain`; `gx`, `gy` are whole frames ((rows, cols) of `spec`), as a pixel's place is its position."""
         bins = self.table.shape[2]
         fx = (np.clip(gx, -self.limit, self.limit) + self.limit) / self.step
         fy = (np.clip(gy, -self.limit, self.limit) + self.limit) / self.step
@@ -93,6 +96,8 @@ class TableSensor:
         unpressed = 1.0 - np.clip(-height / self.pressed_depth_m, 0.0, 1.0)
         zero = self.lookup(np.zeros_like(gx), np.zeros_like(gy))
         change -= unpressed[..., None].astype(np.float32) * zero
+        if self.gain is not None:
+            change *= self.gain
         if self.blur_px > 0:
             change = ndimage.gaussian_filter(change, (self.blur_px, self.blur_px, 0), mode="nearest")
         image = self.background.astype(np.float32) + change
@@ -139,18 +144,24 @@ def fit_table_sensor(
     min_weight: float = 2.0,
     blur_px: float = 2.0,
     pressed_depth_m: float = 8e-4,
+    per_pixel_gain: bool = True,
 ) -> TableSensor:
     """A `TableSensor` read off real ball presses (uint8 RGB images) with their contact circles (x, y, radius px).
 
     Pixels within `inside_fraction` of each contact radius are the samples (there the gel follows the ball); a bin
     holds the weighted mean of its samples when their place weights add up to `min_weight`, else it copies the
-    nearest bin that does (per place).
+    nearest bin that does (per place). `per_pixel_gain`: the samples are read relative to their pixel's background
+    (module docstring); False gives stop 16's table, whose places average the lighting.
     """
     from yoto.sensor.sphere import sphere_gradients
 
     rows, cols = spec.height_px, spec.width_px
     ball_radius_px = ball_radius_m / spec.pixel_size_m
     background_f = background.astype(np.float32)
+    gain = None
+    if per_pixel_gain:  # each pixel's lighting: its background over the pad's mean, per channel
+        lit = np.maximum(background_f, 1.0)
+        gain = (lit / lit.mean(axis=(0, 1))).astype(np.float32)
     samples, far = [], []
     for image, (cx, cy, a) in zip(presses, circles, strict=True):
         change = image.astype(np.float32) - background_f
@@ -161,7 +172,8 @@ def fit_table_sensor(
         fine = change - ndimage.uniform_filter(change, (5, 5, 1), mode="nearest")
         far.append(fine[outside] * np.sqrt(25 / 24))
         inside = r < inside_fraction * a
-        samples.append((tx[inside], ty[inside], change[inside], np.nonzero(inside)))
+        relative_change = change if gain is None else change / gain
+        samples.append((tx[inside], ty[inside], relative_change[inside], np.nonzero(inside)))
     seen = max(float(np.abs(np.concatenate([s[0] for s in samples] + [s[1] for s in samples])).max()), step)
     limit = step * np.ceil(seen / step)
     bins = int(round(2 * limit / step)) + 1
@@ -196,7 +208,7 @@ def fit_table_sensor(
     noise_std = np.array(
         [differences[(differences[:, c] >= low[c]) & (differences[:, c] <= high[c]), c].std() for c in range(3)]
     )
-    return TableSensor(spec, background.copy(), table, step, float(limit), blur_px, noise_std, pressed_depth_m)
+    return TableSensor(spec, background.copy(), table, step, float(limit), blur_px, noise_std, pressed_depth_m, gain)
 
 
 def read_press_folder(folder: str | Path, spec: GelSightSpec = GELSIGHT_MINI):
