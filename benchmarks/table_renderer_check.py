@@ -9,18 +9,24 @@ circle (found by a calibration on all presses) is rendered noise-free by both an
 inside the contact (r < a), on its rim (a <= r < 1.5 a) and over both, median over the held-out presses; and what our
 reconstruction reads on each rendered press (with noise), as `yoto sensor validate` reads a real one: the fold's
 calibration, a sphere fitted inside the found circle, its radius against the ball's (median and median |error| over
-the held-out presses; the real presses' own line comes first). It prints one line per table setting (`--blurs`,
-`--steps`, `--places`, `--pressed-depths-mm`) and one for the fitted renderer, and the real frames' noise level against
-which the RMS stands (the rendered images it compares carry none).
+the held-out presses; the real presses' own line comes first), and the median CPU time of one noise-free render. It
+prints one line per table setting (`--blurs`, `--steps`, `--places`, `--pressed-depths-mm`, `--per-pixel-gains`) and
+one for the fitted renderer, and the real frames' noise level against which the RMS stands (the rendered images it
+compares carry none).
 
-    python benchmarks/table_renderer_check.py --data ../shared/data/gelsight_mini --blurs 0 1 2 --steps 0.02 0.04
+    python benchmarks/table_renderer_check.py --data ../shared/data/gelsight_mini --places 4 5 6 --per-pixel-gains 1
+
+(the defaults: the table's own settings, with and without the per-pixel gain).
 """
 
 from __future__ import annotations
 
 import argparse
+import time
 
 import numpy as np
+
+GAINS = {1: "per-pixel gain", 0: "no gain"}
 
 
 def press_errors(rendered: np.ndarray, real_change: np.ndarray, background: np.ndarray, r: np.ndarray, a: float):
@@ -35,11 +41,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default="../shared/data/gelsight_mini")
     parser.add_argument("--folds", type=int, default=4)
-    parser.add_argument("--blurs", type=float, nargs="+", default=[0.0, 0.5, 1.0, 1.5, 2.0])
-    parser.add_argument("--steps", type=float, nargs="+", default=[0.02])
+    parser.add_argument("--blurs", type=float, nargs="+", default=[2.0])
+    parser.add_argument("--steps", type=float, nargs="+", default=[0.05])
     parser.add_argument("--places", type=int, nargs="+", default=[5])
     parser.add_argument(
-        "--pressed-depths-mm", type=float, nargs="+", default=[0.1], help="depths the zero-gradient change fades in by"
+        "--pressed-depths-mm", type=float, nargs="+", default=[0.8], help="depths the zero-gradient change fades in by"
+    )
+    parser.add_argument(
+        "--per-pixel-gains",
+        type=int,
+        nargs="+",
+        default=[1, 0],
+        help="1: the change read relative to each pixel's "
+        "background (the default); 0: as stop 16's table (the lighting averaged over each place)",
     )
     args = parser.parse_args()
 
@@ -76,23 +90,26 @@ def main() -> None:
     )
 
     settings = [
-        (step, places, blur, depth)
+        (step, places, blur, depth, gain)
         for step in args.steps
         for places in args.places
         for blur in args.blurs
         for depth in args.pressed_depths_mm
+        for gain in args.per_pixel_gains
     ]
     errors: dict[str, list] = {
-        f"table step {s:.2f}, {p}x{p} places, blur {b:.1f} px, pressed {d:.2f} mm": [] for s, p, b, d in settings
+        f"table {s:.2f} bins, {p}x{p} places, blur {b:.1f} px, pressed {d:.2f} mm, {GAINS[g]}": []
+        for s, p, b, d, g in settings
     }
     errors["fitted renderer (our calibration's inverse)"] = []
     radii: dict[str, list[float]] = {label: [] for label in errors}
     radii["real presses"] = []
+    seconds: dict[str, list[float]] = {label: [] for label in errors}
     for fold in range(args.folds):
         train = [i for i in range(len(images)) if i % args.folds != fold]
         held = [i for i in range(len(images)) if i % args.folds == fold]
         calibration, _ = calibrate(background, [images[i] for i in train], diameter_m)
-        for (step, places, blur, depth), label in zip(settings, errors):
+        for (step, places, blur, depth, gain), label in zip(settings, errors):
             sensor = fit_table_sensor(
                 background,
                 [images[i] for i in train],
@@ -103,15 +120,20 @@ def main() -> None:
                 places=places,
                 blur_px=blur,
                 pressed_depth_m=depth * 1e-3,
+                per_pixel_gain=bool(gain),
             )
             for i in held:
+                start = time.process_time()
                 rendered = sensor.render(heights[i], None)
+                seconds[label].append(time.process_time() - start)
                 errors[label].append(press_errors(rendered, real_changes[i], background, distances[i], circles[i][2]))
                 noisy = sensor.render(heights[i], np.random.default_rng(i))
                 radii[label].append(radius_error(noisy, calibration, i, fold))
         fitted = "fitted renderer (our calibration's inverse)"
         for i in held:
+            start = time.process_time()
             rendered = render_image(heights[i], calibration)
+            seconds[fitted].append(time.process_time() - start)
             errors[fitted].append(press_errors(rendered, real_changes[i], background, distances[i], circles[i][2]))
             radii[fitted].append(
                 radius_error(render_image(heights[i], calibration, np.random.default_rng(i)), calibration, i, fold)
@@ -132,7 +154,8 @@ def main() -> None:
         read = np.array(radii[label])
         print(
             f"  {label:>60}: inside {text(inside)}, rim {text(rim)}, both {text(both)} (mean {both.mean():.2f}); "
-            f"sphere radius read {np.nanmedian(read):+.1%}, median |error| {np.nanmedian(np.abs(read)):.1%}"
+            f"sphere radius read {np.nanmedian(read):+.1%}, median |error| {np.nanmedian(np.abs(read)):.1%}; "
+            f"render {1e3 * np.median(seconds[label]):.0f} ms CPU"
         )
 
 

@@ -43,7 +43,10 @@ Printed, over the trajectories whose touch was right (within 5 mm and 5 deg):
 `--frames-at-truth` also registers every second instant's frames from the truth (`bench.truth_registrations`, the
 pads' maps learnt there) and prints, per band of pinning, the closed loop's final drift against the frames' own change
 over the motion: the drift a loop that believed its frames would show, and (weighed against the slip by their sizes)
-about the least a loop that weighs its frames against its prediction can leave (~4 CPU s more a trajectory).
+about the least a loop that weighs its frames against its prediction can leave (~4 CPU s more a trajectory); and
+how each contact's own shape error changed over the motion (`bench.contact_planes_at_truth`: the plane of its
+samples' distances to the surface at the true pose, its tilt and offset after the motion against before it, and how
+far the contact moved over its pad): the frames' change read per contact, before any registration mixes them.
 
 `--frames-via SOURCE` tracks each cached trajectory simulated again with its tactile frames (and the touch's clouds,
 which only the pinning reads: the cached touch estimate is kept) rendered to GelSight images from the gel's height
@@ -91,6 +94,7 @@ from yoto.tracking.bench import (  # noqa: E402
     RIGHT_TOUCH_M,
     RIGHT_TOUCH_RAD,
     TrackBenchConfig,
+    contact_planes_at_truth,
     drift_meets_target,
     scaled_trajectory,
     tactile_streams,
@@ -297,6 +301,7 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
         if (stamps < motion[0]).any() and (stamps > motion[1]).any():
             change = twists[stamps > motion[1]].mean(axis=0) - twists[stamps < motion[0]].mean(axis=0)
             record["frames_change"] = change.tolist()
+        record["contact_planes"] = contact_planes_at_truth(trajectory, model, config.correction, motion)
     return record
 
 
@@ -601,6 +606,23 @@ def frames_line(records: list[dict[str, Any]]) -> str:
     )
 
 
+def planes_line(records: list[dict[str, Any]]) -> str:
+    """How each contact's own shape error changed over the motion (`contact_planes_at_truth`: its samples' plane
+    against the surface at the true pose, after the motion against before it), over the right touches' contacts:
+    the tilt's change (median, 90th percentile, largest), the offset's (median of its size) and how far the
+    contacts moved over their pads (median)."""
+    planes = [p for r in records if r["right_touch"] for p in r.get("contact_planes", {}).values()]
+    if not planes:
+        return "contacts' plane at the truth: none measured"
+    tilt = np.array([p["tilt_mrad"] for p in planes])
+    return (
+        f"contacts' plane at the truth, change over the motion ({len(planes)} contacts): tilt {np.median(tilt):.2f} "
+        f"mrad median, {np.percentile(tilt, 90):.2f} p90, {tilt.max():.2f} largest; offset "
+        f"{np.median([abs(p['offset_um']) for p in planes]):.1f} um median; the contacts moved "
+        f"{np.median([p['moved_mm'] for p in planes]):.2f} mm over their pads (median)"
+    )
+
+
 SPLIT_HEADER = (
     "| set | weak above (units) | tracks with a weak direction | pinned part: meets | 100 mm deg / mm | 200 mm | "
     "growth deg per 100 mm | weak part: meets | 100 mm | 200 mm | growth |\n"
@@ -625,6 +647,8 @@ def report(records: list[dict[str, Any]], label: str) -> str:
             "the final drift against the frames' own change at the truth, by how well each direction is pinned:",
         ]
         lines += frames_floor(records)
+    if any("contact_planes" in r for r in records):
+        lines += ["", planes_line(records)]
     lines += ["", frames_line(records)]
     misses = [r for r in records if r["right_touch"] and not meets(r)]
     lines.append("")

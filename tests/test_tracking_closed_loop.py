@@ -15,11 +15,18 @@ from yoto.geometry import invert_transform, rotation_angle_rad, transform_points
 from yoto.io import write_ply_points
 from yoto.simulate.trajectory import TrajectoryConfig, TrajectorySimulator, write_trajectories, write_trajectory
 from yoto.tracking import track as track_module
-from yoto.tracking.bench import registration_at_truth, tactile_streams, truth_registrations
+from yoto.tracking.bench import contact_planes_at_truth, registration_at_truth, tactile_streams, truth_registrations
 from yoto.tracking.evaluate import motion_interval, summarize_errors, tracking_errors
 from yoto.tracking.pad_error import PadErrorConfig
 from yoto.tracking.streams import TactileStream
-from yoto.tracking.track import CorrectionConfig, TrackConfig, tactile_timing_warnings, touch_from_pair, track
+from yoto.tracking.track import (
+    CorrectionConfig,
+    TrackConfig,
+    contact_samples,
+    tactile_timing_warnings,
+    touch_from_pair,
+    track,
+)
 from yoto.trajectory import read_tum, tactile_frame_name
 
 pytest.importorskip("open3d")
@@ -280,6 +287,38 @@ def test_the_benchmark_measures_how_far_the_frames_themselves_move_from_the_trut
     assert measured["noise-free"]["offset_before"]["mm"] < 0.03
     assert measured["noise-free"]["change"]["deg"] < 0.1
     assert measured["noisy"]["offset_before"]["deg"] > 3 * measured["noise-free"]["offset_before"]["deg"]
+
+
+def test_the_benchmark_reads_how_each_contacts_own_plane_changes_over_the_motion(builtin_models, fruit_trajectory):
+    """`contact_planes_at_truth` fits a plane to each contact's distances from the surface at the true pose: a push
+    of 30 um into the object, or a tilt of 5 mrad about the pad's y axis, added to the left gel's frames after the
+    motion is read back as that change of the left contact's plane (a little under it: distances along the curved
+    surface's normals, not the pad's z), the right contact's untouched (a fit over the wrong points, or a slope
+    read in the wrong units, misses it)."""
+    trajectory, model = fruit_trajectory, builtin_models["fruit"]
+    stamps = np.union1d(trajectory.streams["left"].timestamps_s, trajectory.streams["right"].timestamps_s)
+    motion = motion_interval(trajectory.streams, stamps)
+    config = CorrectionConfig()
+
+    def changed(push_m: float, slope: float) -> dict[str, dict[str, float]]:
+        frames = list(trajectory.tactile["left"])
+        for index, frame in enumerate(frames):
+            if frame.timestamp_s > motion[1]:
+                points = frame.points_sensor.copy()
+                centre = contact_samples(points, config)[:, 0].mean()
+                points[:, 2] += push_m + slope * (points[:, 0] - centre)
+                frames[index] = dataclasses.replace(frame, points_sensor=points)
+        altered = dataclasses.replace(trajectory, tactile={**trajectory.tactile, "left": frames})
+        return contact_planes_at_truth(altered, model, config, motion)
+
+    measured = contact_planes_at_truth(trajectory, model, config, motion)
+    pushed, tilted = changed(3e-5, 0.0), changed(0.0, 0.005)
+    assert set(measured) == {"left", "right"}
+    assert pushed["right"] == tilted["right"] == measured["right"]
+    assert measured["left"]["tilt_mrad"] < 2.0
+    assert -31.0 < pushed["left"]["offset_um"] - measured["left"]["offset_um"] < -25.0
+    assert abs(pushed["left"]["tilt_mrad"] - measured["left"]["tilt_mrad"]) < 0.3
+    assert 4.0 - measured["left"]["tilt_mrad"] < tilted["left"]["tilt_mrad"] < 5.0 + measured["left"]["tilt_mrad"]
 
 
 def test_the_frames_from_the_truth_skip_an_instant_whose_frame_has_no_contact(builtin_models, fruit_trajectory):

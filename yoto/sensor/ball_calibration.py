@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from yoto.errors import InputError
-from yoto.sensor.calibration import MaskConfig, PressedGelChange, SensorCalibration, background_change
+from yoto.sensor.calibration import MaskConfig, SensorCalibration, background_change
 from yoto.sensor.models import (
     GradientModel,
     GradientModelConfig,
@@ -52,11 +52,10 @@ from yoto.sensor.presses import (
     ring_circle,
 )
 from yoto.sensor.spec import GELSIGHT_MINI, GelSightSpec
-from yoto.sensor.sphere import press_height_map, refine_centre, sphere_gradients
+from yoto.sensor.sphere import refine_centre, sphere_gradients
 
 SELECTION_STRIDE = 4  # the model-shape choices score every 4th sample
 DEFAULT_RENDER_BLUR_PX = 2.0  # the optical simulator's blur of its colour change (pixels): a default, not fitted
-PRESSED_GEL_DEGREES = (0, 1, 2, 3, 4)  # `yoto sensor calibrate --pressed-gel`: the candidate degrees of the change
 RENDER_MARGIN_PX = 12  # round_trip_gain renders presses this far beyond the pixels it reads (4 blur sigmas + smoothing)
 
 
@@ -75,9 +74,6 @@ class CalibrationConfig:
     flat_stride: int = 21  # use every n-th flat pixel (raster order) of each press
     flat_weight: float = 1.0  # least-squares weight of a flat pixel relative to a contact pixel
     refine_iterations: int = 2  # centre/radius refinements on the model's predicted gradients
-    pressed_gel_degrees: tuple[int, ...] = ()  # candidate position degrees of the pressed gel's colour change at zero
-    # slope (`fit_pressed_gel_change`; PRESSED_GEL_DEGREES), chosen by leave-one-press-out error against no change at
-    # all; empty (the default: docs/sensor.md stop 17): not modelled, the change is read as the presses taught
     position_degrees: tuple[int, ...] = (2, 3, 4)  # candidate position degrees of the final colour -> gradient
     # model (bias and gains); the one with the lowest press-wise cross-validated gradient error is used
     image_shapes: tuple[tuple[int, int], ...] = ((2, 1), (4, 2), (4, 4))  # candidate (position degree, gain degree) of
@@ -220,26 +216,15 @@ def calibrate(
         fraction = config.inside_fraction
         model = _fit_round(changes, circles, ball_radius_px, fraction, config, spec)
 
-    raw = {i: images[i].astype(np.int16) - background_i16 for i in usable}
-    pressed_gel: PressedGelChange | None = None
-    pressed_gel_errors: dict[str, float] = {}
-    if config.pressed_gel_degrees:
-        pressed_gel, heights, pressed_gel_errors = fit_pressed_gel_change(
-            raw, circles, ball_radius_px, config.pressed_gel_degrees, spec
-        )
-    if pressed_gel is not None:
-        # The optics are fitted on the colours with the pressed gel's own change (at each press's Hertz depth) off.
-        changes = {i: change - pressed_gel.change(heights[i]) for i, change in changes.items()}
-        raw = {i: change - pressed_gel.change(heights[i]) for i, change in raw.items()}
-
     # The final model's shape by held-out error on these presses (more presses afford more position terms).
     model_config, gradient_errors = _choose_gradient_model(changes, circles, ball_radius_px, fraction, config, spec)
-    if model_config != config.gradient_model or pressed_gel is not None:
+    if model_config != config.gradient_model:
         model = _fit_round(
             changes, circles, ball_radius_px, fraction, replace(config, gradient_model=model_config), spec
         )
 
     # Final report per press, the inverse model, the noise level.
+    raw = {i: images[i].astype(np.int16) - background_i16 for i in usable}
     rmse = {}
     for i in usable:
         gx, gy = model.predict(changes[i])
@@ -252,15 +237,7 @@ def calibrate(
     image_model = _fit_image(raw, circles, ball_radius_px, fraction, replace(config, image_model=image_config), spec)
     noise_std = _noise_level(raw, circles)
     ungained = SensorCalibration(
-        spec,
-        background.copy(),
-        model,
-        image_model,
-        config.mask,
-        config.smooth,
-        noise_std,
-        DEFAULT_RENDER_BLUR_PX,
-        pressed_gel=pressed_gel,
+        spec, background.copy(), model, image_model, config.mask, config.smooth, noise_std, DEFAULT_RENDER_BLUR_PX
     )
     gain, read_before, read_after = round_trip_gain(ungained, changes, circles, ball_radius_px, fraction)
 
@@ -274,65 +251,10 @@ def calibrate(
         "training_gradient_rmse": report.gradient_rmse,
         "held_out_gradient_rmse_by_position_degree": {str(k): v for k, v in gradient_errors.items()},
         "held_out_colour_rmse_by_image_shape": {f"{k[0]},{k[1]}": v for k, v in colour_errors.items()},
-        "held_out_pressed_gel_rmse_by_position_degree": pressed_gel_errors,
         # median over presses of the slope the gradient model reads on the rendered press / on the real one
         "rendered_press_read": {"before_gain": read_before, "after_gain": read_after},
     }
     return replace(ungained, image_model=replace(image_model, gain=gain), meta=meta), report
-
-
-def fit_pressed_gel_change(
-    raw: dict[int, np.ndarray],
-    circles: dict[int, tuple[float, float, float]],
-    ball_radius_px: float,
-    position_degrees: Sequence[int],
-    spec: GelSightSpec,
-    middle_fraction: float = 0.5,
-) -> tuple[PressedGelChange | None, dict[int, np.ndarray], dict[str, float]]:
-    """The pressed gel's colour change at zero slope, read off the presses' middles (or None where the presses show
-    none); each press's Hertz height map; the held-out error (levels) of each candidate.
-
-    A gel pressed flat is not the background (docs/sensor.md, stops 16-17). Per press, the colour change (its
-    lighting drift removed: the median change far from the contact) within `middle_fraction` of the contact radius
-    is fitted per channel by a quadratic in the sphere's gradients; its constant is the colour of the gel pressed flat
-    there. The constants are fitted by a polynomial in the presses' normalised centres (the LEDs light the pad
-    unevenly) of the degree in `position_degrees` whose leave-one-press-out RMS error is lowest; when no change at all
-    (error: the constants' own RMS) does better, there is none to model (a renderer without the effect). The change is
-    taken as full at the shallowest press's depth (the example presses, 0.78-1.19 mm deep, show no trend with depth)
-    and fades in linearly from untouched gel.
-    """
-    shape = (spec.height_px, spec.width_px)
-    ball_radius_m = ball_radius_px * spec.pixel_size_m
-    constants, centres, depths, heights = [], [], [], {}
-    for i, change in raw.items():
-        cx, cy, a = circles[i]
-        gx, gy, r = sphere_gradients(cx, cy, ball_radius_px, shape)
-        middle = r < middle_fraction * a
-        drift = np.median(change[r > 3 * a], axis=0)
-        gxm, gym = gx[middle], gy[middle]
-        design = np.stack([np.ones_like(gxm), gxm, gym, gxm * gxm, gxm * gym, gym * gym], axis=1)
-        coefficients = np.linalg.lstsq(design, change[middle].astype(np.float64) - drift, rcond=None)[0]
-        constants.append(coefficients[0])
-        centres.append((2 * cx / (shape[1] - 1) - 1, 2 * cy / (shape[0] - 1) - 1))  # as models.normalised_xy
-        heights[i] = press_height_map(cx, cy, a, ball_radius_m, spec)
-        depths.append(-float(heights[i].min()))
-    levels = np.array(constants)
-    errors = {"none": float(np.sqrt(np.mean(levels**2)))}
-    for degree in position_degrees:
-        basis = monomials(np.array(centres), monomial_exponents(2, degree))
-        if len(levels) <= basis.shape[1]:
-            continue
-        residuals = [
-            levels[k] - basis[k] @ np.linalg.lstsq(np.delete(basis, k, 0), np.delete(levels, k, 0), rcond=None)[0]
-            for k in range(len(levels))
-        ]
-        errors[str(degree)] = float(np.sqrt(np.mean(np.square(residuals))))
-    best = min(errors, key=errors.__getitem__)
-    if best == "none":
-        return None, heights, errors
-    basis = monomials(np.array(centres), monomial_exponents(2, int(best)))
-    fitted = np.linalg.lstsq(basis, levels, rcond=None)[0]
-    return PressedGelChange(fitted, int(best), min(depths)), heights, errors
 
 
 def round_trip_gain(
@@ -386,8 +308,6 @@ def round_trip_gain(
         for inside, along, real, height, near, basis in presses:
             image = render_image(height, gained, region=near)
             rendered = model_colour_change(image, gained.background_i16, gained.smooth)
-            if calibration.pressed_gel is not None:  # read as reconstruction reads it, at the press's true depth
-                rendered -= calibration.pressed_gel.change(height)
             gx, gy = calibration.gradient_model.predict(rendered)
             read = gx[inside] * along[:, 0] + gy[inside] * along[:, 1]
             ratio.append(float(np.median(read / real)))

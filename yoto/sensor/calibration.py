@@ -22,9 +22,6 @@ from yoto.sensor.models import (
     ImageModel,
     ImageModelConfig,
     load_gradient_model,
-    monomial_exponents,
-    monomials,
-    normalised_xy,
 )
 from yoto.sensor.presses import check_image
 from yoto.sensor.spec import GelSightSpec
@@ -48,58 +45,6 @@ class MaskConfig:
 
 
 @dataclass
-class PressedGelChange:
-    """The colour change a pressed gel shows where its slope is zero, which no slope explains.
-
-    Real ball presses change colour in their flat middle (the 44 example presses: median +5 / +5 / +10 levels R / G /
-    B, varying over the pad from -5 to +28: docs/sensor.md stop 16): a gel pressed flat is not the background. A
-    gradient model anchored at "no colour change = flat gel" reads that change as slope. This holds it apart: per
-    channel a polynomial in the pixel's normalised position (`models.normalised_xy`), faded in linearly with the
-    gel's depth from zero (untouched gel is the background) to `full_depth_m`. Calibration subtracts it from the
-    presses' colours before fitting the optics; reconstruction subtracts it at the depth a first solve reads, and
-    the optical simulator adds it.
-    """
-
-    coefficients: np.ndarray  # (M, 3): levels per channel, M monomials of (x, y) up to position_degree, constant first
-    position_degree: int
-    full_depth_m: float  # depth (metres) at and beyond which the whole change shows
-
-    def __post_init__(self) -> None:
-        self._levels: dict[tuple[int, int], np.ndarray] = {}
-
-    def levels(self, shape: tuple[int, int]) -> np.ndarray:
-        """(rows, cols, 3) float32 change (levels) of a gel pressed at least `full_depth_m` deep, cached per shape."""
-        if shape not in self._levels:
-            x, y = normalised_xy(*shape)
-            basis = monomials(np.stack([x.ravel(), y.ravel()], 1), monomial_exponents(2, self.position_degree))
-            self._levels[shape] = (basis @ self.coefficients).reshape(*shape, 3).astype(np.float32)
-        return self._levels[shape]
-
-    def change(
-        self,
-        height_m: np.ndarray,
-        origin: tuple[int, int] = (0, 0),
-        shape: tuple[int, int] | None = None,
-        amount: float = 1.0,
-    ) -> np.ndarray:
-        """(rows, cols, 3) int16 change (rounded levels) of a gel at heights `height_m` (metres, <= 0 pressed).
-
-        `height_m` may be a window of the frame whose top-left pixel is `origin`; `shape` is the frame's shape
-        (default: the window's). `amount` scales the change (1: as the calibration presses show it).
-        """
-        return np.rint(self.change_levels(height_m, origin, shape) * np.float32(amount)).astype(np.int16)
-
-    def change_levels(
-        self, height_m: np.ndarray, origin: tuple[int, int] = (0, 0), shape: tuple[int, int] | None = None
-    ) -> np.ndarray:
-        """`change` before rounding: (rows, cols, 3) float32 levels."""
-        rows, cols = height_m.shape
-        levels = self.levels(shape or (rows, cols))[origin[0] : origin[0] + rows, origin[1] : origin[1] + cols]
-        pressed = np.clip(height_m * np.float32(-1.0 / self.full_depth_m), 0.0, 1.0).astype(np.float32)
-        return levels * pressed[..., None]
-
-
-@dataclass
 class SensorCalibration:
     """Everything reconstruction and the optical simulator need for one sensor."""
 
@@ -112,7 +57,6 @@ class SensorCalibration:
     noise_std: np.ndarray  # (3,) per-channel sensor noise (0-255 levels), measured on flat pixels
     render_blur_px: float  # Gaussian blur (pixels) the optical simulator applies to its colour change
     meta: dict[str, Any] = field(default_factory=dict)  # provenance: presses, circles, fit statistics
-    pressed_gel: PressedGelChange | None = None  # the pressed gel's colour change at zero slope; None: not modelled
 
     def __post_init__(self) -> None:
         self.background_i16 = self.background.astype(np.int16)
@@ -143,9 +87,6 @@ class SensorCalibration:
             "smooth": self.smooth,
             "noise_std": [float(v) for v in self.noise_std],
             "render_blur_px": self.render_blur_px,
-            "pressed_gel": None
-            if self.pressed_gel is None
-            else {"position_degree": self.pressed_gel.position_degree, "full_depth_m": self.pressed_gel.full_depth_m},
             **{
                 k: v
                 for k, v in self.meta.items()
@@ -160,7 +101,6 @@ class SensorCalibration:
                     "smooth",
                     "noise_std",
                     "render_blur_px",
-                    "pressed_gel",
                 )
             },
         }
@@ -169,8 +109,6 @@ class SensorCalibration:
             **self.gradient_model.arrays("gradient_"),
             **self.image_model.arrays("image_"),
         }
-        if self.pressed_gel is not None:
-            arrays["pressed_gel_coefficients"] = self.pressed_gel.coefficients
         return save_npz_atomic(path, arrays, meta)
 
 
@@ -204,7 +142,6 @@ def with_background(
         calibration.noise_std,
         calibration.render_blur_px,
         meta,
-        calibration.pressed_gel,
     )
 
 
@@ -277,21 +214,6 @@ def load_calibration(path: str | Path, spec: GelSightSpec | None = None) -> Sens
         image_model = ImageModel(
             arrays["image_coefficients"], float(model["image_max_gradient"]), image_config, image_gain
         )
-        pressed_settings = meta.get("pressed_gel")  # files before it: none (the change is read as slope)
-        pressed_gel = (
-            None
-            if pressed_settings is None
-            else PressedGelChange(
-                np.asarray(arrays["pressed_gel_coefficients"], dtype=np.float64),
-                int(pressed_settings["position_degree"]),
-                float(pressed_settings["full_depth_m"]),
-            )
-        )
-        if pressed_gel is not None and pressed_gel.coefficients.shape != (
-            len(monomial_exponents(2, pressed_gel.position_degree)),
-            3,
-        ):
-            raise ValueError(f"pressed_gel_coefficients has shape {pressed_gel.coefficients.shape}")
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(
             f"sensor calibration file is incomplete or damaged ({type(exc).__name__}: {exc})", path
@@ -329,5 +251,4 @@ def load_calibration(path: str | Path, spec: GelSightSpec | None = None) -> Sens
         np.asarray(meta["noise_std"], dtype=np.float64),
         float(meta["render_blur_px"]),
         {k: v for k, v in meta.items()},
-        pressed_gel,
     )

@@ -26,7 +26,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     calibrate.add_argument("--out", help="calibration file to write (default: WORKSPACE/sensors/SENSOR.npz)")
     calibrate.add_argument("--workspace", help="workspace folder (default: $YOTO_WORKSPACE or ./yoto_workspace)")
     calibrate.add_argument("--overwrite", action="store_true", help="replace an existing calibration file")
-    calibrate.add_argument("--pressed-gel", action="store_true", help=PRESSED_GEL_HELP)
     calibrate.set_defaults(run=_run_calibrate)
 
     recon = commands.add_parser(
@@ -48,7 +47,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="figure to write (default sensor_validation.png in the current folder; '' for none)",
     )
     validate.add_argument("--table", help="also write the Markdown table here")
-    validate.add_argument("--pressed-gel", action="store_true", help=PRESSED_GEL_HELP)
     validate.set_defaults(run=_run_validate)
 
     bench = commands.add_parser("bench", help="time image -> point cloud (median, p90, per step)")
@@ -90,18 +88,6 @@ def _load_presses(args: argparse.Namespace):
     return background, [load_image(p) for p in paths], names
 
 
-PRESSED_GEL_HELP = (
-    "learn the colour change a gel pressed flat shows and take it off before reading slopes (off by default: it "
-    "helps where object contacts show the presses' change, and costs where they do not; docs/sensor.md stop 17)"
-)
-
-
-def _calibration_config(args: argparse.Namespace):
-    from yoto.sensor.ball_calibration import PRESSED_GEL_DEGREES, CalibrationConfig
-
-    return CalibrationConfig(pressed_gel_degrees=PRESSED_GEL_DEGREES if args.pressed_gel else ())
-
-
 def _run_calibrate(args: argparse.Namespace) -> int:
     from yoto.errors import InputError
     from yoto.sensor.ball_calibration import calibrate
@@ -112,12 +98,7 @@ def _run_calibrate(args: argparse.Namespace) -> int:
         raise InputError("calibration file exists; pass --overwrite to replace it", out)
     background, presses, names = _load_presses(args)
     calibration, report = calibrate(
-        background,
-        presses,
-        args.ball_diameter_mm * 1e-3,
-        _calibration_config(args),
-        names=names,
-        background_path=args.background,
+        background, presses, args.ball_diameter_mm * 1e-3, names=names, background_path=args.background
     )
     for press in report.presses:
         if press.used:
@@ -246,7 +227,6 @@ def _run_validate(args: argparse.Namespace) -> int:
         presses,
         args.ball_diameter_mm * 1e-3,
         folds=args.folds,
-        config=_calibration_config(args),
         names=names,
         figure=args.figure or None,
     )
@@ -281,9 +261,8 @@ def _run_bench(args: argparse.Namespace) -> int:
 
 def _run_render(args: argparse.Namespace) -> int:
     import numpy as np
-    from PIL import Image
 
-    from yoto.io import write_bytes_atomic
+    from yoto.io import png_bytes, write_bytes_atomic
     from yoto.sensor.calibration import load_calibration
     from yoto.sensor.optical import render_image
     from yoto.sensor.sphere import press_height_map
@@ -294,10 +273,6 @@ def _run_render(args: argparse.Namespace) -> int:
     height = press_height_map(cx, cy, args.contact_radius_mm / spec.mm_per_px, args.ball_diameter_mm * 5e-4, spec)
     rng = None if args.seed is None else np.random.default_rng(args.seed)
     image = render_image(height, calibration, rng)
-    import io
-
-    buffer = io.BytesIO()
-    Image.fromarray(image).save(buffer, format="PNG")
-    write_bytes_atomic(args.out, buffer.getvalue())
+    write_bytes_atomic(args.out, png_bytes(image))
     print(f"wrote {args.out} (press depth {-height.min() * 1e3:.3f} mm)")
     return 0

@@ -373,16 +373,11 @@ class ImageModel:
         x, y = normalised_xy(rows, cols)
         xy = np.stack([x[sloped], y[sloped]], 1)
         change = np.zeros((rows, cols, 3), dtype=np.float32)
-        change[sloped] = self.predict_points(g, xy)
-        return change
-
-    def predict_points(self, gradients: np.ndarray, xy: np.ndarray) -> np.ndarray:
-        """(N, 3) colour change of N gradients (N, 2), already clamped to `max_gradient`, at normalised positions
-        (N, 2)."""
-        values = self._evaluate(gradients, xy)
+        values = self._evaluate(g, xy)
         if self.gain is not None:
             values *= (monomials(xy, monomial_exponents(2, self.config.position_degree)) @ self.gain)[:, None]
-        return values
+        change[sloped] = values
+        return change
 
     def _evaluate(self, gradients: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """`image_design(gradients, xy) @ coefficients` without forming the design: monomials times their

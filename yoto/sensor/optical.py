@@ -70,9 +70,6 @@ def render_image(
     if region is not None:
         gx, gy = np.where(region, gx, 0.0), np.where(region, gy, 0.0)
     change = calibration.image_model.predict(gx, gy)
-    if calibration.pressed_gel is not None:  # a pressed gel changes colour where it is flat too
-        pressed = calibration.pressed_gel.change(height_map_m.astype(np.float32))
-        change += pressed if region is None else np.where(region[..., None], pressed, 0)
     sigma = calibration.render_blur_px if blur_px is None else blur_px
     if sigma > 0:
         change = ndimage.gaussian_filter(change, (sigma, sigma, 0), mode="nearest")

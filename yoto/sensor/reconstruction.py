@@ -14,10 +14,7 @@ Steps, for one 320x240 RGB frame:
    gradients, solved with discrete cosine/sine transforms using precomputed eigenvalues, float32; box edges
    inside the frame lie on flat gel (zero height), edges on the frame's border are free (a press cut by the
    frame's edge is not forced to zero there). Where an edge is free, untouched gel inside the box is brought back
-   to zero by a harmonic correction (`anchor_untouched`). With a calibration that models the pressed gel's colour
-   change at zero slope (`calibration.PressedGelChange`, opt-in), the frame's amount of that change is read
-   (`pressed_gel_amount`); unless it is zero, that much of it at the depths just read is taken off the colour change
-   and steps 2-3 run again. Heights are then clamped to z <= 0.
+   to zero by a harmonic correction (`anchor_untouched`). Heights are then clamped to z <= 0.
 4. contact masks: if at least `min_area_px` pixels changed colour by `colour_threshold` (or the frame is a faint
    contact: a tilted face's colour change of a few levels over many blocks that no lighting change explains,
    integrated over the whole frame), the core (pixels
@@ -45,7 +42,7 @@ from scipy import ndimage
 
 from yoto.errors import InputError
 from yoto.sensor.calibration import MaskConfig, SensorCalibration
-from yoto.sensor.models import model_colour_change, normalised_xy
+from yoto.sensor.models import model_colour_change
 from yoto.sensor.presses import check_image
 from yoto.sensor.spec import GelSightSpec
 
@@ -102,9 +99,6 @@ FAINT_MIN_BLOCKS = 8
 # log that a reconstructed cloud carries to the pose stage (`Reconstruction.depth_scale_sigma`), which estimates
 # the scale per contact under that prior. Wider priors (0.1, 0.2) let wrong poses fit as well (docs/sensor.md).
 DEPTH_SCALE_SIGMA = 0.05
-# The most of the calibration's pressed-gel change a frame is read to show (`pressed_gel_amount`).
-MAX_PRESSED_GEL_AMOUNT = 1.5
-FLAT_SLOPE = 0.05  # pixels read flatter than this (first solve) tell the amount
 
 
 @dataclass
@@ -119,7 +113,6 @@ class Reconstruction:
     reason: str = ""  # why there is no contact, or ""
     box: tuple[int, int, int, int] | None = None  # (row0, row1, col0, col1) where gradients were computed
     gradients: tuple[np.ndarray, np.ndarray] | None = None  # (gx, gy) maps when asked for, else None
-    pressed_gel_amount: float = 0.0  # how much of the calibration's pressed-gel change was taken off (0: none)
 
     @property
     def max_depth_m(self) -> float:
@@ -386,14 +379,9 @@ def reconstruct(
         # whole frame is integrated, its level set by the least-pressed block (every block counts as touched).
         box = (0, shape[0], 0, shape[1])
         gx, gy, changed = box_gradients(image, calibration, box)
-        blocks = np.full_like(blocks, np.inf)
-    height = integrate_box(gx, gy, box, blocks, spec.pixel_size_m)
-    amount = 0.0
-    if calibration.pressed_gel is not None:  # the pressed gel's own colour change, at the depth just read, is no slope
-        amount = pressed_gel_amount(image, calibration, box, height, gx, gy)
-        if amount > 0:
-            gx, gy, _ = box_gradients(image, calibration, box, height, amount)
-            height = integrate_box(gx, gy, box, blocks, spec.pixel_size_m)
+        height = integrate_box(gx, gy, box, np.full_like(blocks, np.inf), spec.pixel_size_m)
+    else:
+        height = integrate_box(gx, gy, box, blocks, spec.pixel_size_m)
     mask, core, reason = contact_masks(changed, height, calibration.mask, box, faint)
     if mask is None or core is None:
         points = np.zeros((0, 3))
@@ -406,98 +394,21 @@ def reconstruct(
         points[:, 1] = y.ravel().take(pixels)
         points[:, 2] = height.ravel().take(pixels)
     return Reconstruction(
-        height, mask, core, points, bool(mask.any()), reason, box, (gx, gy) if keep_gradients else None, amount
+        height, mask, core, points, bool(mask.any()), reason, box, (gx, gy) if keep_gradients else None
     )
 
 
-def box_colour_change(image: np.ndarray, calibration: SensorCalibration, box: tuple[int, int, int, int]) -> np.ndarray:
-    """int16 (box rows, box cols, 3) colour change inside `box`, smoothed as over the full frame."""
+def box_gradients(
+    image: np.ndarray, calibration: SensorCalibration, box: tuple[int, int, int, int]
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Full-frame gradient maps, zero outside `box`, and the number of pixels whose colour changed by at
+    least the mask's colour threshold."""
     row0, row1, col0, col1 = box
     rows, cols = image.shape[:2]
     # One extra pixel around the box so the 3x3 smoothing inside it matches a full-frame smoothing.
     r0, r1, c0, c1 = max(0, row0 - 1), min(rows, row1 + 1), max(0, col0 - 1), min(cols, col1 + 1)
     change = model_colour_change(image[r0:r1, c0:c1], calibration.background_i16[r0:r1, c0:c1], calibration.smooth)
-    return change[row0 - r0 : row1 - r0, col0 - c0 : col1 - c0]
-
-
-def pressed_gel_amount(
-    image: np.ndarray,
-    calibration: SensorCalibration,
-    box: tuple[int, int, int, int],
-    height_m: np.ndarray,
-    gx: np.ndarray,
-    gy: np.ndarray,
-) -> float:
-    """How much of the calibration's pressed-gel change (`calibration.PressedGelChange`) this frame shows, in
-    [0, MAX_PRESSED_GEL_AMOUNT] (0: none, 1: as the calibration presses show it).
-
-    Colour has three channels, slope two: the image model (gradient -> colour) says which colour changes a slope
-    can make, and the learnt change of the 44 real presses lies mostly off them (median 88% of its length: its
-    brightness). Over the pixels the first solve (`height_m`, its gradients `gx`, `gy`) reads as pressed and flatter
-    than FLAT_SLOPE, the colour change minus s times the change at those depths is read as slope and rendered back
-    by the image model; what is left does not come from slope. Its sum of squares is taken as a quadratic in s (the
-    residual is nearly linear in s: evaluated at s = 0 and 1), minimised, clipped. Only nearly flat pixels count:
-    optics whose off-slope colour grows with the slope (another sensor's fitted image model) read 1.0-1.5 over the
-    whole contact, 0.06-0.28 over its flat part (docs/sensor.md stop 17). The fade is the first solve's depth, which
-    the change makes shallow: the amount then reads above 1, and the product (what is taken off) stays about right.
-    """
-    row0, row1, col0, col1 = box
-    shape = image.shape[:2]
-    pressed_gel = calibration.pressed_gel
-    assert pressed_gel is not None
-    full = np.rint(pressed_gel.change_levels(height_m[row0:row1, col0:col1], (row0, col0), shape)).astype(np.int16)
-    box_gx, box_gy = gx[row0:row1, col0:col1], gy[row0:row1, col0:col1]
-    # Pressed and nearly flat: there the change is the pressed gel's own (a slope's off-plane colour grows with the
-    # slope). Of those, only pixels where the change is at least a level count (elsewhere both readings are the same).
-    flat = box_gx * box_gx + box_gy * box_gy < FLAT_SLOPE**2
-    if np.count_nonzero(flat & (height_m[row0:row1, col0:col1] < 0)) < calibration.mask.min_area_px:
-        return 0.0
-    pressed = flat & full.any(axis=2)
-    pressed[1::2] = False  # every other row and column: a smooth field's one number, a quarter of the time
-    pressed[:, 1::2] = False
-    change = box_colour_change(image, calibration, box)
-    x, y = normalised_xy(*shape)
-    xy = np.stack([x[row0:row1, col0:col1][pressed], y[row0:row1, col0:col1][pressed]], 1)
-    image_model = calibration.image_model
-
-    def unexplained(colour: np.ndarray, box_gx: np.ndarray, box_gy: np.ndarray) -> np.ndarray:
-        g = np.stack([box_gx[pressed], box_gy[pressed]], 1)
-        magnitude = np.hypot(g[:, 0], g[:, 1])
-        g *= np.minimum(1.0, image_model.max_gradient / np.maximum(magnitude, 1e-12))[:, None]
-        return colour[pressed] - image_model.predict_points(g, xy)
-
-    at_none = unexplained(change.astype(np.float32), box_gx, box_gy)
-    less = change - full
-    at_full = unexplained(less.astype(np.float32), *calibration.gradient_model.predict(less, origin=(row0, col0)))
-    step = at_full - at_none
-    denominator = float(np.einsum("nc,nc->", step, step))
-    if denominator <= 0:
-        return 0.0
-    amount = -float(np.einsum("nc,nc->", at_none, step)) / denominator
-    return float(np.clip(amount, 0.0, MAX_PRESSED_GEL_AMOUNT))
-
-
-def box_gradients(
-    image: np.ndarray,
-    calibration: SensorCalibration,
-    box: tuple[int, int, int, int],
-    height_m: np.ndarray | None = None,
-    pressed_gel_amount: float = 1.0,
-) -> tuple[np.ndarray, np.ndarray, int]:
-    """Full-frame gradient maps, zero outside `box`, and the number of pixels whose colour changed by at
-    least the mask's colour threshold.
-
-    With a first solve's full-frame `height_m` and a calibration that models the pressed gel's colour change at zero
-    slope (`calibration.PressedGelChange`), `pressed_gel_amount` times that change at those depths is taken off the
-    colour change first.
-    """
-    row0, row1, col0, col1 = box
-    rows, cols = image.shape[:2]
-    change = box_colour_change(image, calibration, box)
-    if height_m is not None and calibration.pressed_gel is not None:
-        change = change - calibration.pressed_gel.change(
-            height_m[row0:row1, col0:col1], (row0, col0), (rows, cols), pressed_gel_amount
-        )
+    change = change[row0 - r0 : row1 - r0, col0 - c0 : col1 - c0]
     box_gx, box_gy = calibration.gradient_model.predict(change, origin=(row0, col0))
     gx = np.zeros((rows, cols), np.float32)
     gy = np.zeros((rows, cols), np.float32)

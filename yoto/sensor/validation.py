@@ -127,9 +127,6 @@ def find_press_circle(
     circle_config = circle_config or CircleConfig()
     disc = find_contact_circle(image, calibration.background, circle_config)
     change = model_colour_change(image, calibration.background_i16, calibration.smooth)
-    if calibration.pressed_gel is not None:  # read as reconstruction reads it: the pressed gel's change taken off
-        read = reconstruct(image, calibration)
-        change = change - calibration.pressed_gel.change(read.height_map_m, amount=read.pressed_gel_amount)
     gx, gy = calibration.gradient_model.predict(change)
     cx, cy, a = disc.centre_x_px, disc.centre_y_px, disc.radius_px
     peak_config = replace(circle_config, mode="peak", min_radius_px=3.0)

@@ -26,7 +26,7 @@ from yoto.geometry import transform_points, twist_of_pose
 from yoto.io import read_json, write_json_atomic, write_text_atomic
 from yoto.objects.model import ObjectModel
 from yoto.provenance import run_info
-from yoto.registration import point_to_plane_gauss_newton
+from yoto.registration import plane_distances, point_to_plane_gauss_newton
 from yoto.simulate.trajectory import SimulatedTrajectory, TactileFrame, TrajectoryConfig, TrajectorySimulator
 from yoto.tracking.evaluate import ErrorCurve, motion_interval, plot_tracking, summarize_errors, tracking_errors
 from yoto.tracking.pad_error import PadError
@@ -216,6 +216,43 @@ def truth_registrations(
             offsets.append(twist_of_pose(correction))
             times.append(stamp)
     return np.array(times), np.array(offsets).reshape(-1, 6)
+
+
+def contact_planes_at_truth(
+    trajectory: SimulatedTrajectory, model: ObjectModel, config: CorrectionConfig, motion: tuple[float, float]
+) -> dict[str, dict[str, float]]:
+    """Per side, how the contact's own shape error changed over the motion: each frame's registered samples
+    (`contact_samples`) placed through the sensor's TRUE pose, their distances to the surface fitted by a plane over
+    the pad (offset and tilt: the part of a reconstruction's error a contact's registration reads as a turn and a
+    push), averaged over the frames before the `motion` and over those after it. Returns per side `tilt_mrad` (the
+    size of the tilt's change), `offset_um` (the offset's change) and `moved_mm` (how far the contact's samples
+    moved over the pad). A rigid gel read without error keeps its plane whatever the contact does; a
+    reconstruction whose error depends on where the contact lies on the pad changes it as the contact slides."""
+    planes: dict[str, dict[str, float]] = {}
+    for side in SIDES:
+        phases: dict[str, list[np.ndarray]] = {"before": [], "after": []}
+        for frame in trajectory.tactile[side]:
+            phase = "before" if frame.timestamp_s < motion[0] else "after" if frame.timestamp_s > motion[1] else ""
+            if not phase or len(frame.points_sensor) < MIN_TACTILE_POINTS:
+                continue
+            samples = contact_samples(frame.points_sensor, config)
+            distances, matched, _, _ = plane_distances(
+                model, transform_points(frame.T_object_sensor_true, samples), config.max_distance_m
+            )
+            if np.count_nonzero(matched) < MIN_TACTILE_POINTS:
+                continue
+            x, y = samples[matched, 0], samples[matched, 1]
+            design = np.column_stack([np.ones_like(x), x - x.mean(), y - y.mean()])
+            plane = np.linalg.lstsq(design, distances[matched], rcond=None)[0]
+            phases[phase].append(np.concatenate([plane, [x.mean(), y.mean()]]))
+        if phases["before"] and phases["after"]:
+            change = np.mean(phases["after"], axis=0) - np.mean(phases["before"], axis=0)
+            planes[side] = {
+                "tilt_mrad": 1e3 * float(np.hypot(change[1], change[2])),
+                "offset_um": 1e6 * float(change[0]),
+                "moved_mm": 1e3 * float(np.hypot(change[3], change[4])),
+            }
+    return planes
 
 
 def _pad_corrected(pads: dict[str, PadError], side: str, points_sensor: np.ndarray) -> np.ndarray:
