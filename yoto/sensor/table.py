@@ -78,6 +78,13 @@ class TableSensor:
             change += weight[..., None] * blended
         return change
 
+    @functools.cached_property
+    def flat_change(self) -> np.ndarray:
+        """(rows, cols, 3) the colour change of a pressed but flat gel at each pixel (the zero-gradient lookup, before
+        the gain): the same for every frame, so looked up once."""
+        zero = np.zeros((self.spec.height_px, self.spec.width_px))
+        return self.lookup(zero, zero)
+
     def _cell(self, place_row: np.ndarray, place_col: np.ndarray, bin_y: np.ndarray, bin_x: np.ndarray) -> np.ndarray:
         """The table's colour change at each pixel's place and gradient bin, (rows, cols, 3)."""
         return self.table[place_row, place_col, bin_y, bin_x]
@@ -94,8 +101,7 @@ class TableSensor:
         change = self.lookup(gx, gy)
         # Untouched gel is the background: fade out the change a flat but pressed gel shows.
         unpressed = 1.0 - np.clip(-height / self.pressed_depth_m, 0.0, 1.0)
-        zero = self.lookup(np.zeros_like(gx), np.zeros_like(gy))
-        change -= unpressed[..., None].astype(np.float32) * zero
+        change -= unpressed[..., None].astype(np.float32) * self.flat_change
         if self.gain is not None:
             change *= self.gain
         if self.blur_px > 0:
