@@ -73,7 +73,9 @@ def tiny_workspace(builtin_models, tmp_path_factory, name: str = "fruit") -> Pat
 
 
 def tiny_run(builtin_models, tmp_path_factory, run: str = "run_a", **kwargs) -> Path:
-    """Train the tiny network on the fruit (once per run name per session); returns model.pt."""
+    """Train the tiny network on the fruit (once per run name per session); returns model.pt. On the CPU unless
+    `device` says otherwise: the tests' bitwise figures hold there (a GPU's reductions and bf16 differ)."""
+    kwargs.setdefault("device", "cpu")
     workspace = tiny_workspace(builtin_models, tmp_path_factory)
     run_dir = workspace / "runs" / run
     if not (run_dir / "model.pt").exists():
@@ -203,11 +205,14 @@ def test_interrupted_training_resumes_to_the_same_weights(builtin_models, tmp_pa
         patch_config=TINY_PATCHES,
         progress=False,
         max_steps=data_steps + 1,
+        device="cpu",
     )
     assert stopped.name == "state.pt" and not (run_dir / "model.pt").exists()
     state = TrainingState.load(stopped)
     assert state is not None and (state.stage_index, state.epoch, len(state.history)) == (0, 1, 1)
-    resumed = train(TINY_TRAINING, ["fruit"], workspace, run_dir, patch_config=TINY_PATCHES, progress=False)
+    resumed = train(
+        TINY_TRAINING, ["fruit"], workspace, run_dir, patch_config=TINY_PATCHES, progress=False, device="cpu"
+    )
     _assert_same_weights(LocalizerCheckpoint.load(reference).state_dict, LocalizerCheckpoint.load(resumed).state_dict)
     history = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines()]
     assert [h["epoch"] for h in history] == [1, 2, 3]

@@ -20,6 +20,10 @@ class InputError(YotoError):
         self.problem = problem
         super().__init__(f"{self.path}: {problem}" if self.path is not None else problem)
 
+    def __reduce__(self):
+        # Pickled across processes: keep the path and the problem apart, as raised.
+        return type(self), (self.problem, self.path)
+
 
 class NoContactError(InputError):
     """The tactile input shows no contact: a cloud with no indentation, or an image in which nothing touches the gel."""
@@ -33,11 +37,16 @@ class MissingDependencyError(YotoError):
     """An optional dependency is not installed; the message names the extra to install."""
 
     def __init__(self, module: str, extra: str, purpose: str):
+        self.module, self.extra, self.purpose = module, extra, purpose
         super().__init__(
             f"{purpose} needs the Python package '{module}'. Install it with "
             f"`pip install 'yoto[{extra}]'`"
             + (" (for a CPU-only install: `pip install torch==2.13.0`)." if module == "torch" else ".")
         )
+
+    def __reduce__(self):
+        # Raised in a worker process, it crosses back pickled: rebuild it from its own arguments.
+        return type(self), (self.module, self.extra, self.purpose)
 
 
 def require_open3d(purpose: str):
