@@ -409,34 +409,3 @@ def test_benchmark_report_gives_the_drifts_growth_with_path_length_and_its_stand
     assert growth["final_drift_mm"]["mean"] == pytest.approx(0.0)
     assert "| thing | 2 | +0.200 +- 0.100 |" in format_markdown(report)
     assert build_report(records, TrackBenchConfig(trajectories=3))["growth"] == {}
-
-
-def test_the_sensors_relative_pose_smoothed_over_longer_takes_out_most_of_their_relative_jitter(grasps, rng):
-    """Two arms holding one object: their relative pose is fixed, each stream jittered on its own. The relative
-    pose smoothed over +-0.5 s (`relative_stream`) and each sensor moved half way to it (`consistent_sensors`) leave
-    a fraction of the relative error the streams smoothed over +-50 ms have; the moved pair has that relative pose."""
-    from yoto.geometry import twist_of_pose
-    from yoto.tracking.fusion import smooth_stream
-    from yoto.tracking.track import consistent_sensors, relative_stream
-
-    times = START + np.arange(0.0, 2.0, 0.01)
-    streams = {
-        side: sensor_stream(times, grasps[side], rng, jitter_m=0.0002, jitter_rad=np.radians(0.1)) for side in grasps
-    }
-    fusion = FusionConfig()
-    streams = {side: smooth_stream(stream, stream_jitter(stream, fusion), fusion) for side, stream in streams.items()}
-    relative = relative_stream(streams, 0.5, fusion)
-    truth = grasps["left"] @ invert_transform(grasps["right"])  # T_left_right
-    inner = slice(60, 140)  # a full window on both sides
-    left, right = streams["left"].T_world_frame[inner], streams["right"].T_world_frame[inner]
-    before = twist_of_pose(invert_transform(truth) @ invert_transform(left) @ right)
-    pairs = [consistent_sensors(a, b, r) for a, b, r in zip(left, right, relative.T_world_frame[inner], strict=True)]
-    after = np.array([twist_of_pose(invert_transform(truth) @ invert_transform(a) @ b) for a, b in pairs])
-    assert np.sqrt(np.mean(after[:, 3:] ** 2)) < 0.4 * np.sqrt(np.mean(before[:, 3:] ** 2))
-    assert np.sqrt(np.mean(after[:, :3] ** 2)) < 0.4 * np.sqrt(np.mean(before[:, :3] ** 2))
-    moved_left, moved_right = pairs[0]
-    np.testing.assert_allclose(invert_transform(moved_left) @ moved_right, relative.T_world_frame[inner][0], atol=1e-8)
-    # half way each: both sensors moved, by the same amount
-    shift_left = np.linalg.norm(moved_left[:3, 3] - left[0][:3, 3])
-    shift_right = np.linalg.norm(moved_right[:3, 3] - right[0][:3, 3])
-    assert 0.5 < shift_left / shift_right < 2.0

@@ -56,7 +56,6 @@ from yoto.geometry import (
     pose_from_twist,
     rotation_angle_rad,
     skew,
-    so3_exp,
     so3_log,
     transform_points,
     twist_of_pose,
@@ -65,7 +64,6 @@ from yoto.objects.model import ObjectModel
 from yoto.registration import (
     GaussNewtonConfig,
     SurfaceCloud,
-    masked_row_medians,
     one_blas_thread,
     plane_distances,
     point_to_plane_gauss_newton,
@@ -157,17 +155,6 @@ class CorrectionConfig:
     # frames read that shallow (median) is left out of the motion too: it misreads this contact's shape (0.5 also
     # drops the cracker box's left pad through `shading:3`, 0.42 of its press, whose track met the target)
     shallow_gap_m: float = 0.001  # (the reported sensor poses put the sensors' distance a few tenths off)
-    pose_nuisance: float = 0.0  # > 0: two contacts are registered with each side's placement error (its sensor
-    # pose's smoothed jitter, `_pose_noise`, times this) as a nuisance twist of its own, marginalised in every
-    # Gauss-Newton step (`register_with_pose_noise`); 0: one rigid correction fits both sides exactly as placed,
-    # and their relative pose error, a few tenths of a millimetre, is taken up along the direction they pin weakly
-    relative_smoothing_s: float = 0.0  # > 0: where both contacts register together, the two sensors' relative pose
-    # is taken from a local quadratic over +- this (the arms hold one rigid object: their relative pose changes only
-    # by slip and lag, slowly), each sensor moved half way to it; the sides' relative jitter would otherwise be
-    # resolved by the motion the two contacts pin least
-    pose_nuisance_prior: float = 1.0  # the registration prior's sigmas times this when registering so
-    joint_pose_noise: bool = False  # the one rigid registration's covariance under the sides' own pose errors (the
-    # sandwich (sum H)^-1 (sum H_s (H_s^-1 + S_s) H_s) (sum H)^-1) as its information, instead of the optimal one's
 
 
 @dataclass(frozen=True)
@@ -588,71 +575,6 @@ def contact_information(
     return information
 
 
-def register_with_pose_noise(
-    surface: SurfaceCloud,
-    points: dict[str, np.ndarray],
-    facing: dict[str, np.ndarray],
-    placement_noise: dict[str, np.ndarray],
-    config: GaussNewtonConfig,
-) -> np.ndarray:
-    """The correction T (4, 4) bringing each side's points (predicted object frame, (M, 3)) onto the surface when
-    each side is placed with an error of its own: side s's points lie at exp(e + n_s) with n_s ~ N(0, C_s)
-    (`placement_noise`, object-frame twists, rotation about the origin first). Gauss-Newton on e with every n_s
-    marginalised: a side's normal matrix H_s and gradient g_s enter as (I + H_s C_s)^-1 H_s and (I + H_s C_s)^-1 g_s
-    (the Schur complement of the joint problem in e and the n_s). A side's information is then capped by its
-    placement's along what it pins, so the two sides' small relative error is no longer resolved by the one rigid
-    motion that changes their fit least, which is the direction they pin weakly. Huber weights and the prior on
-    the start as in `point_to_plane_gauss_newton`."""
-    correction = np.eye(4)
-    prior = np.diag(config.prior_information())
-    for iteration in range(config.iterations):
-        hessian, gradient = prior.copy(), np.zeros(6)
-        if iteration > 0:
-            deviation = np.concatenate([so3_log(correction[None, :3, :3])[0], correction[:3, 3]])
-            gradient += prior @ deviation
-        placed = {side: transform_points(correction, side_points) for side, side_points in points.items()}
-        matches = {
-            side: plane_distances(surface, placed[side], config.max_distance_m, facing[side] @ correction[:3, :3].T)
-            for side in points
-        }
-        magnitude = np.concatenate([np.abs(match[0]) for match in matches.values()])
-        used = np.concatenate([match[1] for match in matches.values()])
-        scale = max(config.surface_noise_m, 1.4826 * float(masked_row_medians(magnitude[None], used[None])[0]))
-        for side, (distance, matched, _, normals) in matches.items():
-            weights = np.where(matched, np.minimum(1.0, scale / np.maximum(np.abs(distance), 1e-12)), 0.0)
-            jacobian = point_to_plane_jacobian(placed[side], normals)
-            weighted = jacobian * (weights / config.surface_noise_m**2)[:, None]
-            side_hessian = weighted.T @ jacobian
-            marginal = np.linalg.inv(np.eye(6) + side_hessian @ placement_noise[side])
-            hessian += marginal @ side_hessian
-            gradient += marginal @ (weighted.T @ distance)
-        step = -np.linalg.solve(hessian, gradient)
-        turn = so3_exp(step[None, :3])[0]
-        correction[:3, :3] = turn @ correction[:3, :3]
-        correction[:3, 3] = turn @ correction[:3, 3] + step[3:]
-        if np.sum(step[3:] ** 2) < config.step_tolerance_m**2 and np.sum(step[:3] ** 2) < config.step_tolerance_rad**2:
-            break
-    return correction
-
-
-def relative_stream(streams: dict[str, PoseStream], smoothing_s: float, fusion: FusionConfig) -> PoseStream:
-    """The right sensor's pose in the left's, `T_left_right`, at the left stream's timestamps, smoothed by a local
-    quadratic over +- `smoothing_s` (`smooth_stream`)."""
-    left = streams["left"]
-    right, covered = streams["right"].interpolate(left.timestamps_s, streams["right"].dropout_gap_s(fusion.max_gap_s))
-    relative = PoseStream(left.timestamps_s, invert_transform(left.T_world_frame) @ right, "right in left")
-    # samples in the right stream's dropouts are left out of the fits, as glitches are
-    quiet = StreamJitter(fusion.min_jitter_translation_m, fusion.min_jitter_rotation_rad, ~covered)
-    return smooth_stream(relative, quiet, dataclasses.replace(fusion, smoothing_s=smoothing_s))
-
-
-def consistent_sensors(left: np.ndarray, right: np.ndarray, relative: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """T_world_left, T_world_right moved about half way each so that the right's pose in the left's is `relative`."""
-    half = pose_from_twist(0.5 * twist_of_pose(invert_transform(invert_transform(left) @ right) @ relative))
-    moved_right = right @ half
-    return moved_right @ invert_transform(relative), moved_right
-
-
 def observable_unit(config: CorrectionConfig) -> np.ndarray:
     """(6,) one observable unit of each twist component (rad, m): where rotation and translation meet."""
     return np.array([config.observable_rotation_rad] * 3 + [config.observable_translation_m] * 3)
@@ -811,9 +733,6 @@ class _Corrector:
         self.last_sensors = sensor_poses(streams, np.array([touch.time_s]), config.fusion, jitter)
         self.touch_sensors = self.last_sensors
         self.pads = {side: PadError(c.pad_error) for side in SIDES} if c.pad_error.enabled else {}
-        self.relative = (  # the sensors' relative pose smoothed over longer (`relative_smoothing_s`), or None
-            relative_stream(streams, c.relative_smoothing_s, config.fusion) if c.relative_smoothing_s > 0 else None
-        )
         self.moving = False  # a sensor has left its pose at the touch: the pads' errors are set, the rest reads too
         self.rest_reads: dict[str, list[tuple[float, float]]] = {side: [] for side in SIDES}  # per side, at rest:
         # (how deep its frame read the press, the distance between the sensors then) ...
@@ -871,15 +790,13 @@ class _Corrector:
         rows: dict[str, int],
         points_sensor: dict[str, np.ndarray],
         fractions: dict[str, float],
-        placed: dict[str, np.ndarray],
     ) -> str:
         """The divergence guard, after an applied update: where the tracked slip has left what the slip model allows,
         register the instant's frames from the open-loop pose as well; if they fit there about as well as at the
         closed loop's registration and stay near it, the evidence never asked for the departure (a direction the
         contacts barely pin, followed by the slip rate): re-anchor the loop on that fit, the slip rate back to its
         prior. A real pivot the frames see fits worse from open loop, or leads that fit away from it, and is kept.
-        `placed`: each side's T_world_sensor its frame was registered at. Returns "" (no check), "kept" or
-        "re-anchored"."""
+        Returns "" (no check), "kept" or "re-anchored"."""
         c = self.config.correction
         if self.guard_wait > 0:
             self.guard_wait -= 1
@@ -891,7 +808,8 @@ class _Corrector:
         open_loop = fuse_object_poses(sensors, self.open_grasps)[0]
         closed, opened, facing = [], [], {}
         for side, points in points_sensor.items():
-            row, T_world_sensor = rows[side], placed[side]
+            row = rows[side]
+            T_world_sensor = sensors.T_world_sensor[side][row]
             closed.append(transform_points(invert_transform(predicted[row]) @ T_world_sensor, points))
             T_open_sensor = invert_transform(open_loop[row]) @ T_world_sensor
             opened.append(transform_points(T_open_sensor, points))
@@ -966,24 +884,12 @@ class _Corrector:
         and each side's inlier fraction after it. `sensors`: each side's T_predicted_sensor; its points match only
         surface facing that sensor (the other face of a thin wall, 1 mm behind the contact on a mug, is not theirs)."""
         c = self.config.correction
+        stacked = np.vstack(list(points.values()))
         # The surface's outward normal at a contact is against the sensor's z (which points into the object).
-        facing = {side: np.broadcast_to(-sensors[side][:3, 2], (len(p), 3)) for side, p in points.items()}
-        if c.pose_nuisance > 0.0 and len(points) > 1:
-            noise = {side: c.pose_nuisance * self._pose_noise(side, sensors[side]) for side in points}
-            solver = dataclasses.replace(
-                self.solver,
-                prior_rotation_rad=self.solver.prior_rotation_rad * c.pose_nuisance_prior,
-                prior_translation_m=self.solver.prior_translation_m * c.pose_nuisance_prior,
-            )
-            correction = register_with_pose_noise(self.model, points, facing, noise, solver)
-        else:
-            correction = point_to_plane_gauss_newton(
-                self.model,
-                np.vstack(list(points.values())),
-                np.eye(4)[None],
-                self.solver,
-                facing_source=np.vstack(list(facing.values())),
-            )[0]
+        facing = np.vstack([np.broadcast_to(-sensors[side][:3, 2], (len(p), 3)) for side, p in points.items()])
+        correction = point_to_plane_gauss_newton(
+            self.model, stacked, np.eye(4)[None], self.solver, facing_source=facing
+        )[0]
         fractions = {}
         for side, side_points in points.items():
             fit = truncated_plane_fit(
@@ -1029,7 +935,6 @@ class _Corrector:
         points_sensor: dict[str, np.ndarray] = {}  # each side's registered samples (pad error removed), sensor frame
         raw_samples: dict[str, np.ndarray] = {}  # ... and as the frame gave them
         T_predicted_sensors: dict[str, np.ndarray] = {}
-        placed: dict[str, np.ndarray] = {}  # each side's T_world_sensor its frame is registered at
         pose_noise: dict[str, np.ndarray] = {}
         rows = {side: row for row, side in enumerate(clouds)}
         for row, (side, (_, points)) in enumerate(clouds.items()):
@@ -1039,15 +944,7 @@ class _Corrector:
             if side in shallow:
                 unusable[side] = shallow[side]
                 continue
-            T_world_sensor = sensors.T_world_sensor[side][row]
-            if self.relative is not None and len(clouds) == 2:
-                relative, _ = self.relative.interpolate(sensors.timestamps_s[row : row + 1])
-                pair = consistent_sensors(
-                    sensors.T_world_sensor["left"][row], sensors.T_world_sensor["right"][row], relative[0]
-                )
-                T_world_sensor = pair[SIDES.index(side)]
-            placed[side] = T_world_sensor
-            T_predicted_sensor = invert_transform(predicted[row]) @ T_world_sensor
+            T_predicted_sensor = invert_transform(predicted[row]) @ sensors.T_world_sensor[side][row]
             sampled = contact_samples(points, c)
             raw_samples[side] = sampled
             pad = self.pads.get(side)
@@ -1084,7 +981,7 @@ class _Corrector:
                     record.sigma_rad = float(np.sqrt(np.linalg.eigvalsh(error[:3, :3])[-1]))
                     record.sigma_m = float(np.sqrt(np.linalg.eigvalsh(error[3:, 3:])[-1]))
                     record.guard = self._guard(
-                        sensors, rows, {side: points_sensor[side] for side in record.used}, fractions, placed
+                        sensors, rows, {side: points_sensor[side] for side in record.used}, fractions
                     )
                     if self.pads and (self.moving or not c.pad_error.rest_map):  # what the registered frames leave
                         for side in record.used:  # unexplained teaches the pads' sliding maps
@@ -1212,14 +1109,9 @@ class _Corrector:
         twist = twist_of_pose(correction)
         white, shared = np.zeros((6, 6)), np.zeros((6, 6))
         registered = {side: transform_points(correction, side_points) for side, side_points in points_predicted.items()}
-        summed, spread = np.zeros((6, 6)), np.zeros((6, 6))
         for side, (per_frame, bias) in self._information(registered).items():
             white += per_frame @ np.linalg.inv(np.eye(6) + pose_noise[side] @ per_frame)
             shared += bias
-            summed += per_frame
-            spread += per_frame @ pose_noise[side] @ per_frame
-        if c.joint_pose_noise and c.pose_nuisance <= 0.0 and len(points_predicted) > 1:
-            white = summed @ np.linalg.pinv(summed + spread, hermitian=True) @ summed
         lone = len(points_predicted) <= c.observable_max_contacts
         observed = self._observed(shared, lone) if lone or self.unpinned is not None else None
         if observed is not None:
