@@ -1013,10 +1013,9 @@ class _Corrector:
         frame reads its press (`frame_indentation_m`), per side. At rest a frame should read the press the touch's
         pose puts on its pad (`misread_fraction`); a pad whose rest frames read it that shallow (their median) is
         left out of the motion as well: its reconstruction misreads this contact's shape (a flat face read as a
-        partial one). In motion a frame should
-        read about what its pad read at rest while the sensors stand no further apart (`shallow_gap_m`): a rigid
-        grasp keeps its press as the object slips along the pads, and a frame far below it is the reconstruction
-        losing part of the contact, which registered reads as a slide."""
+        partial one). In motion a frame should read about what its pad read at rest while the sensors stand no
+        further apart (`shallow_gap_m`): a rigid grasp keeps its press as the object slips along the pads, and a
+        frame far below it is the reconstruction losing part of the contact, which registered reads as a slide."""
         c = self.config.correction
         gap = float(
             np.linalg.norm(sensors.T_world_sensor["left"][-1][:3, 3] - sensors.T_world_sensor["right"][-1][:3, 3])
