@@ -14,7 +14,8 @@ Steps, for one 320x240 RGB frame:
    gradients, solved with discrete cosine/sine transforms using precomputed eigenvalues, float32; box edges
    inside the frame lie on flat gel (zero height), edges on the frame's border are free (a press cut by the
    frame's edge is not forced to zero there). Where an edge is free, untouched gel inside the box is brought back
-   to zero by a harmonic correction (`anchor_untouched`). Heights are then clamped to z <= 0.
+   to zero by a harmonic correction (`anchor_untouched`), unless those blocks are a face pressed over the pad
+   (`anchors_are_gel`): then the least-pressed part of the pad is the gel's level. Heights are then clamped to z <= 0.
 4. contact masks: if at least `min_area_px` pixels changed colour by `colour_threshold` (or the frame is a faint
    contact: a tilted face's colour change of a few levels over many blocks that no lighting change explains,
    integrated over the whole frame), the core (pixels
@@ -84,6 +85,14 @@ BOX_MARGIN_PX = 8
 # where it lies at most this fraction of the contact's depth below the gel's level (`gel_level_blocks`): a broad
 # contact's flat middle barely changes colour too, but lies deep; the drift anchoring removes is 0.02-0.1 mm.
 ANCHOR_RELATIVE_DEPTH = 0.15
+# The plane through the anchored blocks (the gel's level under the integration's drift) is at most this steep
+# (`anchors_are_gel`): on the cracker box's 80 contacts through the table renderer (seed 11) the contacts with untouched
+# gel beside them anchor on planes of slope 0.0000-0.021 (median 0.002), faces pressed over the whole pad with a tilt
+# too gentle to change the colour by TOUCHED_LEVEL on planes of 0.012-0.047, flattened by the anchoring.
+MAX_GEL_LEVEL_SLOPE = 0.015
+# ... checked only where the touched box covers at least this share of the frame (a face pressed over the pad): a ball
+# press at the pad's corner anchors on a few blocks whose drift (0.25 mm at the right edge, real press 43) tilts them.
+PAD_WIDE_BOX_SHARE = 0.75
 # Refits of the plane that gives the untouched gel's level under drift (`gel_level_blocks`).
 GEL_LEVEL_ITERATIONS = 3
 # A faint contact: a face pressed tilted across the pad changes colour by a few levels over thousands of pixels, no
@@ -436,7 +445,7 @@ def integrate_box(
     height = np.zeros((rows, cols), np.float32)
     height[inside] = poisson_integrate(gx[inside], gy[inside], pixel_size_m, free)
     if any(free):
-        anchor_untouched(height, blocks, box)
+        anchor_untouched(height, blocks, box, pixel_size_m)
     np.minimum(height, 0.0, out=height)
     return height
 
@@ -447,7 +456,9 @@ def untouched_blocks(blocks: np.ndarray) -> np.ndarray:
     return ~ndimage.binary_dilation(touched, structure=np.ones((3, 3), bool))
 
 
-def anchor_untouched(height: np.ndarray, blocks: np.ndarray, box: tuple[int, int, int, int]) -> None:
+def anchor_untouched(
+    height: np.ndarray, blocks: np.ndarray, box: tuple[int, int, int, int], pixel_size_m: float
+) -> None:
     """Bring untouched gel inside the box back to z = 0, in place, by subtracting a harmonic correction.
 
     A Poisson solve with other edge conditions differs from this one by a harmonic function, so the drift is
@@ -455,7 +466,9 @@ def anchor_untouched(height: np.ndarray, blocks: np.ndarray, box: tuple[int, int
     outside the box), is harmonic (5-point Laplace) over the touched blocks and their neighbours, with free
     (zero-slope) frame borders; it is interpolated bilinearly to the pixels. With no untouched block in the box
     and the box covering the frame (a contact over the whole pad) the least-pressed block (95th percentile of the
-    block means) is taken as the gel's level; with none and edges inside the frame, those hold the level.
+    block means) is taken as the gel's level; with none and edges inside the frame, those hold the level. So is it
+    where the box covers most of the frame and the untouched blocks cannot be gel (`anchors_are_gel`): a face pressed
+    over the pad, too gently tilted or too flat to change their colour.
     """
     row0, row1, col0, col1 = box
     grid_rows, grid_cols = blocks.shape
@@ -487,6 +500,14 @@ def anchor_untouched(height: np.ndarray, blocks: np.ndarray, box: tuple[int, int
     unknown = np.flatnonzero(~known)
     if len(unknown):
         correction.flat[unknown] = _harmonic_fill(known, values)
+    if in_box.mean() >= PAD_WIDE_BOX_SHARE and not anchors_are_gel(
+        means, correction, known & in_box, in_box, pixel_size_m
+    ):
+        # The untouched blocks are a face pressed over the pad (tilted too gently to change colour, or its flat
+        # plateau), not the gel: anchoring them at zero would flatten the face or lift the rest above the gel.
+        # The least-pressed part of the pad is taken as the gel's level instead (its depth is then a lower bound).
+        height[row0:row1, col0:col1] -= np.float32(np.percentile(means[in_box], 95.0))
+        return
     # Bilinear interpolation from block centres to pixels (clamped at the frame's edges), inside the box only.
     pixel_rows = np.interp(np.arange(row0, row1), centre_rows, np.arange(grid_rows))
     pixel_cols = np.interp(np.arange(col0, col1), centre_cols, np.arange(grid_cols))
@@ -496,6 +517,28 @@ def anchor_untouched(height: np.ndarray, blocks: np.ndarray, box: tuple[int, int
     wc = (pixel_cols - c0)[None, :]
     along_cols = correction[:, c0] * (1 - wc) + correction[:, c0 + 1] * wc  # separable: block rows first
     height[row0:row1, col0:col1] -= (along_cols[r0] * (1 - wr) + along_cols[r0 + 1] * wr).astype(np.float32)
+
+
+def anchors_are_gel(
+    means: np.ndarray, correction: np.ndarray, anchors: np.ndarray, in_box: np.ndarray, pixel_size_m: float
+) -> bool:
+    """Whether the blocks `anchor_untouched` holds at z = 0 can be untouched gel (block grids, heights in metres).
+
+    They are not when (1) the plane through them is steeper than MAX_GEL_LEVEL_SLOPE: the integration's drift
+    tilts the gel's level by much less, a face pressed with a gentle tilt over the pad changes its blocks' colour by
+    less than TOUCHED_LEVEL; or (2) once anchored, the least-pressed part of the box (95th percentile of its block
+    means) lies above them by more than ANCHOR_RELATIVE_DEPTH of the contact's depth: the gel is pressed only
+    downwards, so the anchors are the flat plateau of a face pressed over the whole pad.
+    """
+    rows, cols = np.nonzero(anchors)
+    if len(rows) >= 3:
+        design = np.column_stack([np.ones(len(rows)), rows, cols]).astype(np.float64)
+        plane = np.linalg.lstsq(design, means[rows, cols].astype(np.float64), rcond=None)[0]
+        if np.hypot(plane[1], plane[2]) > MAX_GEL_LEVEL_SLOPE * BLOCK_PX * pixel_size_m:
+            return False
+    anchored = (means - correction)[in_box]
+    top = float(np.percentile(anchored, 95.0))
+    return top <= ANCHOR_RELATIVE_DEPTH * (top - float(anchored.min()))
 
 
 def gel_level_blocks(means: np.ndarray, untouched: np.ndarray, deepest_z: float) -> np.ndarray:
