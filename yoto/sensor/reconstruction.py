@@ -86,9 +86,10 @@ BOX_MARGIN_PX = 8
 # contact's flat middle barely changes colour too, but lies deep; the drift anchoring removes is 0.02-0.1 mm.
 ANCHOR_RELATIVE_DEPTH = 0.15
 # The plane through the anchored blocks (the gel's level under the integration's drift) is at most this steep
-# (`anchors_are_gel`): on the cracker box's 80 contacts through the table renderer (seed 11) the contacts with untouched
-# gel beside them anchor on planes of slope 0.0000-0.021 (median 0.002), faces pressed over the whole pad with a tilt
-# too gentle to change the colour by TOUCHED_LEVEL on planes of 0.012-0.047, flattened by the anchoring.
+# (`anchors_are_gel`): on the cracker box's contacts through the table renderer (seed 11, zero-slope change off) the
+# plane's median slope is 0.004 (up to 0.021 where a contact read well leaves part of the pad unpressed), and faces
+# pressed over the whole pad with a tilt too gentle to change the colour by TOUCHED_LEVEL, flattened by the anchoring
+# (13 contacts seen in under 75%), anchor on planes of 0.012-0.047.
 MAX_GEL_LEVEL_SLOPE = 0.015
 # ... checked only where the touched box covers at least this share of the frame (a face pressed over the pad): a ball
 # press at the pad's corner anchors on a few blocks whose drift (0.25 mm at the right edge, real press 43) tilts them.
