@@ -243,9 +243,9 @@ def gently_tilted_face(slope_x: float, ridge_x_m: float, ridge_radius_m: float, 
 def test_a_gently_tilted_face_over_the_whole_pad_is_seen_whole_and_tilted(shading):
     """A face pressed over the whole pad with a tilt of 0.02 changes its blocks' colour by less than the touched
     level, so they passed for untouched gel: anchored at z = 0 they flattened the face, and the mask kept none of it
-    ("no contact", both frames here) or its deep end (29-41% of the flat face with other optics draws). Their
-    plane is steeper than the integration's drift, so they are not taken for gel: the least-pressed part of the pad
-    gives the level, the face is seen whole and keeps its tilt (its depth is then a lower bound)."""
+    ("no contact", both frames here) or its deep end (29-41% of the flat face with other optics draws). They changed
+    colour by more than untouched gel's noise, so they are not taken for gel: the least-pressed part of the pad gives
+    the level, the face is seen whole and keeps its tilt (its depth is then a lower bound)."""
     _, calibration = shading
     truth = gently_tilted_face(0.02, 0.005, 0.03, 1.0e-3)
     felt = truth < -0.05e-3
