@@ -10,7 +10,7 @@ from scipy import ndimage
 
 from yoto.errors import InputError
 from yoto.sensor.ball_calibration import CalibrationConfig
-from yoto.sensor.optical import OpticsVariation, image_path_reconstructor, render_varied
+from yoto.sensor.optical import OpticsVariation, image_path_reconstructor, render_image, render_varied
 from yoto.sensor.reconstruction import block_change, reconstruct
 from yoto.sensor.shading import ShadingSensor, calibrate_shading_sensor
 from yoto.sensor.spec import GELSIGHT_MINI
@@ -229,6 +229,43 @@ def test_a_pressed_plateau_is_not_taken_for_untouched_gel(shading):
         assert recon.box == (0, SPEC.height_px, 0, SPEC.width_px)  # every edge free
         assert np.median(recon.height_map_m[plateau]) < 0.6 * truth[120, 250]
         assert 0.85 < recon.max_depth_m / -truth.min() < 1.2
+
+
+def gently_tilted_face(slope_x: float, ridge_x_m: float, ridge_radius_m: float, depth_m: float) -> np.ndarray:
+    """The gel under a flat face pressed over the whole pad with a gentle tilt along x, curving away over a rounded
+    edge on the right (x > ridge_x_m) that stays pressed: the only part whose colour changes by the touched level."""
+    x, _ = SPEC.pixel_xy_sensor()
+    object_z = -depth_m + slope_x * x + np.maximum(0.0, x - ridge_x_m) ** 2 / (2 * ridge_radius_m)
+    height, _, _ = gel_surface(object_z, GelModel(), SPEC)
+    return height
+
+
+def test_a_gently_tilted_face_over_the_whole_pad_is_seen_whole_and_tilted(shading):
+    """A face pressed over the whole pad with a tilt of 0.02 changes its blocks' colour by less than the touched
+    level, so they passed for untouched gel: anchored at z = 0 they flattened the face, and the mask kept none of it
+    ("no contact", both frames here) or its deep end (29-41% of the flat face with other optics draws). They changed
+    colour by more than untouched gel's noise, so they are not taken for gel: the least-pressed part of the pad gives
+    the level, the face is seen whole and keeps its tilt (its depth is then a lower bound)."""
+    _, calibration = shading
+    truth = gently_tilted_face(0.02, 0.005, 0.03, 1.0e-3)
+    felt = truth < -0.05e-3
+    face = felt & (SPEC.pixel_xy_sensor()[0] < 0.004)
+    assert felt.mean() > 0.99 and face.mean() > 0.6
+    x, y = SPEC.pixel_xy_sensor()
+    for seed in (None, 4):
+        image = (
+            render_image(truth, calibration, np.random.default_rng(1))
+            if seed is None
+            else render_varied(truth, calibration, np.random.default_rng(seed), OpticsVariation.of(1.0))
+        )
+        recon = reconstruct(image, calibration)
+        assert recon.contact, recon.reason
+        seen = recon.mask & face
+        assert (recon.mask & felt).sum() > 0.85 * felt.sum() and seen.sum() > 0.9 * face.sum()
+        design = np.stack([np.ones(int(seen.sum())), x[seen], y[seen]], axis=1)
+        tilt = np.linalg.lstsq(design, recon.height_map_m[seen].astype(np.float64), rcond=None)[0][1:]
+        assert np.hypot(tilt[0] - 0.02, tilt[1]) < 0.15 * 0.02, tilt
+        assert 0.3 < recon.max_depth_m / -truth.min() < 1.1
 
 
 def two_features() -> np.ndarray:

@@ -14,7 +14,8 @@ Steps, for one 320x240 RGB frame:
    gradients, solved with discrete cosine/sine transforms using precomputed eigenvalues, float32; box edges
    inside the frame lie on flat gel (zero height), edges on the frame's border are free (a press cut by the
    frame's edge is not forced to zero there). Where an edge is free, untouched gel inside the box is brought back
-   to zero by a harmonic correction (`anchor_untouched`). Heights are then clamped to z <= 0.
+   to zero by a harmonic correction (`anchor_untouched`), unless those blocks are a face pressed over the pad
+   (`anchors_are_gel`): then the least-pressed part of the pad is the gel's level. Heights are then clamped to z <= 0.
 4. contact masks: if at least `min_area_px` pixels changed colour by `colour_threshold` (or the frame is a faint
    contact: a tilted face's colour change of a few levels over many blocks that no lighting change explains,
    integrated over the whole frame), the core (pixels
@@ -84,6 +85,15 @@ BOX_MARGIN_PX = 8
 # where it lies at most this fraction of the contact's depth below the gel's level (`gel_level_blocks`): a broad
 # contact's flat middle barely changes colour too, but lies deep; the drift anchoring removes is 0.02-0.1 mm.
 ANCHOR_RELATIVE_DEPTH = 0.15
+# Untouched gel shows the calibration's background within the noise of an 8x8 block mean (about 0.3 levels): blocks
+# taken for the gel's level whose median colour change exceeds MAX_GEL_BLOCK_CHANGE levels are a face pressed over the
+# pad with a tilt too gentle to change them by TOUCHED_LEVEL (`anchors_are_gel`). On the cracker box's contacts through
+# the table renderer (seed 11, zero-slope change off) the gel's blocks changed by a median 0.30-0.41 levels, those of
+# 12 of the 13 faces the anchoring flattened by 1.1-2.2 (true gel beside lemon and figurine contacts through
+# `shading:3`: 0.28).
+MAX_GEL_BLOCK_CHANGE = 0.75
+# ... checked only where the touched box covers at least this share of the frame (a face pressed over the pad).
+PAD_WIDE_BOX_SHARE = 0.75
 # Refits of the plane that gives the untouched gel's level under drift (`gel_level_blocks`).
 GEL_LEVEL_ITERATIONS = 3
 # A faint contact: a face pressed tilted across the pad changes colour by a few levels over thousands of pixels, no
@@ -455,7 +465,9 @@ def anchor_untouched(height: np.ndarray, blocks: np.ndarray, box: tuple[int, int
     outside the box), is harmonic (5-point Laplace) over the touched blocks and their neighbours, with free
     (zero-slope) frame borders; it is interpolated bilinearly to the pixels. With no untouched block in the box
     and the box covering the frame (a contact over the whole pad) the least-pressed block (95th percentile of the
-    block means) is taken as the gel's level; with none and edges inside the frame, those hold the level.
+    block means) is taken as the gel's level; with none and edges inside the frame, those hold the level. So is it
+    where the box covers most of the frame and the untouched blocks cannot be gel (`anchors_are_gel`): a face pressed
+    over the pad, whose gentle tilt changes their colour faintly, or its plateau.
     """
     row0, row1, col0, col1 = box
     grid_rows, grid_cols = blocks.shape
@@ -487,6 +499,12 @@ def anchor_untouched(height: np.ndarray, blocks: np.ndarray, box: tuple[int, int
     unknown = np.flatnonzero(~known)
     if len(unknown):
         correction.flat[unknown] = _harmonic_fill(known, values)
+    if in_box.mean() >= PAD_WIDE_BOX_SHARE and not anchors_are_gel(blocks, means, correction, known & in_box, in_box):
+        # The untouched blocks are a face pressed over the pad (tilted too gently to change colour, or its flat
+        # plateau), not the gel: anchoring them at zero would flatten the face or lift the rest above the gel.
+        # The least-pressed part of the pad is taken as the gel's level instead (its depth is then a lower bound).
+        height[row0:row1, col0:col1] -= np.float32(np.percentile(means[in_box], 95.0))
+        return
     # Bilinear interpolation from block centres to pixels (clamped at the frame's edges), inside the box only.
     pixel_rows = np.interp(np.arange(row0, row1), centre_rows, np.arange(grid_rows))
     pixel_cols = np.interp(np.arange(col0, col1), centre_cols, np.arange(grid_cols))
@@ -496,6 +514,24 @@ def anchor_untouched(height: np.ndarray, blocks: np.ndarray, box: tuple[int, int
     wc = (pixel_cols - c0)[None, :]
     along_cols = correction[:, c0] * (1 - wc) + correction[:, c0 + 1] * wc  # separable: block rows first
     height[row0:row1, col0:col1] -= (along_cols[r0] * (1 - wr) + along_cols[r0 + 1] * wr).astype(np.float32)
+
+
+def anchors_are_gel(
+    blocks: np.ndarray, means: np.ndarray, correction: np.ndarray, anchors: np.ndarray, in_box: np.ndarray
+) -> bool:
+    """Whether the blocks `anchor_untouched` holds at z = 0 can be untouched gel (block grids; heights in metres).
+
+    They are not when (1) their median colour change exceeds MAX_GEL_BLOCK_CHANGE: untouched gel shows the background
+    within the noise, a face pressed over the pad with a gentle tilt changes them faintly (by less than
+    TOUCHED_LEVEL); or (2) once anchored, the least-pressed part of the box (95th percentile of its block means) lies
+    above them by more than ANCHOR_RELATIVE_DEPTH of the contact's depth: the gel is pressed only downwards, so the
+    anchors are the flat plateau of a face pressed over the whole pad.
+    """
+    if float(np.median(blocks[anchors])) > MAX_GEL_BLOCK_CHANGE:
+        return False
+    anchored = (means - correction)[in_box]
+    top = float(np.percentile(anchored, 95.0))
+    return top <= ANCHOR_RELATIVE_DEPTH * (top - float(anchored.min()))
 
 
 def gel_level_blocks(means: np.ndarray, untouched: np.ndarray, deepest_z: float) -> np.ndarray:
