@@ -384,6 +384,15 @@ def test_pose_reads_pair_files_whose_sides_are_images(image_pair, builtin_models
     args = ["pose", str(path), "--model", str(image_pair["model"]), "--method", "oracle"]
     assert main(args) == 1
     assert "a GelSight image needs the sensor's calibration: give one (`--calibration CAL`" in capsys.readouterr().out
+    # The Python API says how to pass the calibration there.
+    from yoto.contacts import read_contact_pair
+    from yoto.sensor.pair_images import ImageSides
+
+    with pytest.raises(
+        InputError, match=r"'left' gives a GelSight image \(left.png\) and no points.*images=ImageSides"
+    ):
+        read_contact_pair(path)
+    assert len(read_contact_pair(path, images=ImageSides(image_pair["calibration"])).left.points_sensor) > 100
     assert main([*args, "--calibration", str(image_pair["calibration"])]) == 0
     result = json.loads(path.with_suffix(".pose.json").read_text())
     error = result["error"]

@@ -524,3 +524,32 @@ def test_harmonic_fill_solves_the_five_point_equations(unknown_box):
         assert np.abs(filled).max() == 0.0
     else:
         assert np.abs(filled[~known]).max() > 1e-6  # the known values reach the unknown cells
+
+
+def test_press_folders_laid_out_per_press_or_per_ball(tmp_path):
+    """`--presses` takes images, one sub-folder per press, or the shared example's one sub-folder per ball
+    (presses/6.310mm/k/gelsight.png); two balls' folders are refused with both named, never mixed."""
+    from PIL import Image
+
+    from yoto.sensor.presses import list_press_images
+
+    def write_presses(folder, count):
+        for k in range(count):
+            (folder / str(k)).mkdir(parents=True)
+            Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(folder / str(k) / "gelsight.png")
+
+    write_presses(tmp_path / "presses" / "6.310mm", 11)
+    (tmp_path / "presses" / "catalog.csv").write_text("press_dir,ball_diameter_mm\n6.310mm,6.31\n")
+    per_ball = list_press_images(tmp_path / "presses")
+    assert [p.relative_to(tmp_path / "presses").as_posix() for p in per_ball[:3]] == [
+        "6.310mm/0/gelsight.png",
+        "6.310mm/1/gelsight.png",
+        "6.310mm/2/gelsight.png",
+    ]
+    assert len(per_ball) == 11 and per_ball == list_press_images(tmp_path / "presses" / "6.310mm")
+    write_presses(tmp_path / "presses" / "4.000mm", 2)
+    with pytest.raises(InputError, match=r"4.000mm \(2 images\).*6.310mm \(11 images\)"):
+        list_press_images(tmp_path / "presses")
+    (tmp_path / "empty" / "a" / "b").mkdir(parents=True)
+    with pytest.raises(InputError, match="no image files"):
+        list_press_images(tmp_path / "empty")

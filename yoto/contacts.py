@@ -475,8 +475,10 @@ def _read_side(
     assert image is not None
     if images is None:
         raise InputError(
-            f"'{side}' gives a GelSight image ({image.image.name}): reconstructing it needs the sensor's calibration "
-            '(`yoto pose --calibration CAL`, or a "calibration" entry in the side)',
+            f"'{side}' gives a GelSight image ({image.image.name}) and no points: reconstructing it needs the "
+            "sensor's calibration (`yoto pose --calibration CAL`; in Python "
+            "`read_contact_pair(path, images=ImageSides(CAL))`, ImageSides from yoto.sensor.pair_images, "
+            '`ImageSides()` when every image side names its own "calibration")',
             path,
         )
     try:

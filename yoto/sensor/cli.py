@@ -74,7 +74,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _add_press_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--background", required=True, help="image of the sensor with nothing touching it")
-    parser.add_argument("--presses", required=True, help="folder of ball-press images (or sub-folders of them)")
+    parser.add_argument(
+        "--presses",
+        required=True,
+        help="folder of ball-press images, or of one sub-folder per press, or of one sub-folder per ball "
+        "(presses/6.310mm/0/gelsight.png)",
+    )
     parser.add_argument("--ball-diameter-mm", type=float, required=True, help="diameter of the ball (mm)")
 
 

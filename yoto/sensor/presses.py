@@ -104,18 +104,39 @@ def _shape_text(shape: tuple[int, ...]) -> str:
 def list_press_images(folder: str | Path) -> list[Path]:
     """Press images under `folder`: image files directly in it, or one level of sub-folders (k/gelsight.png).
 
-    Sorted naturally (2 before 10). Raises InputError when the folder holds no image.
+    A folder laid out as the shared example (presses/6.310mm/k/gelsight.png, one sub-folder per ball) holds no
+    image within one level: when exactly one of its sub-folders holds presses, those are listed; when several do
+    (balls of different diameters must not be mixed), InputError names them. Sorted naturally (2 before 10).
+    Raises InputError when the folder holds no image.
     """
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError("press folder not found", folder)
+    found = _images_within_one_level(folder)
+    if not found:
+        nested = {sub: _images_within_one_level(sub) for sub in sorted(folder.iterdir()) if sub.is_dir()}
+        holding = [sub for sub, images in nested.items() if images]
+        if len(holding) > 1:
+            names = ", ".join(f"{sub} ({len(nested[sub])} images)" for sub in holding)
+            raise InputError(
+                f"press folder holds no image files itself, but several of its sub-folders do: {names}; "
+                "pass one of them (one ball diameter per calibration)",
+                folder,
+            )
+        if holding:
+            found = nested[holding[0]]
+    if not found:
+        raise InputError("press folder holds no image files (.png, .jpg, ...), in it or two levels down", folder)
+    return sorted(found, key=_natural_key)
+
+
+def _images_within_one_level(folder: Path) -> list[Path]:
+    """Image files directly in `folder` and in its immediate sub-folders."""
     found = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
     for sub in folder.iterdir():
         if sub.is_dir():
             found += [p for p in sub.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
-    if not found:
-        raise InputError("press folder holds no image files (.png, .jpg, ...)", folder)
-    return sorted(found, key=_natural_key)
+    return found
 
 
 def _natural_key(path: Path) -> list:
