@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -24,6 +25,7 @@ from yoto.localize.network import (  # noqa: E402
 from yoto.network.candidates import Candidate, candidates_of, fit_temperature, softmax  # noqa: E402
 from yoto.network.checkpoint import LocalizerCheckpoint, load_torch, save_torch_atomic  # noqa: E402
 from yoto.network.presets import network_config_from_dict  # noqa: E402
+from yoto.objects.build import load_object_model  # noqa: E402
 from yoto.workspace import object_model_path  # noqa: E402
 
 
@@ -112,7 +114,7 @@ def test_foreign_old_and_damaged_checkpoints_are_refused_by_name(localizer, tmp_
         assert error.value.path == tmp_path / name
 
 
-def test_the_shipped_weights_read_unchanged():
+def test_the_shipped_weights_read_unchanged(tmp_path):
     path = default_checkpoint_path()
     if not path.is_file():
         pytest.skip("this copy of YOTO has no shipped weights")
@@ -128,7 +130,11 @@ def test_the_shipped_weights_read_unchanged():
         else:
             assert value == on_disk[key], key
     localizer = make_localizer("yoto")
-    assert sorted(localizer.trained_objects.values()) == sorted(o.name for o in checkpoint.objects)
+    assert sorted(o.name for o in localizer.trained_objects) == sorted(o.name for o in checkpoint.objects)
+    fruit = load_object_model("fruit", workspace=tmp_path)  # the built-in fruit as `yoto demo` builds it
+    with warnings.catch_warnings():  # ... is one the weights learnt
+        warnings.simplefilter("error")
+        assert localizer.prepare_object(fruit).trained
     card = json.loads(path.with_suffix(".json").read_text())
     assert network_config_from_dict(card["network_config"]) == checkpoint.network_config
     assert card["command"].startswith("yoto train")
@@ -299,3 +305,21 @@ def test_objects_the_descriptor_network_did_not_see_work_but_warn(descriptor_che
     with pytest.warns(UnknownObjectWarning, match="not one this localizer was trained on"):
         candidates = localizer.localize(points, figurine)
     assert candidates and not candidates[0].details["trained_object"]
+
+
+def test_a_rebuild_of_a_trained_object_counts_as_trained_where_its_anchors_match():
+    from types import SimpleNamespace
+
+    from yoto.localize.network import is_trained_object
+    from yoto.network.checkpoint import TrainedObject
+
+    trained = [TrainedObject("fruit", "ce81d0dd236c624b", 6544)]
+    rebuilt = SimpleNamespace(name="fruit", fingerprint="827de8f5bca16728")  # the last bits of its points moved
+    assert is_trained_object(SimpleNamespace(name="x", fingerprint="ce81d0dd236c624b"), trained, "", None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert is_trained_object(rebuilt, trained, "", anchors=6544)
+    with pytest.warns(UnknownObjectWarning, match="a model of that name but another build"):
+        assert not is_trained_object(rebuilt, trained, "", anchors=6545)  # another surface
+    with pytest.warns(UnknownObjectWarning):
+        assert not is_trained_object(rebuilt, trained, "", anchors=None)  # no anchors to compare: the build decides

@@ -92,7 +92,7 @@ class DescriptorLocalizer:
         self.network: AnchorNetConfig = net.config
         self.grid = PolarGrid.of(self.network)
         self.config = config
-        self.trained_objects = {o.fingerprint: o.name for o in checkpoint.objects} if checkpoint is not None else {}
+        self.trained_objects = list(checkpoint.objects) if checkpoint is not None else []
         self.source = source
         self._cache: dict[str, _ObjectCache] = {}
 
@@ -102,8 +102,10 @@ class DescriptorLocalizer:
         cached = self._cache.get(model.fingerprint)
         if cached is not None:
             return cached
-        trained = is_trained_object(model, self.trained_objects, "its anchors are described by the shared network")
         anchors = anchor_set(model, self.network)
+        trained = is_trained_object(
+            model, self.trained_objects, "its anchors are described by the shared network", len(anchors.points_object)
+        )
         descriptors = self.net.encode_many(torch.from_numpy(anchors.network_inputs(self.network)))
         neighbours = cKDTree(anchors.points_object).query_ball_point(anchors.points_object, self.config.nms_radius_m)
         cached = _ObjectCache(anchors, descriptors, [np.asarray(n, dtype=np.int64) for n in neighbours], trained)

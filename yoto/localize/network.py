@@ -26,7 +26,7 @@ import torch
 from yoto.contacts import ContactEstimate
 from yoto.errors import InputError
 from yoto.network.candidates import candidates_of, rank_hypotheses, rotated_copies
-from yoto.network.checkpoint import Calibration, LocalizerCheckpoint
+from yoto.network.checkpoint import Calibration, LocalizerCheckpoint, TrainedObject
 from yoto.network.inputs import BlockSet, inference_points, make_block_set
 from yoto.network.model import ContactLocalizationNet
 from yoto.network.presets import AnchorNetConfig, NetworkConfig
@@ -48,12 +48,19 @@ class UnknownObjectWarning(UserWarning):
     """The object was not among the checkpoint's training objects."""
 
 
-def is_trained_object(model: ObjectModel, trained_objects: dict[str, str], fallback: str) -> bool:
-    """Whether the localizer was trained on this very model build (`trained_objects`: fingerprint -> name); warns
+def is_trained_object(
+    model: ObjectModel, trained_objects: list[TrainedObject], fallback: str, anchors: int | None = None
+) -> bool:
+    """Whether the localizer was trained on this model: this very build (its fingerprint), or, where `anchors` is
+    given, a build of the same name with the same number of anchors (the fingerprint hashes every point's last bit,
+    which another build of the same geometry can change; a changed surface changes its anchor count). Warns
     (UnknownObjectWarning) when not, saying what the localizer does instead (`fallback`)."""
-    if model.fingerprint in trained_objects:
-        return True
-    names = sorted(set(trained_objects.values()))
+    for trained in trained_objects:
+        if trained.fingerprint == model.fingerprint:
+            return True
+        if anchors is not None and (trained.name, trained.num_blocks) == (model.name, anchors):
+            return True
+    names = sorted({trained.name for trained in trained_objects})
     warnings.warn(
         f"object {model.name!r} ({model.fingerprint}) is not one this localizer was trained on "
         f"({', '.join(names) or 'unknown'}): "
@@ -134,7 +141,7 @@ class NetworkLocalizer:
         self.rotations = max(1, int(rotations or calibration.test_rotations))
         self.temperature = float(temperature or calibration.temperature)
         self.merge_radius_m = float(merge_radius_m or calibration.merge_radius_m)
-        self.trained_objects = {o.fingerprint: o.name for o in checkpoint.objects} if checkpoint is not None else {}
+        self.trained_objects = list(checkpoint.objects) if checkpoint is not None else []
         self.source = source
         self._cache: dict[str, _ObjectCache] = {}
 
