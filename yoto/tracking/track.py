@@ -402,9 +402,9 @@ def track(
 class ReleaseWatch:
     """Sees the object let go: after a frame with contact, both sensors' frames show none ("too few points": the
     gel flat) for at least `release_frames` frames each and `release_s` from each side's first such frame. A lone
-    side lifting off, or both for a moment, is no release (the closed loop keeps its prediction through it). Frames
-    that could not be read, or were left out for another reason, neither count nor break a stretch. Needs frames of
-    both sensors: without one side's, nothing says that side let go."""
+    side lifting off, or both for a moment, is no release (the closed loop keeps its prediction through it). A frame
+    that could not be read neither counts nor breaks a stretch; any other (used, or left out as a bad fit or a
+    shallow read) shows contact. Needs frames of both sensors: without one side's, nothing says that side let go."""
 
     def __init__(self, config: CorrectionConfig, sides: tuple[str, ...]):
         self.frames, self.span_s = config.release_frames, config.release_s
