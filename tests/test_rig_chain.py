@@ -192,7 +192,11 @@ def test_contacts_refine_a_poor_bead_calibration(session, gelsight):
     assert sum(trial.labelled is not None for trial in relabelled.trials) == 6  # labelled again with the refined one
 
 
-def test_label_cli_writes_labels_report_and_refined_calibration(session, gelsight, tmp_path):
+def test_label_cli_writes_labels_report_and_refined_calibration(session, gelsight, tmp_path, capsys, caplog):
+    """... and names each refused trial once, in the report's list (a log warning printed it a second time, and a
+    third and fourth with the refinement's first labelling)."""
+    import logging
+
     from yoto.cli import main
     from yoto.rig.beads import load_object_calibration
 
@@ -213,7 +217,11 @@ def test_label_cli_writes_labels_report_and_refined_calibration(session, gelsigh
         "--refine-object-calibration",
         str(tmp_path / "r.json"),
     ]
-    assert main(args) == 0
+    with caplog.at_level(logging.DEBUG):
+        assert main(args) == 0
+    printed = capsys.readouterr()
+    warned = [r for r in caplog.records if r.levelno >= logging.WARNING and "refused" in r.getMessage()]
+    assert not warned and (printed.out + printed.err).count("REFUSED") == 4
     assert main([*args, "--strict"]) == 1  # the near miss and the dropout are refused
     rows = json.loads((out / "label_report.json").read_text())["trials"]
     assert [row["status"] for row in rows].count("labelled") == 6 and len(rows) == 10

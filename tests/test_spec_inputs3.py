@@ -260,5 +260,6 @@ def test_lift_off_frames_are_no_contact_and_the_closed_loop_keeps_its_prediction
     touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
     result = track(touch, trajectory.streams, model, streams)
     assert result.correction_summary()["unusable"] == {"too few points": 3 + 3 + 4}
+    assert result.released_s is None  # three frames of both, 0.16 s from the first to the last at 12.5 Hz: no release
     expected = track(touch, trajectory.streams, model, reference)
     assert np.array_equal(result.T_world_object, expected.T_world_object)

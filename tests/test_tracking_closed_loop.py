@@ -165,6 +165,59 @@ def test_unusable_frames_fall_back_to_the_open_loop(builtin_models, fruit_trajec
     assert settled(trajectory, result, result.T_world_object)["settled"]["mm"] < 0.6
 
 
+def test_a_release_ends_the_track_holds_the_pose_and_the_errors_cover_the_grasp(builtin_models, fruit_trajectory):
+    """The gels let go (each sensor's last six frames show no contact) and the sensors withdraw upward at 50 mm/s while
+    the object stays where it was let go. The track ends at the release (the later side's first frame without
+    contact); the poses after it hold the last pose before it; the errors cover the touch to the release. Before,
+    the closed loop followed the withdrawing sensors (some 20 mm off by the end) and the errors measured that."""
+    from yoto.tracking.job import evaluate_against_truth
+    from yoto.trajectory import PoseStream
+
+    trajectory, model = fruit_trajectory, builtin_models["fruit"]
+    frames = trajectory.tactile
+    released_s = max(frames[side][-6].timestamp_s for side in SIDES)
+
+    def withdrawn(stream: PoseStream) -> PoseStream:
+        T_world_sensor = stream.T_world_frame.copy()
+        after = stream.timestamps_s > released_s
+        T_world_sensor[after, 2, 3] += 0.05 * (stream.timestamps_s[after] - released_s)
+        return PoseStream(stream.timestamps_s, T_world_sensor, stream.name)
+
+    streams = {side: withdrawn(trajectory.streams[side]) for side in SIDES}
+    T_world_object = trajectory.truth.T_world_frame.copy()
+    T_world_object[trajectory.truth.timestamps_s > released_s] = trajectory.truth.interpolate(np.array([released_s]))[0]
+    T_world_mesh = T_world_object @ model.T_object_mesh  # the object stays where it was let go
+    truth_mesh = PoseStream(trajectory.truth.timestamps_s, T_world_mesh)
+    tactile = {
+        side: TactileStream(
+            np.array([frame.timestamp_s for frame in frames[side]]),
+            lambda i, side=side: np.empty((0, 3)) if i >= len(frames[side]) - 6 else frames[side][i].points_sensor,
+        )
+        for side in SIDES
+    }
+    touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
+    result = track(touch, streams, model, tactile)
+    assert result.released_s == released_s
+    grasped = result.grasped
+    assert grasped.sum() > 0.6 * len(grasped) and not grasped[-1]
+    assert np.array_equal(
+        result.T_world_object[~grasped], np.repeat(result.T_world_object[grasped][-1:], (~grasped).sum(), 0)
+    )
+    looked_at = sum(len(c.used) + len(c.unusable) for c in result.corrections)
+    assert looked_at + result.frames_after_release == sum(map(len, frames.values()))
+    assert result.correction_summary()["unusable"] == {
+        "too few points": looked_at - result.correction_summary()["frames_used"]
+    }
+    assert np.linalg.norm(result.T_world_object[-1][:3, 3] - T_world_object[-1][:3, 3]) < 0.002  # main: 20 mm
+    errors, curves = evaluate_against_truth(result, truth_mesh, streams, model)
+    assert errors["closed_loop"]["motion_peak"]["mm"] < 1.5 and errors["open_loop"]["motion_peak"]["mm"] < 4.0
+    assert curves[0].times_s[-1] < released_s - touch.time_s
+    # Without the release (a lone side lifting off), nothing ends: the right gel keeps its contact.
+    tactile["right"] = TactileStream(tactile["right"].timestamps_s, lambda i: frames["right"][i].points_sensor)
+    held = track(touch, streams, model, tactile)
+    assert held.released_s is None and held.grasped.all() and held.frames_after_release == 0
+
+
 def test_track_command_on_written_files(builtin_models, fruit_trajectory, tmp_path, capsys):
     model = builtin_models["fruit"]
     model_path = model.save(tmp_path / "fruit.npz")

@@ -256,7 +256,7 @@ def label_recording(
                 label_trial(trial, side, streams[side.name], object_stream, T_objectbody_mesh, queries, model, config)
             except TrialRefused as exc:
                 trial.status, trial.reason = "refused", str(exc)
-                log.warning(
+                log.debug(  # the report lists it with its reason (`LabelReport.summary`): a warning printed it twice
                     "%s: %s trial %d (%.2f-%.2f s) refused: %s", recording.path, side.name, index, start, end, exc
                 )
             results.append(trial)

@@ -241,6 +241,18 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
     if truth_stream is not None:
         outcome.errors, curves = evaluate_against_truth(result, truth_stream, streams, model)
     mode = "closed loop (corrected by tactile frames)" if result.closed_loop else "open loop"
+    if result.released_s is not None:
+        held = int(np.count_nonzero(~result.grasped))
+        mode += (
+            f"; released at {result.released_s:.6f} s (both gels without contact): the {held} poses from then on "
+            "repeat the last pose before it"
+        )
+        errors = " (the errors cover the grasp, touch to release)" if curves is not None else ""
+        warnings.append(
+            f"both gels lost contact at {result.released_s:.3f} s, {result.released_s - time_s:.2f} s after the "
+            f"touch, and stayed without it: the object was released, the track ends there{errors}; the {held} poses "
+            f"after it repeat the last pose before it, {result.frames_after_release} later tactile frames not used"
+        )
     outcome.written.append(
         write_tum(
             job.out,
@@ -276,6 +288,7 @@ def evaluate_against_truth(
     """Table-3 figures of the tracked (and open-loop) poses against a ground-truth `T_world_mesh` stream, and the
     per-frame error curves (times relative to the touch)."""
     truth, covered = truth_at(truth_mesh, result.timestamps_s, model.T_mesh_object)
+    covered &= result.grasped  # after a release the tracked pose means nothing
     times = result.timestamps_s[covered]
     truth_touch, _ = truth_at(truth_mesh, np.array([result.touch.time_s]), model.T_mesh_object)
     motion = motion_interval(streams, times)
@@ -317,6 +330,7 @@ def report_payload(job: TrackJob, model: ObjectModel, outcome: TrackOutcome) -> 
             "T_world_object": result.touch.T_world_object @ model.T_object_mesh,
         },
         "frames": len(result.timestamps_s),
+        "released_s": result.released_s,  # both gels lost contact for good: poses from then on hold, errors end
         "skipped_times": result.skipped_times,
         "jitter": {
             side: {

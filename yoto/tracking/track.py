@@ -33,6 +33,8 @@ Both grasps then take the corrected pose. A frame is unusable, and the predictio
 too few points (contact lost), when too few of its points lie on the surface after registration (a bad fit),
 or when it asks for a jump larger than slip can make; when one sensor's frame is unusable, the other's is used
 alone.
+When both gels stay without contact (`ReleaseWatch`: a few frames each, a fifth of a second), the object was let go:
+the track ends there, and the poses after it hold the last pose before it (`TrackResult.released_s`).
 
 Frames: YOTO's canonical `object` frame inside (origin at the centroid: corrections rotate about it); results
 convert to the mesh file's frame with `T_world_mesh = T_world_object @ T_object_mesh`.
@@ -155,6 +157,9 @@ class CorrectionConfig:
     # frames read that shallow (median) is left out of the motion too: it misreads this contact's shape (0.5 also
     # drops the cracker box's left pad through `shading:3`, 0.42 of its press, whose track met the target)
     shallow_gap_m: float = 0.001  # (the reported sensor poses put the sensors' distance a few tenths off)
+    release_frames: int = 5  # the object is released (let go) when, after contact, both sensors' frames show no
+    release_s: float = 0.2  # contact (too few points) for at least this many frames each, over at least this long:
+    # the track ends there (a lift-off of one side, or both for a few frames, keeps the prediction); 0 frames: off
 
 
 @dataclass(frozen=True)
@@ -275,6 +280,16 @@ class TrackResult:
     pad_errors: dict[str, PadError] = field(default_factory=dict)  # side -> the pad's error the closed loop learnt
     pinning: Pinning | None = None  # how well the two contacts pinned each direction (their shared-error information
     # averaged over the instants both corrected); None without such an instant
+    released_s: float | None = None  # when both gels lost contact for good (`ReleaseWatch`): the first of the frames
+    # without contact on the side that held on longer; poses from then on hold the pose before it. None: held on
+    frames_after_release: int = 0  # tactile frames after the release was seen, not looked at
+
+    @property
+    def grasped(self) -> np.ndarray:
+        """(M,) bool: the output times while the object was held, from the touch to the release."""
+        if self.released_s is None:
+            return np.ones(len(self.timestamps_s), dtype=bool)
+        return self.timestamps_s < self.released_s
 
     def T_world_mesh(self, model: ObjectModel, open_loop: bool = False) -> np.ndarray:
         """The tracked poses in the mesh file's frame."""
@@ -303,6 +318,8 @@ class TrackResult:
             "latency_max_ms": float(latency.max()),
             "instants_per_s": 1000.0 / median if median > 0 else float("inf"),
             "frames_per_s": 1000.0 * frames / max(float(latency.sum()), 1e-9),
+            "released_s": self.released_s,
+            "frames_after_release": self.frames_after_release,
         }
 
 
@@ -356,20 +373,62 @@ def track(
     begin = 0
     # Each instant's products are small (a few hundred points, the sliding map's few hundred nodes): on a busy
     # 2-core machine two BLAS threads waiting for each other made the closed loop 10-40x slower.
+    release = ReleaseWatch(config.correction, tuple(tactile))
     with one_blas_thread():
-        for (instant_time, frames), start in zip(instants, starts, strict=True):
+        for number, ((instant_time, frames), start) in enumerate(zip(instants, starts, strict=True)):
             if start > begin:  # the outputs before this instant follow the grasps as they were
                 closed[begin:start] = fuse_object_poses(sensors, corrector.grasps, slice(begin, start))[0]
                 begin = start
             instant_frames = {side: (tactile[side], i) for side, i in frames}
-            result.corrections.append(corrector.correct(instant_time, instant_frames))
+            record = corrector.correct(instant_time, instant_frames)
+            result.corrections.append(record)
+            stamps = {side: float(tactile[side].timestamps_s[i]) for side, i in frames}
+            if release.saw(record, stamps) is not None:
+                result.released_s = release.released_s
+                result.frames_after_release = sum(len(later) for _, later in instants[number + 1 :])
+                break
     if begin < len(closed):
         closed[begin:] = fuse_object_poses(sensors, corrector.grasps, slice(begin, None))[0]
+    if result.released_s is not None:  # let go: nothing moves the object with the sensors any more
+        held = int(np.searchsorted(sensors.timestamps_s, result.released_s, side="left"))
+        closed[held:] = closed[max(held - 1, 0)]
     result.T_world_object = closed
     result.pad_errors = corrector.pads
     if corrector.pair_instants:
         result.pinning = Pinning.of(corrector.pair_shared / corrector.pair_instants, corrector.unit)
     return result
+
+
+class ReleaseWatch:
+    """Sees the object let go: after a frame with contact, both sensors' frames show none ("too few points": the
+    gel flat) for at least `release_frames` frames each and `release_s` from each side's first such frame. A lone
+    side lifting off, or both for a moment, is no release (the closed loop keeps its prediction through it). A frame
+    that could not be read neither counts nor breaks a stretch; any other (used, or left out as a bad fit or a
+    shallow read) shows contact. Needs frames of both sensors: without one side's, nothing says that side let go."""
+
+    def __init__(self, config: CorrectionConfig, sides: tuple[str, ...]):
+        self.frames, self.span_s = config.release_frames, config.release_s
+        self.watching = config.release_frames > 0 and set(sides) >= set(SIDES)
+        self.touched = False  # a frame with contact seen since the touch
+        self.lost: dict[str, list[float]] = {side: [] for side in SIDES}  # side -> its frames without contact since
+        # its last frame with contact
+        self.released_s: float | None = None
+
+    def saw(self, record: Correction, stamps: dict[str, float]) -> float | None:
+        """Take one instant (its record, each side's frame time); the release time once it is seen, else None."""
+        if not self.watching:
+            return None
+        for side, stamp in stamps.items():
+            reason = record.unusable.get(side, "")
+            if reason.startswith("too few points"):
+                if self.touched:
+                    self.lost[side].append(stamp)
+            elif not reason.startswith("unreadable"):  # the gel felt the object (whether or not it was used)
+                self.touched = True
+                self.lost[side].clear()
+        if all(len(lost) >= self.frames and lost[-1] - lost[0] >= self.span_s - 1e-9 for lost in self.lost.values()):
+            self.released_s = max(lost[0] for lost in self.lost.values())
+        return self.released_s
 
 
 def tactile_timing_warnings(
