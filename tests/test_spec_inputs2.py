@@ -146,6 +146,7 @@ def test_bag_image_encodings_other_recorders_use(tmp_path):
     """sensor_msgs/Image as other recorders write GelSight frames: rgba8 / bgra8 (alpha dropped), cv_bridge's 8UC3
     (OpenCV's BGR), 16 bits a channel in either byte order (the top 8 bits): all the same RGB frame. mono8 and 16UC1
     (a depth image) are refused naming the topic and the encoding."""
+    pytest.importorskip("rosbags", reason="the rig extra (pip install 'yoto[rig]') is not installed")
     from rosbags.typesys import Stores, get_typestore
 
     from yoto.rig.streams import decode_image_message
@@ -219,6 +220,7 @@ class _ForeignBag:
 def test_an_image_topic_without_messages_is_named(tmp_path):
     """A bag whose GelSight topic holds no message (a recorder that subscribed and never got a frame): the error names
     the bag and the topic, not only "no GelSight frames"."""
+    pytest.importorskip("rosbags", reason="the rig extra (pip install 'yoto[rig]') is not installed")
     from yoto.rig.streams import read_image_stream
 
     bag = _ForeignBag(tmp_path / "rec")
@@ -238,6 +240,7 @@ def test_track_reads_tactile_frames_and_a_touch_given_as_images(builtin_models, 
     dropped and the cut first frame refused the whole topic. Now the image frames give clouds at the PLY frames'
     times and places, the bag's the very clouds of the PNG folder, and the cut frame is left out while the closed
     loop goes on."""
+    pytest.importorskip("rosbags", reason="the rig extra (pip install 'yoto[rig]') is not installed")
     pytest.importorskip("open3d")
     from yoto.io import read_ply_points
     from yoto.simulate.trajectory import TrajectoryConfig, TrajectorySimulator, write_trajectory
@@ -432,6 +435,7 @@ def test_a_damaged_bag_is_an_error_naming_it_not_a_traceback(tmp_path, capsys):
     """A ROS1 bag whose message record was overwritten (a recorder killed mid-write, a bad copy): every reader says
     the bag is damaged, naming it and the topic (before, rosbags' ReaderError came out of `yoto track` and `yoto rig`
     as a traceback)."""
+    pytest.importorskip("rosbags", reason="the rig extra (pip install 'yoto[rig]') is not installed")
     from test_spec_rig import ForeignBag
 
     from yoto.rig.streams import read_pose_stream
@@ -542,6 +546,7 @@ def test_bag_poses_in_millimetres_are_refused(tmp_path):
     """A mocap bridge that publishes Motive's millimetres in PoseStamped / PointStamped (ROS messages are metres): the
     stream is refused naming the topic (before: read as a rig 1.2 km away; `yoto track` only warned that the streams
     were far from the pair's sensor poses, `yoto rig` calibrated on it)."""
+    pytest.importorskip("rosbags", reason="the rig extra (pip install 'yoto[rig]') is not installed")
     from test_spec_rig import ForeignBag
 
     from yoto.rig.streams import read_point_stream, read_pose_stream
