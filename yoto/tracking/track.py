@@ -383,14 +383,14 @@ def track(
             record = corrector.correct(instant_time, instant_frames)
             result.corrections.append(record)
             stamps = {side: float(tactile[side].timestamps_s[i]) for side, i in frames}
-            if release.saw(record, stamps) is not None:
-                result.released_s = release.released_s
+            result.released_s = release.saw(record, stamps)
+            if result.released_s is not None:
                 result.frames_after_release = sum(len(later) for _, later in instants[number + 1 :])
                 break
     if begin < len(closed):
         closed[begin:] = fuse_object_poses(sensors, corrector.grasps, slice(begin, None))[0]
     if result.released_s is not None:  # let go: nothing moves the object with the sensors any more
-        held = int(np.searchsorted(sensors.timestamps_s, result.released_s, side="left"))
+        held = int(np.count_nonzero(result.grasped))  # output times are sorted: the grasped ones come first
         closed[held:] = closed[max(held - 1, 0)]
     result.T_world_object = closed
     result.pad_errors = corrector.pads
