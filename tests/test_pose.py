@@ -491,3 +491,17 @@ def test_the_rescue_also_runs_where_the_first_hypothesis_holds_too_little_probab
         pipeline.pose_from_candidates(pair, model, candidates, world, config, "match")
         runs[name] = len(probabilities)
     assert runs == {"at": 0, "above": 1}
+
+
+def test_the_sensor_pose_error_options_keep_their_old_names():
+    """`--sensor-pose-error-*` (the mocap calibration's error) is not the GelSight `--calibration` file; the old
+    `--calibration-error-*` names still parse to the same settings."""
+    from yoto.cli import build_parser
+
+    parser = build_parser()
+    new = parser.parse_args(["pose", "p.json", "--sensor-pose-error-mm", "2.5", "--sensor-pose-error-deg", "0.5"])
+    old = parser.parse_args(["pose", "p.json", "--calibration-error-mm", "2.5", "--calibration-error-deg", "0.5"])
+    default = parser.parse_args(["pose", "p.json", "--calibration", "mini.npz"])
+    assert (new.sensor_pose_error_mm, new.sensor_pose_error_deg) == (2.5, 0.5)
+    assert (old.sensor_pose_error_mm, old.sensor_pose_error_deg) == (2.5, 0.5)
+    assert (default.sensor_pose_error_mm, default.calibration) == (1.0, "mini.npz")

@@ -39,17 +39,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="joint two-contact search over the whole surface: unless the localizers clearly agree (auto), always, "
         "or never",
     )
+    # Named for the sensor poses, not "calibration": --calibration is the GelSight's calibration file below. The old
+    # names stay as aliases.
     parser.add_argument(
+        "--sensor-pose-error-mm",
         "--calibration-error-mm",
+        dest="sensor_pose_error_mm",
         type=float,
         default=1.0,
-        help="expected calibration error of each reported sensor position (mean, mm; 1 mm is what mocap gives)",
+        help="expected error of each reported sensor position, from the mocap / hand-eye calibration (mean, mm; "
+        "1 mm is what mocap gives)",
     )
     parser.add_argument(
+        "--sensor-pose-error-deg",
         "--calibration-error-deg",
+        dest="sensor_pose_error_deg",
         type=float,
         default=1.0,
-        help="expected calibration error of each reported sensor orientation (mean, deg)",
+        help="expected error of each reported sensor orientation (mean, deg)",
     )
     parser.add_argument("--confidence-model", help="confidence parameters file (default: the one shipped)")
     parser.add_argument(
@@ -92,7 +99,7 @@ def _pose_config(args: argparse.Namespace):
     from yoto.pose.pipeline import PAPER, PoseConfig
     from yoto.pose.refine import CalibrationPrior
 
-    prior = CalibrationPrior(args.calibration_error_mm / 1000.0, float(np.radians(args.calibration_error_deg)))
+    prior = CalibrationPrior(args.sensor_pose_error_mm / 1000.0, float(np.radians(args.sensor_pose_error_deg)))
     config = PAPER if args.paper else PoseConfig(calibration=prior, search=args.search)
     return replace(config, confidence_model=args.confidence_model) if args.confidence_model else config
 
