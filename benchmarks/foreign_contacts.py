@@ -15,7 +15,7 @@ centroid of the noise-free contact patch. The reported sensor poses carry a cali
 pitch and grid (320x240 at 0.0634 mm; 640x480 at half of it; a 0.1 mm grid), the gel, white or correlated noise,
 whole-pad clouds (every pixel, the untouched gel at z = 0 + noise) or contact points only (the noise-free contact's
 pixels with noisy heights, so some lie above z = 0), random decimation (to 3000 or 1500 points), indentation, ascii
-or binary PLY. Results: docs/formats.md, "Stop 15".
+or binary PLY. Results: docs/journal/formats.md, "Stop 15".
 
 Each pair is written to a folder and read back with `yoto.contacts.read_contact_pair`, then posed by
 `estimate_pose` with the matched filter (`match`) and the default pose stage, as `yoto pose` would. The same

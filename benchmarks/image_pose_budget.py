@@ -12,7 +12,7 @@ object's pairs and localizations (clean and through images) are kept in DIR as a
 (only the pose stage runs again: a variant costs seconds per object); `benchmarks/image_rescue.py` reads them.
 With `--draws N`, every row is also run with N - 1 other draws of the points the pose stage's fit reads
 (`RefineConfig.seed` + 1 ... N - 1: which 120 of a contact's points) and each row prints the poses right per draw and
-their mean: one draw moves a row by 1-5 pairs in 40 (docs/sensor.md, stop 13), as much as the 5-point target.
+their mean: one draw moves a row by 1-5 pairs in 40 (docs/journal/sensor.md, stop 13), as much as the 5-point target.
 Run it from the repository root with `PYTHONPATH=$PWD` to measure the working tree's `yoto`.
 
 A variant is `name:key=value,key=value`; keys are `PoseConfig` fields (`screened=1000`), or `SearchConfig`,

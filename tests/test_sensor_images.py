@@ -108,9 +108,9 @@ def test_a_contact_over_the_whole_pad_is_a_contact_and_a_lighting_change_is_not(
 
 def test_a_gentle_pad_wide_face_whose_pressed_gel_changes_colour_is_a_contact(shading):
     """Real presses change colour where the gel is pressed flat (+5 / +5 / +10 levels median at a ball press's
-    middle, up to +18: docs/sensor.md, stop 16). A face pressed gently over the whole pad with such a change reaches
-    the pad-wide check, and its gradients' small non-integrable part (0.014 in slope) is 0.34 of their RMS (0.04):
-    a relative test alone refused it as another sensor's frame. Channel-swapped, it is still refused."""
+    middle, up to +18: docs/journal/sensor.md, stop 16). A face pressed gently over the whole pad with such a change
+    reaches the pad-wide check, and its gradients' small non-integrable part (0.014 in slope) is 0.34 of their RMS
+    (0.04): a relative test alone refused it as another sensor's frame. Channel-swapped, it is still refused."""
     sensor, calibration = shading
     truth = tilted_face(0.02, 0.0, 1.0e-3)
     x, y = SPEC.pixel_xy_sensor()

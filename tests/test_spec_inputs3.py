@@ -42,7 +42,7 @@ def test_a_contact_only_cloud_with_a_noisy_rim_keeps_its_rim(tmp_path, rng):
     0.2% of the points). Such a cloud was taken for one of the whole pad and every point shallower than the 0.05 mm
     floor dropped (here 8% of the contact: its outline moved in); since whole-pad clouds are also cut at a tenth of
     their depth, it would lose 0.1 mm of its rim. Now it is read as it is; a cloud of the whole pad of the same press
-    is still read as its contact (docs/formats.md, stop 15)."""
+    is still read as its contact (docs/journal/formats.md, stop 15)."""
     contact = _sphere_press(rng, 2e-5)
     above = int((contact[:, 2] >= 0).sum())
     assert 20 <= above < 0.01 * len(contact)  # more than the old test's 20 points, a small share
@@ -228,7 +228,8 @@ def test_lift_off_frames_are_no_contact_and_the_closed_loop_keeps_its_prediction
     the 50 um noise floor). The kisses were registered as contacts (the flat pads already held none): at this grasp
     the frame says the object is a millimetre off the pad. Now every lifted frame is no contact ("too few points
     (0)") and the closed loop keeps its prediction: its poses are exactly those of the same frames with the lifted
-    ones empty. On foreign_frames' lifted trajectories (docs/formats.md, stop 16) registering kisses cost drift."""
+    ones empty. On foreign_frames' lifted trajectories (docs/journal/formats.md, stop 16) registering kisses cost
+    drift."""
     from test_tracking_closed_loop import SHORT
 
     from yoto.contacts import SIDES

@@ -397,7 +397,7 @@ def test_the_pad_error_learnt_at_rest_keeps_the_frames_from_moving_as_the_contac
     it: from the true pose, the figurine's two frames turn 2.6 deg and move 0.66 mm over a 100 mm path. Learnt from
     the frames at rest (`PadErrorConfig.rest_map`, an option: registered contact by contact first) and removed from
     the later frames, the change falls to 0.35 deg / 0.05 mm. (The default sliding map: 2.1 deg / 0.35 mm here,
-    docs/tracking.md.) Without the correction both figures stay as they were."""
+    docs/journal/tracking.md.) Without the correction both figures stay as they were."""
     model = builtin_models["figurine"]
     noise = dataclasses.replace(SHORT.scenario.press.noise, bias_std_m=3e-5, bias_length_m=0.002, scale_std=0.0)
     scenario = dataclasses.replace(SHORT.scenario, press=dataclasses.replace(SHORT.scenario.press, noise=noise))

@@ -53,7 +53,7 @@ RECENT_CLOUDS = 4  # contact_in_sensor keeps its answers for this many clouds
 #   INDENTATION_POINTS and UNTOUCHED_SHARE of its points on or above the gel plane (the untouched gel's upper half:
 #   4-80% in whole-pad clouds of 0.5-2 mm presses; a cloud of contact points alone with a noisy rim, 0.1-0.4% at
 #   20 um noise), or at least INDENTATION_POINTS there and a cloud that spans the pad (`spans_the_pad`: a whole
-#   pad whose gel a reconstruction's offset put below z = 0); docs/formats.md, stop 15;
+#   pad whose gel a reconstruction's offset put below z = 0); docs/journal/formats.md, stop 15;
 # - a whole pad's contact: its points deeper than the noise floor and than SINK_IN_SHARE of the depth (the gel sinks
 #   in around a contact without touching the object; 0.05, the reconstruction's `felt_relative_depth`, left most of
 #   a soft gel's ring; 0.1 took whole-pad poses from 30 to 34 of 40, the contact-only clouds' 35).
@@ -63,8 +63,9 @@ INDENTATION_POINTS = 20
 UNTOUCHED_SHARE = 0.01
 SINK_IN_SHARE = 0.1
 # A tactile frame during motion whose deepest points lie less deep than this shows the object leaving the gel (a kiss
-# over a few pixels, or no press at all): the closed loop does not register it (`GelReading.kiss`; docs/formats.md,
-# stop 16). YOTO's own frames lie at least 0.51 mm deep (12 825 frames of the tracking benchmark's seed 11).
+# over a few pixels, or no press at all): the closed loop does not register it (`GelReading.kiss`;
+# docs/journal/formats.md, stop 16). YOTO's own frames lie at least 0.51 mm deep (12 825 frames of the tracking
+# benchmark's seed 11).
 KISS_DEPTH_M = 1e-4
 MINI_PAD_M = (320 * 0.0634e-3, 240 * 0.0634e-3)  # SPEC's pad (yoto.sensor.spec's; this core module does not import it)
 HALF_NORMAL_MEDIAN = 0.6745  # the median of |x| for x ~ N(0, 1): noise sigma from the median of its positive half
@@ -353,7 +354,7 @@ class GelReading:
 
 
 def read_gel(points_sensor: np.ndarray) -> GelReading:
-    """The one rule by which a tactile cloud is read as a contact (constants above; docs/formats.md, stop 16):
+    """The one rule by which a tactile cloud is read as a contact (constants above; docs/journal/formats.md, stop 16):
     its depth, its noise and noise floor, whether it is pressed, and whether it holds the untouched gel."""
     z = points_sensor[:, 2]
     k = min(INDENTATION_POINTS, len(z))

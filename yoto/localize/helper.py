@@ -3,7 +3,7 @@
 Threads cannot do this: most of a contact's time goes to numpy operations on small arrays (tens of candidates,
 tens of points), and each holds Python's GIL for its call; only the k-d tree lookups and the matrix products run
 without it. Two threads localizing the two contacts of a pair took 45 ms where one after the other took 55 ms
-(docs/localization.md). A process has its own interpreter: the helper localizes one contact while the calling
+(docs/journal/localization.md). A process has its own interpreter: the helper localizes one contact while the calling
 process localizes the other.
 
 The helper is started once (spawn: a fresh interpreter, safe beside the threads of BLAS and torch) with a copy of

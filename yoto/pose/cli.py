@@ -86,7 +86,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="localize each pair's right contact in a helper process while this one localizes the left, and score "
         "and refine half of the pose stage's batches there (the same poses, bit for bit; faster when a second core "
-        "is idle, slower on a busy machine; docs/pose.md)",
+        "is idle, slower on a busy machine; docs/journal/pose.md)",
     )
     parser.set_defaults(run=run)
 

@@ -9,11 +9,11 @@ pair's right contact, holding the object model and building its surface field th
 itself meanwhile, and joins the two. Each half counts the Gauss-Newton iterations it ran (the field's gradient
 reads); when both ran as many the joined batch is what one process computes (each half stopped at the first
 iteration where all of its poses were below the tolerance, and none earlier, so the whole batch stops there too);
-otherwise the caller refines the whole batch again itself, which is rare (see docs/pose.md) and costs only time.
+otherwise the caller refines the whole batch again itself, which is rare (see docs/journal/pose.md) and costs only time.
 The joint search's key test (`search.key_matches`) is split the same way, by rows of left locations cut between two
 of its chunks, each chunk tested on its own: the same pairs in the same order; and so are the closed-form poses of
 its matches (`solver.closed_form_quaternions`, ~3 ms for 8,000 matches: every row on its own, numpy's and BLAS's
-arithmetic the same whatever rows share the call, checked bitwise on 120 cuts of 30 searches, docs/pose.md).
+arithmetic the same whatever rows share the call, checked bitwise on 120 cuts of 30 searches, docs/journal/pose.md).
 
 Small batches stay in the calling process (`SplitConfig`): both halves pay a refinement's fixed cost (~0.2 ms since
 its iterations run compiled), and a round trip through the helper's pipe 20-70 us. Without a
@@ -47,7 +47,7 @@ from yoto.registration import one_blas_thread
 class SplitConfig:
     """When the pose stage's batches are split between the calling process and its helper."""
 
-    min_poses: int = 16  # refinements of fewer poses stay in the calling process (see docs/pose.md) ...
+    min_poses: int = 16  # refinements of fewer poses stay in the calling process (see docs/journal/pose.md) ...
     min_scored: int = 1000  # ... and cheap scores (`evaluate_offsets`, ~1 us a pose) of fewer ...
     min_key_pairs: int = 400_000  # ... and the search's key tests (`search.key_matches`) of fewer location pairs
     min_closed_form: int = 2000  # ... and closed-form poses (~0.36 us each) of fewer matches

@@ -75,12 +75,12 @@ from yoto.registration import one_blas_thread
 
 @dataclass(frozen=True)
 class ImageBudget:
-    """The search and screening of a pair whose contacts were reconstructed from GelSight images (docs/sensor.md,
-    "The pose stage's budget for image contacts"). A reconstructed contact's shape is off where a clean cloud's is
-    not (box edges and rims: 46-110 um after a plane and a depth scale, against 23 um typical), so the truth's
-    location pairs often lie in the sets the clean budget thins, and its seeds rank low by the cheap score: more
-    location pairs, more seeds screened, on more points with more iterations; and a sharper fit noise in the
-    hypotheses' likelihood. Settings already larger (the fit noise: smaller) are kept."""
+    """The search and screening of a pair whose contacts were reconstructed from GelSight images
+    (docs/journal/sensor.md, "The pose stage's budget for image contacts"). A reconstructed contact's shape is off
+    where a clean cloud's is not (box edges and rims: 46-110 um after a plane and a depth scale, against 23 um
+    typical), so the truth's location pairs often lie in the sets the clean budget thins, and its seeds rank low by
+    the cheap score: more location pairs, more seeds screened, on more points with more iterations; and a sharper fit
+    noise in the hypotheses' likelihood. Settings already larger (the fit noise: smaller) are kept."""
 
     pair_budget: int = 10_000_000  # SearchConfig.pair_budget (clean: 4 M)
     screened: int = 2000  # PoseConfig.screened (clean: 400)
@@ -90,7 +90,7 @@ class ImageBudget:
     # against the sensor corrections. Through images a right pose needs larger corrections than through clean
     # clouds (a reconstructed contact's tilt, level and depth scale are off, and the corrections absorb them): in
     # most image pairs lost by ranking the truth fits the clouds better than the chosen pose and loses on its
-    # corrections (docs/sensor.md, stop 14). A setting already smaller is kept.
+    # corrections (docs/journal/sensor.md, stop 14). A setting already smaller is kept.
 
 
 @dataclass(frozen=True)
@@ -108,13 +108,14 @@ class PoseConfig:
     search_unless_log_likelihood: float = -6.0  # "auto" searches anyway when the candidates' most likely hypothesis
     # explains the contacts worse than this (a right pose from the candidates fits at -1 to -10, but a banana's
     # pose 8 mm along it at -7.9 against its truth's -3.3, and the candidates' single hypothesis then holds all of the
-    # probability: docs/pose.md, stop 13)
+    # probability: docs/journal/pose.md, stop 13)
     screened: int = 400  # seeds (the best by a cheap score) that get a short refinement (150 kept the truth's seed
-    # on the pose benchmark's searches but lost right and confident poses on the trust benchmark's mugs: docs/pose.md)
+    # on the pose benchmark's searches but lost right and confident poses on the trust benchmark's mugs:
+    # docs/journal/pose.md)
     seeds_refined: int = 40  # distinct hypotheses (the most likely after the short refinement) refined in full
     full_from_screen_corrections: bool = True  # the full refinement starts each pose's sensor corrections where
     # its short refinement left them (False: from none; from none a pose near the truth can stop in another
-    # basin of the corrections and score far below it: docs/pose.md, stop 13)
+    # basin of the corrections and score far below it: docs/journal/pose.md, stop 13)
     candidates_screened: int = 24  # the same two numbers when only the localizers' candidate pairs are verified
     candidates_refined: int = 6
     neighbours_refined: int = 36  # the neighbours of the most likely hypotheses (hypotheses.neighbour_poses) are
@@ -125,20 +126,21 @@ class PoseConfig:
     family_passes: int = 2  # ... this many times (each pass starts where the last stopped: along a family the weak
     # prior on the starting pose holds a single pass short of the best fit)
     neighbours_if_decisive: bool = True  # refine them even when the most likely hypothesis is decisive by itself
-    # (decisive_probability and decisive_log_likelihood; False saves ~10 ms there, see docs/pose.md)
+    # (decisive_probability and decisive_log_likelihood; False saves ~10 ms there, see docs/journal/pose.md)
     family_if_decisive: bool = False  # run the family step even when, after the search, the most likely hypothesis
-    # is decisive (decisive_probability and decisive_log_likelihood; skipping it saves ~35 ms there, docs/pose.md)
+    # is decisive (decisive_probability and decisive_log_likelihood; skipping it saves ~35 ms there,
+    # docs/journal/pose.md)
     rescue_log_likelihood: float = -14.0  # when, after the search and the family step, the most likely hypothesis
     # still explains the contacts worse than this (hypotheses.log_likelihoods: right poses mostly -2 to -12), the
     # search's seeds that the first pass did not screen are verified too (`_rescue`): ...
     rescue_screened: int = 1600  # ... the best this many by the cheap score (the first pass's) get the short
     # refinement, on this many points per contact (half the first pass's refine_config.screen_points) ...
     rescue_screen_points: int = 12
-    rescue_refined: int = 40  # ... and the best of this many distinct ones the full one (docs/pose.md, stop 11)
+    rescue_refined: int = 40  # ... and the best of this many distinct ones the full one (docs/journal/pose.md, stop 11)
     rescue_probability: float = 0.5  # the rescue also runs where the most likely hypothesis, however well it fits,
     # holds less than this probability: where several poses explain the contacts about as well (a can turned about
-    # its axis, a box slid along a face), the truth's seeds can rank below the first pass's screen (docs/pose.md,
-    # stop 13; 0: only for the fit)
+    # its axis, a box slid along a face), the truth's seeds can rank below the first pass's screen
+    # (docs/journal/pose.md, stop 13; 0: only for the fit)
     seed_distinct_m: float = 0.005  # seeds in one cell of this size (object centroid) ...
     seed_distinct_rad: float = float(np.radians(5.0))  # ... and of this (rotation vector) are screened as one
     search_config: SearchConfig = SearchConfig()
@@ -430,7 +432,7 @@ def _rescue(
     the full one (with their neighbours, as the first pass); then the family step on the joined pool. For a pair
     that nothing found so far explains well: the cheap score can rank the seeds near the truth below the screened
     ones (their clouds touch a rounded edge or a rim imperfectly until refined), and the few screened near it can
-    stop short of it (docs/pose.md, stop 11)."""
+    stop short of it (docs/journal/pose.md, stop 11)."""
     unscreened = np.sort(np.argsort(-score, kind="stable")[config.screened :])
     screening = replace(config.refine_config, screen_points=config.rescue_screen_points)
     more = _verify_and_refine(

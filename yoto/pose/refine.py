@@ -77,7 +77,8 @@ class RefineConfig:
     skirt_tau_m: float | None = 6e-5  # the gel's skirt: a point outside the object over which the object does not
     # reach the undeformed pad plane (its foot, sensor (x, y, 0), lies this far outside too) is gel sunk in beside
     # the contact, touching nothing, and counts at most this in the fit's score (None: as any point, `fit_tau_m`);
-    # 60 um, two right-pose residuals: a pose still pays for leaning on its skirt (0 measured worse, docs/pose.md)
+    # 60 um, two right-pose residuals: a pose still pays for leaning on its skirt (0 measured worse,
+    # docs/journal/pose.md)
     free_spacing_m: float = 0.0015  # free space: grid spacing over the pad
     free_depth_m: float = 0.0002  # ... the points lie this far into the gel (the object would have pressed there)
     free_clearance_m: float = 0.001  # ... and at least this (one cell of that size) from the contact, across the pad
@@ -87,8 +88,8 @@ class RefineConfig:
 
 
 # The seeds' cheap score with floating clouds truncated, a seed's own offset allowed and free space checked
-# (docs/pose.md: truth among 95 -> 96%, right 88 -> 89%, but confident 77 -> 74% at the shipped confidence fit and
-# +12 ms CPU per searched pair): not default until the confidence is refitted on the features it moves.
+# (docs/journal/pose.md: truth among 95 -> 96%, right 88 -> 89%, but confident 77 -> 74% at the shipped confidence fit
+# and +12 ms CPU per searched pair): not default until the confidence is refitted on the features it moves.
 STRICT_SEED_SCORE = RefineConfig(verify_capture_truncated=True, seed_offset_m=0.002, verify_free_points=12)
 
 

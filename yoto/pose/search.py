@@ -18,7 +18,8 @@ place of that kind, and the true one is often not among them. The search covers 
    location sets are thinned on a coarser grid first (`thin`: one sample per voxel, evenly, whatever the curvature;
    the localizers' candidates are always kept), so a query costs at most `pair_budget` key evaluations. On rims
    and rounded edges a thinned location's normal can then lie 15-20 deg from the contact's, and the closed-form
-   poses of the pairs near the truth are turned 7-14 deg off it (docs/pose.md: where the missing truths are lost).
+   poses of the pairs near the truth are turned 7-14 deg off it (docs/journal/pose.md: where the missing truths are
+   lost).
 
 The pose stage verifies the matches with both tactile clouds.
 

@@ -107,7 +107,7 @@ FAINT_MIN_BLOCKS = 8
 # (median |error|, `yoto sensor validate`, docs/sensor.md), and an object's contact can be further off (broad faces
 # read shallow, slopes beyond the calibrated range read short). DEPTH_SCALE_SIGMA is the 1-sigma of its
 # log that a reconstructed cloud carries to the pose stage (`Reconstruction.depth_scale_sigma`), which estimates
-# the scale per contact under that prior. Wider priors (0.1, 0.2) let wrong poses fit as well (docs/sensor.md).
+# the scale per contact under that prior. Wider priors (0.1, 0.2) let wrong poses fit as well (docs/journal/sensor.md).
 DEPTH_SCALE_SIGMA = 0.05
 
 

@@ -25,7 +25,7 @@ The defaults (0.05 bins, 5 x 5 places, 2 px blur, 0.8 mm, the per-pixel gain) ar
 RMS 6.19 levels against the real presses (the fitted renderer 6.59), and our calibration reads its held-out ball
 presses about as it reads the real ones (median |radius error| 4.7%; real presses 3.3%, fitted renderer 4.4%). Without
 the per-pixel gain (stop 16's table, `per_pixel_gain=False`) a press's colours were its place's average lighting, which
-our calibration, knowing the real lighting per pixel, read 12% off (docs/sensor.md, stops 16 and 17).
+our calibration, knowing the real lighting per pixel, read 12% off (docs/journal/sensor.md, stops 16 and 17).
 """
 
 from __future__ import annotations

@@ -3,8 +3,8 @@ closed loop registers them.
 
 A GelSight reconstruction's smooth depth errors (calibration, lighting, integration) belong to the pad: they stay
 where they are on the image while the object slides over it. A frame registered on the object is off by them, and
-that offset changes as the contact slides onto other parts of the pad (docs/tracking.md, "Why the closed loop still
-drifts"): the drift then grows with the path.
+that offset changes as the contact slides onto other parts of the pad (docs/journal/tracking.md, "Why the closed loop
+still drifts"): the drift then grows with the path.
 
 **The sliding map** (`_SlidingMap`, default). Each frame the closed loop uses, at rest and while moving, adds the
 part of its depth residuals (at its registered pose) that no rigid motion of the contact and no depth scale error
@@ -14,8 +14,8 @@ truth). A frame tells the error's shape under it, not its offset and tilts there
 positions and a smooth prior tie them together, so that the map holds how the offset and tilts change across the
 pad, which is what would move the registrations. Cells no frame reached stay at 0 (their prior) a few nodes out.
 
-**The rest map** (`rest_map`, off by default; measured worse, docs/tracking.md). While the object rests after the
-touch, every frame sees the same patch of the object at the same place on the pad; those frames are registered on
+**The rest map** (`rest_map`, off by default; measured worse, docs/journal/tracking.md). While the object rests after
+the touch, every frame sees the same patch of the object at the same place on the pad; those frames are registered on
 the model one by one as they arrive and the depth difference left between them and the surface, cell by cell, is
 the pad's error there, set when the motion starts and continued about a millimetre beyond the cells it saw. The
 rest registration comes first because the rigid part of the misfit (the touch's pose error) is no error of the pad.

@@ -57,7 +57,7 @@ class MatchConfig:
     icp: GaussNewtonConfig = replace(CANDIDATE_REFINEMENT, iterations=3)  # the per-candidate point-to-plane ICP, on
     # few points and few iterations (the best are polished below), its start as a weak prior
     icp_keep: int | None = None  # after its first iteration the ICP goes on with only this many candidates, those then
-    # fitting best (None: all; 10 saves ~1.5 ms per contact but cost confidence, docs/localization.md)
+    # fitting best (None: all; 10 saves ~1.5 ms per contact but cost confidence, docs/journal/localization.md)
     polish_candidates: int = 3  # the best distinct candidates after ICP are refined again ...
     polish_points: int = 300  # ... on this many tactile points ...
     polish_iterations: int = 4  # ... for this many more iterations (2: faster, see icp_keep)

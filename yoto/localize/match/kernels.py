@@ -8,7 +8,7 @@
   gathers its matches, takes the robust scale (the same median), sums its 6 x 6 system point by point, solves it by
   Cholesky and moves the pose, with none of the numpy path's (K, M, ...) temporaries. The residual fits and the
   free-space violation likewise. Their sums and the solve run in another order than numpy's BLAS and LAPACK:
-  poses and residuals agree to ~1e-13 (docs/localization.md, "Compiled kernels").
+  poses and residuals agree to ~1e-13 (docs/journal/localization.md, "Compiled kernels").
 - The filter's per-cell work (the contact's maps at every roll, the plane costs past their matrix products with
   each anchor's best roll, the free-space penalty's squared depths): numpy's float32 operations in numpy's order,
   bitwise its results.

@@ -3,7 +3,7 @@
 A contact's Gauss-Newton passes and residual fits ask about 9,300 times for the parent point nearest a tactile
 point (within a reach): about a quarter of its CPU time. pykdtree answers the same question as SciPy's
 `cKDTree` with the same point (it is exact too: the candidates of 180 benchmark contacts are bitwise equal) in
-less time: about 1.1 ms less CPU per contact (docs/localization.md). Without it the model's own `cKDTree`
+less time: about 1.1 ms less CPU per contact (docs/journal/localization.md). Without it the model's own `cKDTree`
 answers, with the same results.
 
 pykdtree splits a query over OpenMP threads; the matched filter runs on one core (the other belongs to the pair's
