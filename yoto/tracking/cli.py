@@ -178,7 +178,10 @@ def run(args: argparse.Namespace) -> int:
         )
     if outcome.retouch is not None:
         print(f"  to pin it, touch again there: {outcome.retouch.describe()} (mesh file's frame)")
-    for name, summary in outcome.errors.items():
+    grasps = [("", outcome.errors)] + [
+        (f"new touch {k}: ", errors) for k, errors in enumerate(outcome.regrasp_errors, 1)
+    ]
+    for name, summary in [(prefix + name, summary) for prefix, errors in grasps for name, summary in errors.items()]:
         print(
             f"{name.replace('_', ' ')} vs truth: during motion {summary['motion_mean']['mm']:.2f} mm / "
             f"{summary['motion_mean']['deg']:.2f} deg, peak {summary['motion_peak']['mm']:.2f} / "
