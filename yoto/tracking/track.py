@@ -34,7 +34,12 @@ too few points (contact lost), when too few of its points lie on the surface aft
 or when it asks for a jump larger than slip can make; when one sensor's frame is unusable, the other's is used
 alone.
 When both gels stay without contact (`ReleaseWatch`: a few frames each, a fifth of a second), the object was let go:
-the track ends there, and the poses after it hold the last pose before it (`TrackResult.released_s`).
+the grasp ends there, and the poses after it hold the last pose before it (`TrackResult.released_s`). Given the pose
+stage (`track`'s `new_touch`), both gels touching again make a new touch: its pose estimated from that pair (the
+hypothesis nearest the last pose where it is ambiguous), tracked on from there (`TrackResult.regrasps`). One gel
+alone without contact leaves the other to predict the pose while it lasts; as long as a release, that side let go
+(`LetGo`): the other alone carries the object, open loop too, until the side touches again, when its grasp is the
+tracked pose in its live sensor pose.
 
 Frames: YOTO's canonical `object` frame inside (origin at the centroid: corrections rotate about it); results
 convert to the mesh file's frame with `T_world_mesh = T_world_object @ T_object_mesh`.
@@ -422,7 +427,7 @@ def track(
     instants = group_frames(tactile, touch.time_s, config.correction.sync_tolerance_s)
     starts = np.searchsorted(times, [instant_time for instant_time, _ in instants], side="left")
     closed = np.empty_like(open_loop)
-    open_loop = open_loop.copy()
+    open_loop, weights = open_loop.copy(), weights.copy()
     begin = 0  # the first output row not yet written
     grasp_let_go: list[list[LetGo]] = [[]]  # each grasp's sides that let go on their own
     searching: _NewTouchSearch | None = None  # after a release, with `new_touch`: waiting for both gels again
@@ -443,7 +448,9 @@ def track(
                 if begin >= len(times):
                     break
                 corrector = _Corrector(model, regrasp.touch, streams, sensors.jitter, config)
-                open_loop[begin:] = fuse_object_poses(sensors, regrasp.touch.T_sensor_object, slice(begin, None))[0]
+                open_loop[begin:], weights[begin:] = fuse_object_poses(
+                    sensors, regrasp.touch.T_sensor_object, slice(begin, None)
+                )
                 release, searching = ReleaseWatch(config.correction, tuple(tactile)), None
                 grasp_let_go.append([])
                 continue
@@ -491,9 +498,9 @@ def track(
         if events:
             grasp_touch = result.grasps()[index][0]
             rows = slice(int(np.searchsorted(times, grasp_touch.time_s - 1e-9)), None)
-            open_loop[rows] = open_loop_poses(sensors, grasp_touch.T_sensor_object, events, rows)
+            open_loop[rows], weights[rows] = open_loop_poses(sensors, grasp_touch.T_sensor_object, events, rows)
     result.T_world_object = closed
-    result.T_world_object_open_loop = open_loop
+    result.T_world_object_open_loop, result.sensor_weights = open_loop, weights
     result.pad_errors = corrector.pads
     if first.pair_instants:
         result.pinning = Pinning.of(first.pair_shared / first.pair_instants, first.unit)
@@ -948,21 +955,21 @@ def touch_pinning(
 
 def fuse_holding(
     sensors: SensorPoses, grasps: dict[str, np.ndarray], holding: set[str], rows: np.ndarray | slice = slice(None)
-) -> np.ndarray:
-    """The fused T_world_object (K, 4, 4) at the chosen rows from the sensors that hold the object (a side that
-    let go carries it no more; `fuse_object_poses` with that side taken as uncovered)."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """`fuse_object_poses` (poses and sensor weights at the chosen rows) from the sensors that hold the object: a
+    side that let go carries it no more, as if its stream had no pose there."""
     if len(holding) < len(SIDES):
         covered = {side: sensors.covered[side] & (side in holding) for side in SIDES}
         sensors = dataclasses.replace(sensors, covered=covered)
-    return fuse_object_poses(sensors, grasps, rows)[0]
+    return fuse_object_poses(sensors, grasps, rows)
 
 
 def open_loop_poses(
     sensors: SensorPoses, T_sensor_object: dict[str, np.ndarray], let_go: list[LetGo], rows: slice
-) -> np.ndarray:
-    """The open loop (K, 4, 4) over `rows` from one touch's grasps where sides let go (`LetGo`, in time order): from
-    each side's `time_s` the other alone, and from its `touched_again_s` its grasp the fused pose then in its live
-    sensor pose."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """The open loop (K, 4, 4) over `rows` from one touch's grasps where sides let go (`LetGo`, in time order), and
+    the sensors' weights (K, 2): from each side's `time_s` the other alone, and from its `touched_again_s` its grasp
+    the fused pose then in its live sensor pose."""
     times = sensors.timestamps_s
     first, last = rows.start or 0, len(times) if rows.stop is None else rows.stop
     changes = sorted(
@@ -970,22 +977,24 @@ def open_loop_poses(
         + [(event.touched_again_s, 1, event.side) for event in let_go if event.touched_again_s is not None]
     )
     grasps, holding = dict(T_sensor_object), set(SIDES)
-    poses = np.empty((last - first, 4, 4))
+    poses, weights = np.empty((last - first, 4, 4)), np.empty((last - first, len(SIDES)))
     row = first
     for time_s, again, side in changes + [(np.inf, 0, "")]:
         upto = int(np.clip(np.searchsorted(times, time_s - 1e-9), row, last))
         if upto > row:
-            poses[row - first : upto - first] = fuse_holding(sensors, grasps, holding, slice(row, upto))
+            poses[row - first : upto - first], weights[row - first : upto - first] = fuse_holding(
+                sensors, grasps, holding, slice(row, upto)
+            )
         row = upto
         if not side:
             break
         if not again:
             holding.discard(side)
         elif row < last:
-            now = fuse_holding(sensors, grasps, holding, slice(row, row + 1))[0]
+            now = fuse_holding(sensors, grasps, holding, slice(row, row + 1))[0][0]
             grasps[side] = invert_transform(sensors.T_world_sensor[side][row]) @ now
             holding.add(side)
-    return poses
+    return poses, weights
 
 
 class _Corrector:
@@ -1097,7 +1106,7 @@ class _Corrector:
             return ""
         self.guard_wait = c.guard_every
         predicted = self.fuse(sensors)  # after this instant's update
-        open_loop = fuse_holding(sensors, self.open_grasps, self.holding)
+        open_loop = fuse_holding(sensors, self.open_grasps, self.holding)[0]
         closed, opened, facing = [], [], {}
         for side, points in points_sensor.items():
             row = rows[side]
@@ -1140,7 +1149,7 @@ class _Corrector:
 
     def fuse(self, sensors: SensorPoses, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
         """The tracked T_world_object (K, 4, 4) at the chosen rows of `sensors`, from the sides that hold it."""
-        return fuse_holding(sensors, self.grasps, self.holding, rows)
+        return fuse_holding(sensors, self.grasps, self.holding, rows)[0]
 
     def let_go(self, side: str) -> None:
         """`side` let go: from now on the other side's grasp alone carries the object (its own grasp still follows
@@ -1152,7 +1161,7 @@ class _Corrector:
         the side that held on, in the side's live sensor pose; what its pad read at rest no longer applies."""
         T_sensor_world = invert_transform(sensors.T_world_sensor[side][row])
         self.grasps[side] = T_sensor_world @ self.fuse(sensors, slice(row, row + 1))[0]
-        open_now = fuse_holding(sensors, self.open_grasps, self.holding, slice(row, row + 1))[0]
+        open_now = fuse_holding(sensors, self.open_grasps, self.holding, slice(row, row + 1))[0][0]
         self.open_grasps[side] = T_sensor_world @ open_now
         self.gone.discard(side)
         self.touch_press[side] = predicted_indentation_m(self.model, invert_transform(self.grasps[side]))
