@@ -364,6 +364,28 @@ def test_a_regrasp_after_a_release_is_a_new_touch_tracked_from_its_own_estimate(
     assert curves[0].times_s[0] == pytest.approx(0.0, abs=0.05)
     warnings = grasp_warnings(result, True, 0.5)
     assert any("new touch 1 at" in warning for warning in warnings)
+    # An ambiguous estimate: the hypothesis nearest the last tracked pose is taken, and a low confidence is said.
+    from types import SimpleNamespace
+
+    from yoto.errors import InputError
+
+    found = regrasp.touch.T_world_object
+    aside = found.copy()
+    aside[:3, 3] += [0.0, 0.05, 0.0]
+    T_world_object = np.stack([aside, result.T_world_object[held][0], found])  # the last pose itself is nearest
+    ambiguous = SimpleNamespace(
+        ambiguous=True, hypotheses=SimpleNamespace(T_world_object=T_world_object), confidence=0.3, method="fake"
+    )
+    chosen = track(touch, streams, model, tactile, new_touch=lambda pair: ambiguous).regrasps[0]
+    assert chosen.hypothesis == 1 and np.array_equal(chosen.touch.T_world_object, T_world_object[1])
+    result.regrasps[0] = chosen
+    assert any("confidence 0.30: it is likely wrong" in warning for warning in grasp_warnings(result, True, 0.5))
+
+    def refuse(pair):
+        raise InputError("no contact found")
+
+    refused = track(touch, streams, model, tactile, new_touch=refuse)  # the last pose held to the end
+    assert not refused.regrasps and len(refused.regrasps_refused) == 3 and not refused.grasped[-1]
     # Without the pose stage the track ends at the release, as before.
     ended = track(touch, streams, model, tactile)
     assert not ended.regrasps and not ended.grasped[-1] and ended.frames_after_release > 0
