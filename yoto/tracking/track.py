@@ -167,6 +167,9 @@ class CorrectionConfig:
     release_s: float = 0.2  # contact (too few points) for at least this many frames each, over at least this long:
     # the track ends there (a lift-off of one side, or both for a few frames, keeps the prediction); 0 frames: off.
     # One side alone without contact as long, the other touching, let go: the other carries the object alone
+    lifted_apart_m: float = 0.002  # a side whose frame shows no contact and whose grasp puts the object this far
+    # from where the other side's puts it (position plus 50 mm per radian) predicts nothing until it touches again:
+    # its sensor is leaving the object (a lift-off in place, the sides agreeing, keeps both)
     regrasp_frames: int = 3  # after a release, both gels touching in this many instants in a row make a new touch
     # (its pose estimated from the latest pair: the press has settled), when `track` is given a `NewTouchEstimator`
     regrasp_attempts: int = 3  # new touches whose estimate was refused before the track stops looking until the end
@@ -1047,8 +1050,8 @@ class _Corrector:
         self.unpinned: np.ndarray | None = None  # (K, 6) orthonormal directions (observable units) the guard found
         # the frames leave free: the departures it undid; the prediction stands along them from then on
         self.gone: set[str] = set()  # the sides that let go (`ReleaseWatch.let_go`): their grasps carry nothing ...
-        self.lifted: set[str] = set()  # ... and those whose latest frame shows no contact: while the other touches,
-        # it alone predicts the pose (a lift-off may be a side letting go, its sensor withdrawing)
+        self.lifted: set[str] = set()  # ... and those without contact whose sensor left the object (`lifted_apart_m`):
+        # while the other touches, it alone predicts the pose (a side letting go, its sensor withdrawing)
         self.touched_again: list[tuple[str, float]] = []  # (side, its frame's time) of each let-go side touching again
 
     def _initial_covariance(self) -> np.ndarray:
@@ -1156,6 +1159,19 @@ class _Corrector:
         the corrections, unused, until it touches again)."""
         self.gone.add(side)
 
+    def _apart(self, side: str, sensors: SensorPoses) -> bool:
+        """Whether `side`'s grasp puts the object more than `lifted_apart_m` from where the other side's puts it, at
+        the instant (the last row of `sensors`; False where either sensor has no pose then)."""
+        other = SIDES[1 - SIDES.index(side)]
+        if other in self.gone or not (sensors.covered[side][-1] and sensors.covered[other][-1]):
+            return False
+        here = sensors.T_world_sensor[side][-1] @ self.grasps[side]
+        there = sensors.T_world_sensor[other][-1] @ self.grasps[other]
+        apart = np.linalg.norm(here[:3, 3] - there[:3, 3]) + TOUCH_MATCH_ROTATION_M_PER_RAD * rotation_angle_rad(
+            here, there
+        )
+        return bool(apart > self.config.correction.lifted_apart_m)
+
     def _touch_again(self, side: str, row: int, sensors: SensorPoses, stamp: float) -> None:
         """A side that had let go touches again: its grasps (closed and open loop) are the object's pose now, from
         the side that held on, in the side's live sensor pose; what its pad read at rest no longer applies."""
@@ -1258,11 +1274,11 @@ class _Corrector:
             self.rest_read = {
                 side: np.median(np.array(reads), axis=0) for side, reads in self.rest_reads.items() if reads
             }
-        for side in frames:  # which gels touch now: one without contact predicts nothing while the other touches
-            if unusable.get(side, "").startswith("too few points"):
-                self.lifted.add(side)
-            elif side in clouds:
+        for side in frames:  # a gel without contact whose sensor leaves the object predicts nothing until it touches
+            if side in clouds:
                 self.lifted.discard(side)
+            elif unusable.get(side, "").startswith("too few points") and self._apart(side, sensors):
+                self.lifted.add(side)
         for row, side in enumerate(clouds):
             if side in self.gone and len(self.gone) < len(SIDES) and sensors.covered[side][row]:
                 self._touch_again(side, row, sensors, clouds[side][0])
