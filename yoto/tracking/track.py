@@ -37,9 +37,9 @@ When both gels stay without contact (`ReleaseWatch`: a few frames each, a fifth 
 the grasp ends there, and the poses after it hold the last pose before it (`TrackResult.released_s`). Given the pose
 stage (`track`'s `new_touch`), both gels touching again make a new touch: its pose estimated from that pair (the
 hypothesis nearest the last pose where it is ambiguous), tracked on from there (`TrackResult.regrasps`). One gel
-alone without contact leaves the other to predict the pose while it lasts; as long as a release, that side let go
-(`LetGo`): the other alone carries the object, open loop too, until the side touches again, when its grasp is the
-tracked pose in its live sensor pose.
+without contact whose sensor leaves the object (`lifted_apart_m`) leaves the other to predict the pose; one without
+contact as long as a release let go (`LetGo`): the other alone carries the object, open loop too, until the side
+touches again, when its grasp is the tracked pose in its live sensor pose.
 
 Frames: YOTO's canonical `object` frame inside (origin at the centroid: corrections rotate about it); results
 convert to the mesh file's frame with `T_world_mesh = T_world_object @ T_object_mesh`.
