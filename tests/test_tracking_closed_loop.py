@@ -386,6 +386,21 @@ def test_a_regrasp_after_a_release_is_a_new_touch_tracked_from_its_own_estimate(
 
     refused = track(touch, streams, model, tactile, new_touch=refuse)  # the last pose held to the end
     assert not refused.regrasps and len(refused.regrasps_refused) == 3 and not refused.grasped[-1]
+    # The right gel lets go 6 frames before the release: the first grasp's open loop follows the left alone from
+    # then on, and the new touch's open loop is its own.
+    count = len(trajectory.tactile["right"])
+    lone = {
+        **tactile,
+        "right": TactileStream(
+            tactile["right"].timestamps_s,
+            lambda i: np.empty((0, 3)) if count - 6 <= i < count else tactile["right"].load(i),
+        ),
+    }
+    both = track(touch, streams, model, lone, new_touch=lambda pair: estimate_pose(pair, model, localizer))
+    assert [event.side for event in both.let_go] == ["right"] and len(both.regrasps) == 1
+    assert _pose_error(both.T_world_object_open_loop[-1], truth[-1])[0] < 5.0
+    again = both.grasp_rows(1) & (both.timestamps_s <= streams["right"].timestamps_s[-1])
+    assert (both.sensor_weights[again, 1] > 0.3).all()  # both sensors carry the new grasp
     # Without the pose stage the track ends at the release, as before.
     ended = track(touch, streams, model, tactile)
     assert not ended.regrasps and not ended.grasped[-1] and ended.frames_after_release > 0

@@ -497,11 +497,12 @@ def track(
         if searching is not None:
             result.regrasps_refused += searching.refused
     result.let_go = [event for events in grasp_let_go for event in events]
-    for index, events in enumerate(grasp_let_go):  # the open loop carried by the sides that hold
+    touches = [grasp_touch for grasp_touch, _ in result.grasps()]
+    grasp_starts = np.searchsorted(times, [grasp_touch.time_s - 1e-9 for grasp_touch in touches] + [np.inf])
+    for index, events in enumerate(grasp_let_go):  # the open loop carried by the sides that hold, grasp by grasp
         if events:
-            grasp_touch = result.grasps()[index][0]
-            rows = slice(int(np.searchsorted(times, grasp_touch.time_s - 1e-9)), None)
-            open_loop[rows], weights[rows] = open_loop_poses(sensors, grasp_touch.T_sensor_object, events, rows)
+            rows = slice(int(grasp_starts[index]), int(grasp_starts[index + 1]))
+            open_loop[rows], weights[rows] = open_loop_poses(sensors, touches[index].T_sensor_object, events, rows)
     result.T_world_object = closed
     result.T_world_object_open_loop, result.sensor_weights = open_loop, weights
     result.pad_errors = corrector.pads
