@@ -21,7 +21,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="After one dual touch, follow the object from the two sensors' live poses (open loop, the "
         "paper's Sec. 4.3) and, given tactile frames during the motion, correct slip by registering each frame on "
         "the object (closed loop). Writes T_world_object (mesh file's frame) at every timestamp of the sensor "
-        "streams from the touch on, as a TUM file.",
+        "streams from the touch on, as a TUM file. With both sensors' frames, a gel that lets go leaves the other to "
+        "carry the object; both letting go end the grasp (the pose held), and both touching again make a new touch "
+        "whose pose is estimated from that pair (--method) and tracked on.",
         epilog=TRACK_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

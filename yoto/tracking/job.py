@@ -280,7 +280,7 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
             outcome.regrasp_errors.append(errors)
             when = f"{regrasp.touch.time_s - time_s:.2f} s"
             panels.append(
-                (f"regrasp {index} ({when} after the touch)", regrasp_curves, errors["open_loop"]["motion_s"])
+                (f"new touch {index} ({when} after the touch)", regrasp_curves, errors["open_loop"]["motion_s"])
             )
     mode = "closed loop (corrected by tactile frames)" if result.closed_loop else "open loop"
     warnings += grasp_warnings(result, curves is not None, config.min_touch_confidence)
