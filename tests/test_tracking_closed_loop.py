@@ -338,16 +338,19 @@ def test_a_regrasp_after_a_release_is_a_new_touch_tracked_from_its_own_estimate(
     from yoto.geometry import pose_from_twist
     from yoto.localize import make_localizer
     from yoto.pose import estimate_pose
-    from yoto.tracking.job import evaluate_against_truth, grasp_warnings
+    from yoto.tracking.job import TrackJob, evaluate_against_truth, grasp_warnings, new_touch_estimator
 
     trajectory, model = fruit_trajectory, builtin_models["fruit"]
     moved = pose_from_twist(np.array([0.0, 0.0, np.radians(20.0), 0.03, 0.0, 0.0]))
     streams, tactile, truth_mesh, offset = _regrasp_recording(trajectory, model, moved)
     touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
-    localizer = make_localizer("match")
-    result = track(touch, streams, model, tactile, new_touch=lambda pair: estimate_pose(pair, model, localizer))
+    # `yoto track`'s pose stage for a new touch: the oracle (no true contacts at a new touch) falls back to the
+    # matched filter, the touch pair's sides otherwise kept
+    job = TrackJob(trajectory.touch.pair.path or Path("touch.json"), {}, Path("object.tum"), method="oracle")
+    result = track(touch, streams, model, tactile, new_touch=new_touch_estimator(job, trajectory.touch.pair, model))
     assert result.released_s is not None and len(result.regrasps) == 1 and not result.regrasps_refused
     regrasp = result.regrasps[0]
+    assert regrasp.pose_from.startswith("yoto pose (match)") and not regrasp.ambiguous
     assert regrasp.released_s is None and offset < regrasp.touch.time_s - touch.time_s < offset + 0.5
     truth = truth_mesh.interpolate(result.timestamps_s)[0] @ model.T_mesh_object
     at_touch = truth_mesh.interpolate(np.array([regrasp.touch.time_s]))[0][0] @ model.T_mesh_object
@@ -396,6 +399,7 @@ def test_a_regrasp_after_a_release_is_a_new_touch_tracked_from_its_own_estimate(
             lambda i: np.empty((0, 3)) if count - 6 <= i < count else tactile["right"].load(i),
         ),
     }
+    localizer = make_localizer("match")
     both = track(touch, streams, model, lone, new_touch=lambda pair: estimate_pose(pair, model, localizer))
     assert [event.side for event in both.let_go] == ["right"] and len(both.regrasps) == 1
     assert _pose_error(both.T_world_object_open_loop[-1], truth[-1])[0] < 5.0
