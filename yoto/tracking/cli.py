@@ -21,7 +21,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="After one dual touch, follow the object from the two sensors' live poses (open loop, the "
         "paper's Sec. 4.3) and, given tactile frames during the motion, correct slip by registering each frame on "
         "the object (closed loop). Writes T_world_object (mesh file's frame) at every timestamp of the sensor "
-        "streams from the touch on, as a TUM file.",
+        "streams from the touch on, as a TUM file. With both sensors' frames, a gel that lets go leaves the other to "
+        "carry the object; both letting go end the grasp (the pose held), and both touching again make a new touch "
+        "whose pose is estimated from that pair (--method) and tracked on.",
         epilog=TRACK_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -178,7 +180,10 @@ def run(args: argparse.Namespace) -> int:
         )
     if outcome.retouch is not None:
         print(f"  to pin it, touch again there: {outcome.retouch.describe()} (mesh file's frame)")
-    for name, summary in outcome.errors.items():
+    grasps = [("", outcome.errors)] + [
+        (f"new touch {k}: ", errors) for k, errors in enumerate(outcome.regrasp_errors, 1)
+    ]
+    for name, summary in [(prefix + name, summary) for prefix, errors in grasps for name, summary in errors.items()]:
         print(
             f"{name.replace('_', ' ')} vs truth: during motion {summary['motion_mean']['mm']:.2f} mm / "
             f"{summary['motion_mean']['deg']:.2f} deg, peak {summary['motion_peak']['mm']:.2f} / "

@@ -8,7 +8,7 @@ every timestamp of the sensor streams from the touch on (SPEC). With ground trut
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +36,7 @@ from yoto.tracking.evaluate import (
 )
 from yoto.tracking.streams import TactileStream, holds_images, read_sensor_stream, read_tactile_stream
 from yoto.tracking.track import (
+    NewTouchEstimator,
     Retouch,
     TrackConfig,
     TrackResult,
@@ -92,6 +93,8 @@ class TrackOutcome:
     warnings: list[str] = field(default_factory=list)
     retouch: Retouch | None = None  # where a contact would pin the weakest direction (mesh file's frame), when the
     # contacts pin it worse than the drift target (`TrackConfig.retouch_above`)
+    regrasp_errors: list[dict[str, dict[str, Any]]] = field(default_factory=list)  # per regrasp, as `errors`
+    # (its touch to its release; `errors` then covers the first grasp only)
 
 
 def read_stream(source: Source, name: str, frame: str) -> PoseStream:
@@ -169,6 +172,35 @@ def touch_pose(job: TrackJob, pair: ContactPair, model: ObjectModel) -> tuple[np
     return estimate.T_world_object, source, estimate.confidence
 
 
+def new_touch_estimator(job: TrackJob, pair: ContactPair, model: ObjectModel) -> NewTouchEstimator:
+    """The pose stage for a new touch after a release (`track`'s `new_touch`): the new pair's clouds and sensor poses
+    with the touch pair's sides otherwise (their depth-scale prior), localized with the track's localizer (the
+    oracle, which needs the true contacts, with the matched filter)."""
+    from yoto.localize import make_localizer
+    from yoto.pose.pipeline import PoseConfig, estimate_pose
+
+    localizers: list[Any] = []
+
+    def estimate(new: ContactPair) -> Any:
+        if not localizers:  # built on the first new touch only
+            method = "match" if job.method == "oracle" else job.method
+            localizers.append(make_localizer(method, job.checkpoint if method == job.method else None))
+        left, right = (
+            replace(
+                pair.contact(side),
+                points_sensor=new.contact(side).points_sensor,
+                T_world_sensor=new.contact(side).T_world_sensor,
+                source=None,
+                image=None,
+            )
+            for side in SIDES
+        )
+        config = PoseConfig(suggest_next_touch=False)
+        return estimate_pose(ContactPair(pair.object_name, left, right), model, localizers[0], config)
+
+    return estimate
+
+
 def check_sources_distinct(job: TrackJob) -> None:
     """Refuse one source for both sensors (the same pose file, tactile folder, or recording and topic), before anything
     is read: the left sensor's stream would be taken for the right one's too, silently."""
@@ -224,7 +256,8 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
     touch = touch_from_pair(pair, T_world_object, time_s, time_source)
     touch.mismatch_m = mismatch
     warnings += tactile_timing_warnings(tactile, streams, time_s) if tactile else []
-    result = track(touch, streams, model, tactile or None, config)
+    estimator = new_touch_estimator(job, pair, model) if set(tactile) >= set(SIDES) else None
+    result = track(touch, streams, model, tactile or None, config, estimator)
     outcome = TrackOutcome(result, pose_source, warnings=warnings)
     if result.pinning is not None and result.pinning.spread[0] > config.retouch_above:
         contacts = np.vstack(
@@ -238,20 +271,24 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
         )
         outcome.retouch = retouch(model, result.pinning.twist(0), contacts).in_frame(model.T_mesh_object)
     curves = None
+    panels = []
     if truth_stream is not None:
         outcome.errors, curves = evaluate_against_truth(result, truth_stream, streams, model)
+        panels.append((f"{model.name}: tracking error", curves, outcome.errors["open_loop"]["motion_s"]))
+        for index, regrasp in enumerate(result.regrasps, start=1):
+            errors, regrasp_curves = evaluate_against_truth(result, truth_stream, streams, model, index)
+            outcome.regrasp_errors.append(errors)
+            when = f"{regrasp.touch.time_s - time_s:.2f} s"
+            panels.append(
+                (f"new touch {index} ({when} after the touch)", regrasp_curves, errors["open_loop"]["motion_s"])
+            )
     mode = "closed loop (corrected by tactile frames)" if result.closed_loop else "open loop"
+    warnings += grasp_warnings(result, curves is not None, config.min_touch_confidence)
     if result.released_s is not None:
         held = int(np.count_nonzero(~result.grasped))
         mode += (
-            f"; released at {result.released_s:.6f} s (both gels without contact): the {held} poses from then on "
-            "repeat the last pose before it"
-        )
-        errors = " (the errors cover the grasp, touch to release)" if curves is not None else ""
-        warnings.append(
-            f"both gels lost contact at {result.released_s:.3f} s, {result.released_s - time_s:.2f} s after the "
-            f"touch, and stayed without it: the object was released, the track ends there{errors}; the {held} poses "
-            f"after it repeat the last pose before it, {result.frames_after_release} later tactile frames not used"
+            f"; released at {result.released_s:.6f} s (both gels without contact), {len(result.regrasps)} new "
+            f"touch(es) after releases: the {held} poses while nothing held the object repeat the last pose before"
         )
     outcome.written.append(
         write_tum(
@@ -272,8 +309,7 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
         warnings.append(f"{result.skipped_times} stream timestamps had no pose of either sensor (dropouts): skipped")
     if curves is not None:
         if job.figure is not None:
-            motion = outcome.errors["open_loop"]["motion_s"]
-            panels = [(f"{model.name}: tracking error", curves, None if motion is None else tuple(motion))]
+            panels = [(name, lines, None if motion is None else tuple(motion)) for name, lines, motion in panels]
             outcome.written.append(plot_tracking(panels, job.figure))
     elif job.figure is not None:
         warnings.append("--figure needs ground truth (--truth); no figure written")
@@ -282,28 +318,77 @@ def run_track_job(job: TrackJob, config: TrackConfig = TrackConfig()) -> TrackOu
     return outcome
 
 
+def grasp_warnings(result: TrackResult, with_truth: bool, min_confidence: float) -> list[str]:
+    """What `yoto track` says about gels that let go, releases and new touches."""
+    warnings = []
+    for event in result.let_go:
+        other = SIDES[1 - SIDES.index(event.side)]
+        again = (
+            f"; it touched again at {event.touched_again_s:.3f} s: its grasp taken from the tracked pose then"
+            if event.touched_again_s is not None
+            else ""
+        )
+        warnings.append(
+            f"the {event.side} gel lost contact at {event.time_s:.3f} s while the {other} one held on: from then on "
+            f"the {other} sensor alone carries the object{again}"
+        )
+    grasps = result.grasps()
+    for index, (touch, released_s) in enumerate(grasps):
+        if released_s is None:
+            continue
+        what = "the touch" if index == 0 else f"new touch {index}"
+        errors = " (the errors cover each grasp, touch to release)" if with_truth else ""
+        later = (
+            f"both touched again at {grasps[index + 1][0].time_s:.3f} s: a new touch, its pose estimated from that pair"
+            if index + 1 < len(grasps)
+            else f"{result.frames_after_release} later tactile frames not tracked"
+        )
+        warnings.append(
+            f"both gels lost contact at {released_s:.3f} s, {released_s - touch.time_s:.2f} s after {what}, and stayed "
+            f"without it: the object was released, the grasp ends there{errors}; the poses after it repeat the last "
+            f"pose before it; {later}"
+        )
+    for index, regrasp in enumerate(result.regrasps, start=1):
+        chosen = (
+            f", ambiguous: hypothesis {regrasp.hypothesis} taken, the nearest the last tracked pose"
+            if regrasp.ambiguous
+            else ""
+        )
+        warnings.append(f"new touch {index} at {regrasp.touch.time_s:.3f} s: pose from {regrasp.pose_from}{chosen}")
+        if regrasp.confidence < min_confidence:
+            warnings.append(
+                f"new touch {index}'s pose has confidence {regrasp.confidence:.2f}: it is likely wrong, and so is "
+                "everything tracked from it"
+            )
+    for refused in result.regrasps_refused:
+        warnings.append(f"a new touch's pose was refused, the last pose held ({refused})")
+    return warnings
+
+
 def evaluate_against_truth(
-    result: TrackResult, truth_mesh: PoseStream, streams: dict[str, PoseStream], model: ObjectModel
+    result: TrackResult, truth_mesh: PoseStream, streams: dict[str, PoseStream], model: ObjectModel, grasp: int = 0
 ) -> tuple[dict[str, dict[str, Any]], list[ErrorCurve]]:
-    """Table-3 figures of the tracked (and open-loop) poses against a ground-truth `T_world_mesh` stream, and the
-    per-frame error curves (times relative to the touch)."""
+    """Table-3 figures of the tracked (and open-loop) poses of one grasp (`TrackResult.grasps`: 0 the touch's, then
+    each regrasp's) against a ground-truth `T_world_mesh` stream, and the per-frame error curves (times relative to
+    the grasp's touch)."""
+    touch = result.grasps()[grasp][0]
     truth, covered = truth_at(truth_mesh, result.timestamps_s, model.T_mesh_object)
-    covered &= result.grasped  # after a release the tracked pose means nothing
+    covered &= result.grasp_rows(grasp)  # after a release the tracked pose means nothing
     times = result.timestamps_s[covered]
-    truth_touch, _ = truth_at(truth_mesh, np.array([result.touch.time_s]), model.T_mesh_object)
+    truth_touch, _ = truth_at(truth_mesh, np.array([touch.time_s]), model.T_mesh_object)
     motion = motion_interval(streams, times)
     variants = {"open_loop": result.T_world_object_open_loop}
     if result.closed_loop:
         variants = {"closed_loop": result.T_world_object, **variants}
     summaries, curves = {}, []
     for name, poses in variants.items():
-        errors = tracking_errors(times, poses[covered], truth[covered], result.touch.T_world_object, truth_touch[0])
+        errors = tracking_errors(times, poses[covered], truth[covered], touch.T_world_object, truth_touch[0])
         summaries[name] = summarize_errors(errors, motion)
         mean = summaries[name]["motion_mean"]
         curves.append(
             ErrorCurve(
                 name.replace("_", " "),
-                times - result.touch.time_s,
+                times - touch.time_s,
                 1e3 * errors.translation_m,
                 np.degrees(errors.rotation_rad),
                 (mean["mm"], mean["deg"]),
@@ -311,7 +396,7 @@ def evaluate_against_truth(
         )
     for summary in summaries.values():  # motion times relative to the touch, as the curves
         if summary["motion_s"] is not None:
-            summary["motion_s"] = [value - result.touch.time_s for value in summary["motion_s"]]
+            summary["motion_s"] = [value - touch.time_s for value in summary["motion_s"]]
     return summaries, curves
 
 
@@ -331,6 +416,24 @@ def report_payload(job: TrackJob, model: ObjectModel, outcome: TrackOutcome) -> 
         },
         "frames": len(result.timestamps_s),
         "released_s": result.released_s,  # both gels lost contact for good: poses from then on hold, errors end
+        "let_go": [  # one gel let go while the other held: that one alone carried the object until it touched again
+            {"side": e.side, "time_s": e.time_s, "seen_s": e.seen_s, "touched_again_s": e.touched_again_s}
+            for e in result.let_go
+        ],
+        "regrasps": [  # both gels touched again after a release: a new touch, tracked to its own release
+            {
+                "time_s": regrasp.touch.time_s,
+                "pose_from": regrasp.pose_from,
+                "confidence": regrasp.confidence,
+                "ambiguous": regrasp.ambiguous,
+                "hypothesis": regrasp.hypothesis,
+                "T_world_object": regrasp.touch.T_world_object @ model.T_object_mesh,
+                "released_s": regrasp.released_s,
+                "errors": outcome.regrasp_errors[index] if index < len(outcome.regrasp_errors) else None,
+            }
+            for index, regrasp in enumerate(result.regrasps)
+        ],
+        "regrasps_refused": result.regrasps_refused,
         "skipped_times": result.skipped_times,
         "jitter": {
             side: {

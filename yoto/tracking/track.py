@@ -34,7 +34,12 @@ too few points (contact lost), when too few of its points lie on the surface aft
 or when it asks for a jump larger than slip can make; when one sensor's frame is unusable, the other's is used
 alone.
 When both gels stay without contact (`ReleaseWatch`: a few frames each, a fifth of a second), the object was let go:
-the track ends there, and the poses after it hold the last pose before it (`TrackResult.released_s`).
+the grasp ends there, and the poses after it hold the last pose before it (`TrackResult.released_s`). Given the pose
+stage (`track`'s `new_touch`), both gels touching again make a new touch: its pose estimated from that pair (the
+hypothesis nearest the last pose where it is ambiguous), tracked on from there (`TrackResult.regrasps`). One gel
+without contact whose sensor leaves the object (`lifted_apart_m`) leaves the other to predict the pose; one without
+contact as long as a release let go (`LetGo`): the other alone carries the object, open loop too, until the side
+touches again, when its grasp is the tracked pose in its live sensor pose.
 
 Frames: YOTO's canonical `object` frame inside (origin at the centroid: corrections rotate about it); results
 convert to the mesh file's frame with `T_world_mesh = T_world_object @ T_object_mesh`.
@@ -44,6 +49,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -51,8 +57,8 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from yoto.contacts import MIN_TACTILE_POINTS, MINI_PAD_M, SIDES, ContactPair
-from yoto.errors import InputError
+from yoto.contacts import KISS_DEPTH_M, MIN_TACTILE_POINTS, MINI_PAD_M, SIDES, ContactPair, TactileContact
+from yoto.errors import InputError, YotoError
 from yoto.geometry import (
     invert_transform,
     pose_from_twist,
@@ -159,7 +165,14 @@ class CorrectionConfig:
     shallow_gap_m: float = 0.001  # (the reported sensor poses put the sensors' distance a few tenths off)
     release_frames: int = 5  # the object is released (let go) when, after contact, both sensors' frames show no
     release_s: float = 0.2  # contact (too few points) for at least this many frames each, over at least this long:
-    # the track ends there (a lift-off of one side, or both for a few frames, keeps the prediction); 0 frames: off
+    # the track ends there (a lift-off of one side, or both for a few frames, keeps the prediction); 0 frames: off.
+    # One side alone without contact as long, the other touching, let go: the other carries the object alone
+    lifted_apart_m: float = 0.002  # a side whose frame shows no contact and whose grasp puts the object this far
+    # from where the other side's puts it (position plus 50 mm per radian) predicts nothing until it touches again:
+    # its sensor is leaving the object (a lift-off in place, the sides agreeing, keeps both)
+    regrasp_frames: int = 3  # after a release, both gels touching in this many instants in a row make a new touch
+    # (its pose estimated from the latest pair: the press has settled), when `track` is given a `NewTouchEstimator`
+    regrasp_attempts: int = 3  # new touches whose estimate was refused before the track stops looking until the end
 
 
 @dataclass(frozen=True)
@@ -265,6 +278,34 @@ class Correction:
 
 
 @dataclass
+class LetGo:
+    """One gel let go while the other held on (`ReleaseWatch`): from `time_s` the other sensor alone carries the
+    object (open and closed loop), until this side touches again, if it does: its grasp is then the tracked pose in
+    its live sensor pose."""
+
+    side: str
+    time_s: float  # its first frame without contact
+    seen_s: float  # the frame that made the stretch long enough (the closed loop's prediction used both until then)
+    touched_again_s: float | None = None  # its first frame with contact after it
+
+
+@dataclass
+class Regrasp:
+    """A new touch after a release: both gels touching again, the object's pose estimated from that pair."""
+
+    touch: Touch  # its time, pose (the hypothesis taken) and grasps; the track goes on from it
+    pose_from: str  # how the pose was found (localizer, confidence)
+    confidence: float  # the estimate's confidence that its most probable pose is within 5 mm / 5 deg
+    ambiguous: bool  # the estimate left several poses ...
+    hypothesis: int  # ... and this one (0: the most probable) was taken: the nearest the last tracked pose
+    released_s: float | None = None  # when this grasp was let go in turn (None: held to the end)
+
+
+# (the object's pose from a new contact pair, as `yoto.pose.estimate_pose` gives it; raises YotoError when refused)
+NewTouchEstimator = Callable[[ContactPair], Any]
+
+
+@dataclass
 class TrackResult:
     """The tracked object poses after a touch."""
 
@@ -282,14 +323,28 @@ class TrackResult:
     # averaged over the instants both corrected); None without such an instant
     released_s: float | None = None  # when both gels lost contact for good (`ReleaseWatch`): the first of the frames
     # without contact on the side that held on longer; poses from then on hold the pose before it. None: held on
-    frames_after_release: int = 0  # tactile frames after the release was seen, not looked at
+    frames_after_release: int = 0  # tactile frames after the (last) release, not tracked
+    let_go: list[LetGo] = field(default_factory=list)  # one gel let go while the other held, in time order
+    regrasps: list[Regrasp] = field(default_factory=list)  # new touches after a release, each tracked to its own
+    # release (`released_s` is the first grasp's); poses between a release and the next touch hold the last pose
+    regrasps_refused: list[str] = field(default_factory=list)  # new touches whose pose estimate was refused, why
+
+    def grasps(self) -> list[tuple[Touch, float | None]]:
+        """Each grasp's touch and release time (None: held to the end): the touch's, then each regrasp's."""
+        return [(self.touch, self.released_s)] + [(regrasp.touch, regrasp.released_s) for regrasp in self.regrasps]
+
+    def grasp_rows(self, index: int) -> np.ndarray:
+        """(M,) bool: the output times of grasp `index` (`grasps`), its touch to its release."""
+        touch, released = self.grasps()[index]
+        rows = self.timestamps_s >= touch.time_s - 1e-9 if index else np.ones(len(self.timestamps_s), dtype=bool)
+        return rows if released is None else rows & (self.timestamps_s < released)
 
     @property
     def grasped(self) -> np.ndarray:
-        """(M,) bool: the output times while the object was held, from the touch to the release."""
+        """(M,) bool: the output times while the object was held, from a touch to its release."""
         if self.released_s is None:
             return np.ones(len(self.timestamps_s), dtype=bool)
-        return self.timestamps_s < self.released_s
+        return np.any([self.grasp_rows(index) for index in range(1 + len(self.regrasps))], axis=0)
 
     def T_world_mesh(self, model: ObjectModel, open_loop: bool = False) -> np.ndarray:
         """The tracked poses in the mesh file's frame."""
@@ -335,11 +390,15 @@ def track(
     model: ObjectModel | None = None,
     tactile: dict[str, TactileStream] | None = None,
     config: TrackConfig = TrackConfig(),
+    new_touch: NewTouchEstimator | None = None,
 ) -> TrackResult:
     """Track the object from the touch on: open loop from the streams, corrected by tactile frames when given.
 
     `streams`: side -> `T_world_sensor` stream. `tactile`: side -> that sensor's frames (either side may be
     absent); the closed loop needs the object `model`. Returns poses at every stream timestamp from the touch on.
+    With frames of both sides, a side that lets go leaves the other to carry the object, and a release of both ends
+    the grasp; given `new_touch` (the pose stage on a contact pair), both gels touching again after a release make a
+    new touch (`Regrasp`) tracked on from its estimate; without it the track ends at the first release.
     """
     times = _output_times(streams, touch.time_s)
     if len(times) == 0:
@@ -366,45 +425,167 @@ def track(
         return result
     if model is None:
         raise ValueError("the closed loop registers tactile frames on the object: pass its model")
-    corrector = _Corrector(model, touch, streams, sensors.jitter, config)
+    times = sensors.timestamps_s
+    corrector = first = _Corrector(model, touch, streams, sensors.jitter, config)
     instants = group_frames(tactile, touch.time_s, config.correction.sync_tolerance_s)
-    starts = np.searchsorted(sensors.timestamps_s, [instant_time for instant_time, _ in instants], side="left")
+    starts = np.searchsorted(times, [instant_time for instant_time, _ in instants], side="left")
     closed = np.empty_like(open_loop)
-    begin = 0
+    open_loop, weights = open_loop.copy(), weights.copy()
+    begin = 0  # the first output row not yet written
+    grasp_let_go: list[list[LetGo]] = [[]]  # each grasp's sides that let go on their own
+    searching: _NewTouchSearch | None = None  # after a release, with `new_touch`: waiting for both gels again
     # Each instant's products are small (a few hundred points, the sliding map's few hundred nodes): on a busy
     # 2-core machine two BLAS threads waiting for each other made the closed loop 10-40x slower.
     release = ReleaseWatch(config.correction, tuple(tactile))
     with one_blas_thread():
         for number, ((instant_time, frames), start) in enumerate(zip(instants, starts, strict=True)):
-            if start > begin:  # the outputs before this instant follow the grasps as they were
-                closed[begin:start] = fuse_object_poses(sensors, corrector.grasps, slice(begin, start))[0]
-                begin = start
             instant_frames = {side: (tactile[side], i) for side, i in frames}
+            if searching is not None:
+                regrasp = searching.saw(instant_time, instant_frames, closed[begin - 1])
+                if regrasp is None:
+                    continue
+                result.regrasps.append(regrasp)
+                result.regrasps_refused += searching.refused
+                result.frames_after_release = 0
+                begin = int(np.searchsorted(times, regrasp.touch.time_s - 1e-9))
+                if begin >= len(times):
+                    break
+                corrector = _Corrector(model, regrasp.touch, streams, sensors.jitter, config)
+                open_loop[begin:], weights[begin:] = fuse_object_poses(
+                    sensors, regrasp.touch.T_sensor_object, slice(begin, None)
+                )
+                release, searching = ReleaseWatch(config.correction, tuple(tactile)), None
+                grasp_let_go.append([])
+                continue
+            if start > begin:  # the outputs before this instant follow the grasps as they were
+                closed[begin:start] = corrector.fuse(sensors, slice(begin, start))
+                begin = start
             record = corrector.correct(instant_time, instant_frames)
             result.corrections.append(record)
+            for side, stamp in corrector.touched_again:  # a side that let go touches again
+                event = next(e for e in reversed(grasp_let_go[-1]) if e.side == side)
+                event.touched_again_s = stamp
+            corrector.touched_again.clear()
             stamps = {side: float(tactile[side].timestamps_s[i]) for side, i in frames}
-            result.released_s = release.saw(record, stamps)
-            if result.released_s is not None:
-                result.frames_after_release = sum(len(later) for _, later in instants[number + 1 :])
+            released_s = release.saw(record, stamps)
+            for event in release.let_go(stamps):  # the outputs since its first frame without contact: the other
+                corrector.let_go(event.side)  # side alone
+                grasp_let_go[-1].append(event)
+                since = int(np.searchsorted(times, event.time_s - 1e-9))
+                if since < begin:
+                    closed[since:begin] = corrector.fuse(sensors, slice(since, begin))
+            if released_s is None:
+                continue
+            # let go: nothing moves the object with the sensors any more; the outputs from then on hold the last
+            # pose before it (until a new touch)
+            held = max(int(np.searchsorted(times, released_s - 1e-9)), 1)
+            if held > begin:
+                closed[begin:held] = corrector.fuse(sensors, slice(begin, held))
+            closed[held:] = closed[held - 1]
+            begin = held
+            if result.regrasps:
+                result.regrasps[-1].released_s = released_s
+            else:
+                result.released_s = released_s
+            result.frames_after_release = sum(len(later) for _, later in instants[number + 1 :])
+            if new_touch is None:
                 break
-    if begin < len(closed):
-        closed[begin:] = fuse_object_poses(sensors, corrector.grasps, slice(begin, None))[0]
-    if result.released_s is not None:  # let go: nothing moves the object with the sensors any more
-        held = int(np.count_nonzero(result.grasped))  # output times are sorted: the grasped ones come first
-        closed[held:] = closed[max(held - 1, 0)]
+            searching = _NewTouchSearch(new_touch, config, streams, sensors.jitter)
+        else:
+            if begin < len(closed) and searching is None:
+                closed[begin:] = corrector.fuse(sensors, slice(begin, None))
+        if searching is not None:
+            result.regrasps_refused += searching.refused
+    result.let_go = [event for events in grasp_let_go for event in events]
+    touches = [grasp_touch for grasp_touch, _ in result.grasps()]
+    grasp_starts = np.searchsorted(times, [grasp_touch.time_s - 1e-9 for grasp_touch in touches] + [np.inf])
+    for index, events in enumerate(grasp_let_go):  # the open loop carried by the sides that hold, grasp by grasp
+        if events:
+            rows = slice(int(grasp_starts[index]), int(grasp_starts[index + 1]))
+            open_loop[rows], weights[rows] = open_loop_poses(sensors, touches[index].T_sensor_object, events, rows)
     result.T_world_object = closed
+    result.T_world_object_open_loop, result.sensor_weights = open_loop, weights
     result.pad_errors = corrector.pads
-    if corrector.pair_instants:
-        result.pinning = Pinning.of(corrector.pair_shared / corrector.pair_instants, corrector.unit)
+    if first.pair_instants:
+        result.pinning = Pinning.of(first.pair_shared / first.pair_instants, first.unit)
     return result
+
+
+class _NewTouchSearch:
+    """After a release: waits for both gels to touch again (`regrasp_frames` instants in a row with contact on both,
+    each pressed deeper than a kiss) and estimates the object's pose from that pair; where the estimate is ambiguous,
+    takes the hypothesis nearest the last tracked pose. Keeps why estimates were refused."""
+
+    def __init__(
+        self,
+        estimate: NewTouchEstimator,
+        config: TrackConfig,
+        streams: dict[str, PoseStream],
+        jitter: dict[str, StreamJitter],
+    ):
+        self.estimate, self.config, self.streams, self.jitter = estimate, config, streams, jitter
+        self.run = 0  # instants in a row with both gels touching
+        self.refused: list[str] = []
+
+    def saw(
+        self, instant_s: float, frames: dict[str, tuple[TactileStream, int]], last_pose: np.ndarray
+    ) -> Regrasp | None:
+        """Take one instant; the new touch when it makes one."""
+        if len(frames) < len(SIDES) or len(self.refused) >= self.config.correction.regrasp_attempts:
+            return None  # a lone frame neither counts nor breaks the run
+        clouds = {}
+        for side, (stream, index) in frames.items():
+            try:
+                points = np.asarray(stream.load(index), dtype=np.float64).reshape(-1, 3)
+            except InputError:
+                return None
+            points = points[np.isfinite(points).all(axis=1)]
+            if len(points) < MIN_TACTILE_POINTS or frame_indentation_m(points) < KISS_DEPTH_M:
+                self.run = 0
+                return None
+            clouds[side] = (float(stream.timestamps_s[index]), points)
+        self.run += 1
+        if self.run < self.config.correction.regrasp_frames:
+            return None
+        stamps = np.array([stamp for stamp, _ in clouds.values()])
+        sensors = sensor_poses(self.streams, stamps, self.config.fusion, self.jitter)
+        if not all(sensors.covered[side][row] for row, side in enumerate(clouds)):
+            return None
+        T_world_sensor = {side: sensors.T_world_sensor[side][row] for row, side in enumerate(clouds)}
+        left, right = (TactileContact(clouds[side][1], T_world_sensor[side]) for side in SIDES)
+        pair = ContactPair("", left, right)
+        try:
+            estimate = self.estimate(pair)
+        except YotoError as exc:
+            self.refused.append(f"{instant_s:.3f} s: {exc}")
+            self.run = 0
+            return None
+        hypotheses = np.asarray(estimate.hypotheses.T_world_object) if estimate.ambiguous else None
+        chosen = 0
+        if hypotheses is not None and len(hypotheses) > 1:
+            angles = np.linalg.norm(so3_log(np.einsum("ji,njk->nik", last_pose[:3, :3], hypotheses[:, :3, :3])), axis=1)
+            offsets = np.linalg.norm(hypotheses[:, :3, 3] - last_pose[:3, 3], axis=1)
+            chosen = int(np.argmin(offsets + TOUCH_MATCH_ROTATION_M_PER_RAD * angles))
+        T_world_object = hypotheses[chosen] if hypotheses is not None else np.asarray(estimate.T_world_object)
+        grasps = {side: invert_transform(T_world_sensor[side]) @ T_world_object for side in SIDES}
+        touch = Touch(instant_s, T_world_object, grasps, "both gels touching again after a release")
+        return Regrasp(
+            touch,
+            f"yoto pose ({estimate.method}), confidence {estimate.confidence:.2f}",
+            float(estimate.confidence),
+            bool(estimate.ambiguous),
+            chosen,
+        )
 
 
 class ReleaseWatch:
     """Sees the object let go: after a frame with contact, both sensors' frames show none ("too few points": the
-    gel flat) for at least `release_frames` frames each and `release_s` from each side's first such frame. A lone
-    side lifting off, or both for a moment, is no release (the closed loop keeps its prediction through it). A frame
-    that could not be read neither counts nor breaks a stretch; any other (used, or left out as a bad fit or a
-    shallow read) shows contact. Needs frames of both sensors: without one side's, nothing says that side let go."""
+    gel flat) for at least `release_frames` frames each and `release_s` from each side's first such frame. One side
+    alone without contact as long, while the other's latest frame touches, let go on its own (`let_go`): the other
+    holds the object. A side lifting off for less, or both for a moment, is neither (the closed loop keeps its
+    prediction through it). A frame that could not be read neither counts nor breaks a stretch; any other (used, or
+    left out as a bad fit or a shallow read) shows contact. Needs frames of both sensors: without one side's,
+    nothing says that side let go."""
 
     def __init__(self, config: CorrectionConfig, sides: tuple[str, ...]):
         self.frames, self.span_s = config.release_frames, config.release_s
@@ -412,7 +593,11 @@ class ReleaseWatch:
         self.touched = False  # a frame with contact seen since the touch
         self.lost: dict[str, list[float]] = {side: [] for side in SIDES}  # side -> its frames without contact since
         # its last frame with contact
+        self.gone: set[str] = set()  # the sides that let go on their own and have not touched again
         self.released_s: float | None = None
+
+    def _long(self, lost: list[float]) -> bool:
+        return len(lost) >= self.frames and lost[-1] - lost[0] >= self.span_s - 1e-9
 
     def saw(self, record: Correction, stamps: dict[str, float]) -> float | None:
         """Take one instant (its record, each side's frame time); the release time once it is seen, else None."""
@@ -426,9 +611,22 @@ class ReleaseWatch:
             elif not reason.startswith("unreadable"):  # the gel felt the object (whether or not it was used)
                 self.touched = True
                 self.lost[side].clear()
-        if all(len(lost) >= self.frames and lost[-1] - lost[0] >= self.span_s - 1e-9 for lost in self.lost.values()):
+                self.gone.discard(side)
+        if all(self._long(lost) for lost in self.lost.values()):
             self.released_s = max(lost[0] for lost in self.lost.values())
         return self.released_s
+
+    def let_go(self, stamps: dict[str, float]) -> list[LetGo]:
+        """After `saw`: the sides that have just let go on their own (the other side's latest frame touching)."""
+        if not self.watching or self.released_s is not None:
+            return []
+        out = []
+        for side, other in (SIDES, SIDES[::-1]):
+            lost = self.lost[side]
+            if side not in self.gone and not self.lost[other] and self._long(lost):
+                self.gone.add(side)
+                out.append(LetGo(side, lost[0], max(stamps.values())))
+        return out
 
 
 def tactile_timing_warnings(
@@ -759,6 +957,50 @@ def touch_pinning(
     return Pinning.of(shared, observable_unit(config))
 
 
+def fuse_holding(
+    sensors: SensorPoses, grasps: dict[str, np.ndarray], holding: set[str], rows: np.ndarray | slice = slice(None)
+) -> tuple[np.ndarray, np.ndarray]:
+    """`fuse_object_poses` (poses and sensor weights at the chosen rows) from the sensors that hold the object: a
+    side that let go carries it no more, as if its stream had no pose there."""
+    if len(holding) < len(SIDES):
+        covered = {side: sensors.covered[side] & (side in holding) for side in SIDES}
+        sensors = dataclasses.replace(sensors, covered=covered)
+    return fuse_object_poses(sensors, grasps, rows)
+
+
+def open_loop_poses(
+    sensors: SensorPoses, T_sensor_object: dict[str, np.ndarray], let_go: list[LetGo], rows: slice
+) -> tuple[np.ndarray, np.ndarray]:
+    """The open loop (K, 4, 4) over `rows` from one touch's grasps where sides let go (`LetGo`, in time order), and
+    the sensors' weights (K, 2): from each side's `time_s` the other alone, and from its `touched_again_s` its grasp
+    the fused pose then in its live sensor pose."""
+    times = sensors.timestamps_s
+    first, last = rows.start or 0, len(times) if rows.stop is None else rows.stop
+    changes = sorted(
+        [(event.time_s, 0, event.side) for event in let_go]
+        + [(event.touched_again_s, 1, event.side) for event in let_go if event.touched_again_s is not None]
+    )
+    grasps, holding = dict(T_sensor_object), set(SIDES)
+    poses, weights = np.empty((last - first, 4, 4)), np.empty((last - first, len(SIDES)))
+    row = first
+    for time_s, again, side in changes + [(np.inf, 0, "")]:
+        upto = int(np.clip(np.searchsorted(times, time_s - 1e-9), row, last))
+        if upto > row:
+            poses[row - first : upto - first], weights[row - first : upto - first] = fuse_holding(
+                sensors, grasps, holding, slice(row, upto)
+            )
+        row = upto
+        if not side:
+            break
+        if not again:
+            holding.discard(side)
+        elif row < last:
+            now = fuse_holding(sensors, grasps, holding, slice(row, row + 1))[0][0]
+            grasps[side] = invert_transform(sensors.T_world_sensor[side][row]) @ now
+            holding.add(side)
+    return poses, weights
+
+
 class _Corrector:
     """The closed loop's state: the grasps, and a Kalman filter on (error, slip rate, measurement bias).
 
@@ -808,6 +1050,10 @@ class _Corrector:
         # applied two-contact instants, and their count (`TrackResult.pinning`)
         self.unpinned: np.ndarray | None = None  # (K, 6) orthonormal directions (observable units) the guard found
         # the frames leave free: the departures it undid; the prediction stands along them from then on
+        self.gone: set[str] = set()  # the sides that let go (`ReleaseWatch.let_go`): their grasps carry nothing ...
+        self.lifted: set[str] = set()  # ... and those without contact whose sensor left the object (`lifted_apart_m`):
+        # while the other touches, it alone predicts the pose (a side letting go, its sensor withdrawing)
+        self.touched_again: list[tuple[str, float]] = []  # (side, its frame's time) of each let-go side touching again
 
     def _initial_covariance(self) -> np.ndarray:
         """The filter's covariance at the touch: its pose's uncertainty and the slip rate's prior (the bias's is set
@@ -863,8 +1109,8 @@ class _Corrector:
         if not self._slip_beyond_model():
             return ""
         self.guard_wait = c.guard_every
-        predicted = fuse_object_poses(sensors, self.grasps)[0]  # after this instant's update
-        open_loop = fuse_object_poses(sensors, self.open_grasps)[0]
+        predicted = self.fuse(sensors)  # after this instant's update
+        open_loop = fuse_holding(sensors, self.open_grasps, self.holding)[0]
         closed, opened, facing = [], [], {}
         for side, points in points_sensor.items():
             row = rows[side]
@@ -898,6 +1144,47 @@ class _Corrector:
         self.covariance = self._initial_covariance()
         return "re-anchored"
 
+    @property
+    def holding(self) -> set[str]:
+        """The sides whose grasps carry the object: those that have not let go and touch (all that have not let go
+        where none touches)."""
+        held = set(SIDES) - self.gone
+        return held - self.lifted or held
+
+    def fuse(self, sensors: SensorPoses, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """The tracked T_world_object (K, 4, 4) at the chosen rows of `sensors`, from the sides that hold it."""
+        return fuse_holding(sensors, self.grasps, self.holding, rows)[0]
+
+    def let_go(self, side: str) -> None:
+        """`side` let go: from now on the other side's grasp alone carries the object (its own grasp still follows
+        the corrections, unused, until it touches again)."""
+        self.gone.add(side)
+
+    def _apart(self, side: str, sensors: SensorPoses) -> bool:
+        """Whether `side`'s grasp puts the object more than `lifted_apart_m` from where the other side's puts it, at
+        the instant (the last row of `sensors`; False where either sensor has no pose then)."""
+        other = SIDES[1 - SIDES.index(side)]
+        if other in self.gone or not (sensors.covered[side][-1] and sensors.covered[other][-1]):
+            return False
+        here = sensors.T_world_sensor[side][-1] @ self.grasps[side]
+        there = sensors.T_world_sensor[other][-1] @ self.grasps[other]
+        apart = np.linalg.norm(here[:3, 3] - there[:3, 3]) + TOUCH_MATCH_ROTATION_M_PER_RAD * rotation_angle_rad(
+            here, there
+        )
+        return bool(apart > self.config.correction.lifted_apart_m)
+
+    def _touch_again(self, side: str, row: int, sensors: SensorPoses, stamp: float) -> None:
+        """A side that had let go touches again: its grasps (closed and open loop) are the object's pose now, from
+        the side that held on, in the side's live sensor pose; what its pad read at rest no longer applies."""
+        T_sensor_world = invert_transform(sensors.T_world_sensor[side][row])
+        self.grasps[side] = T_sensor_world @ self.fuse(sensors, slice(row, row + 1))[0]
+        open_now = fuse_holding(sensors, self.open_grasps, self.holding, slice(row, row + 1))[0][0]
+        self.open_grasps[side] = T_sensor_world @ open_now
+        self.gone.discard(side)
+        self.touch_press[side] = predicted_indentation_m(self.model, invert_transform(self.grasps[side]))
+        self.rest_read.pop(side, None)
+        self.touched_again.append((side, stamp))
+
     def _apply(self, twist: np.ndarray) -> None:
         """Move the object by `twist` (object frame) in both grasps: T_world_object <- T_world_object @ exp^-1."""
         undo = invert_transform(pose_from_twist(twist))
@@ -907,7 +1194,7 @@ class _Corrector:
         """Slip since the last instant: the rate times the travel, and the covariance grown by the slip model."""
         c = self.config.correction
         travelled, turned = [], []
-        for side in SIDES:
+        for side in [side for side in SIDES if side not in self.gone]:  # a side that let go moves on its own
             before, now = self.last_sensors.T_world_sensor[side][0], sensors.T_world_sensor[side][-1]
             travelled.append(np.linalg.norm(now[:3, 3] - before[:3, 3]))
             turned.append(rotation_angle_rad(before, now))
@@ -988,7 +1275,15 @@ class _Corrector:
             self.rest_read = {
                 side: np.median(np.array(reads), axis=0) for side, reads in self.rest_reads.items() if reads
             }
-        predicted = fuse_object_poses(sensors, self.grasps)[0]
+        for side in frames:  # a gel without contact whose sensor leaves the object predicts nothing until it touches
+            if side in clouds:
+                self.lifted.discard(side)
+            elif unusable.get(side, "").startswith("too few points") and self._apart(side, sensors):
+                self.lifted.add(side)
+        for row, side in enumerate(clouds):
+            if side in self.gone and len(self.gone) < len(SIDES) and sensors.covered[side][row]:
+                self._touch_again(side, row, sensors, clouds[side][0])
+        predicted = self.fuse(sensors)
         shallow, reads = self._shallow(clouds, sensors)
         points_predicted: dict[str, np.ndarray] = {}
         points_sensor: dict[str, np.ndarray] = {}  # each side's registered samples (pad error removed), sensor frame
