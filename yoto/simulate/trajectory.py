@@ -508,8 +508,16 @@ class TrajectorySimulator:
 
 
 # ------------------------------------------------------------------------------------------------ files
+LATER_OPTIONS = {"tactile_phase_s": None, "tactile_whole_pad": False}  # TrajectoryConfig fields added in stop 19
+
+
 def trajectory_settings(model: ObjectModel, seed: int, config: TrajectoryConfig) -> dict[str, Any]:
-    """What determines a folder's trajectories; stored beside them so a resumed run can check it is the same."""
+    """What determines a folder's trajectories; stored beside them so a resumed run can check it is the same.
+    Options added later are stored only where they differ from their default (earlier folders stay resumable)."""
+    stored = asdict(config)
+    for name, default in LATER_OPTIONS.items():
+        if stored[name] == default:
+            del stored[name]
     return json.loads(
         json.dumps(
             {
@@ -517,7 +525,7 @@ def trajectory_settings(model: ObjectModel, seed: int, config: TrajectoryConfig)
                 "object": model.name,
                 "object_source": model.meta.get("source", {}),
                 "seed": seed,
-                "config": asdict(config),
+                "config": stored,
             },
             default=str,
         )
