@@ -73,6 +73,12 @@ VARIANTS: dict[str, list[str]] = {
     "clouds stride 1": ["tactile_pixel_stride=1"],
     "clouds stride 4": ["tactile_pixel_stride=4"],
     "clouds of the whole pad": ["tactile_whole_pad=True"],
+    "frame stamps jitter 3 ms": ["tactile_stamp_jitter_s=0.003"],
+    "15 fps, half a period apart, stamps 3 ms": [
+        "tactile_rate_hz=15.0",
+        f"tactile_phase_s={0.5 / 15.0!r}",
+        "tactile_stamp_jitter_s=0.003",
+    ],
 }
 
 

@@ -88,6 +88,17 @@ def test_simulated_trajectory_is_consistent(builtin_models, fruit_trajectory):
     assert trajectory.touch.pair.extra["timestamp"] == trajectory.touch_time_s
     again = TrajectorySimulator(model, SHORT).trajectory(3, 1)
     assert np.array_equal(again.streams["left"].T_world_frame, trajectory.streams["left"].T_world_frame)
+    # Another recorder's cameras: in phase, each frame stamped 2 ms off its true time; the same frames otherwise.
+    other = dataclasses.replace(SHORT, tactile_phase_s=0.0, tactile_stamp_jitter_s=0.002)
+    recorded = TrajectorySimulator(model, other).trajectory(3, 1)
+    assert np.array_equal(recorded.truth.T_world_frame, trajectory.truth.T_world_frame)
+    left, right = ([frame.timestamp_s for frame in recorded.tactile[side]] for side in SIDES)
+    true_left = [frame.timestamp_s for frame in trajectory.tactile["left"]]
+    assert np.std(np.subtract(left, true_left)) == pytest.approx(0.002, rel=0.5)
+    assert np.std(np.subtract(right, left)) == pytest.approx(0.002 * np.sqrt(2), rel=0.5)  # in phase but for that
+    assert np.array_equal(
+        recorded.tactile["left"][5].T_object_sensor_true, trajectory.tactile["left"][5].T_object_sensor_true
+    )
 
 
 def test_closed_loop_corrects_the_slip_the_open_loop_keeps(builtin_models, fruit_trajectory):

@@ -103,6 +103,8 @@ class TrajectoryConfig:
     # within a frame period; 0: the two cameras in phase)
     tactile_whole_pad: bool = False  # clouds hold every kept pixel of the pad, the untouched gel at z = 0 (plus the
     # reconstruction's errors), as a reconstruction of the whole image writes them; False: the contact's pixels only
+    tactile_stamp_jitter_s: float = 0.0  # 1-sigma error of each frame's recorded time (a recorder stamping frames on
+    # arrival); the frame shows the gel at its true time
 
 
 @dataclass
@@ -409,6 +411,13 @@ class TrajectorySimulator:
             sensors_true[side] = PoseStream(times[side], true, f"{side} sensor (true)")
             streams[side] = PoseStream(times[side], true @ calibration @ jitter, f"{side} sensor")
 
+        if config.tactile_stamp_jitter_s > 0:  # the recorded times err; the frames stay in their order
+            for side in SIDES:
+                errors = rng["timing"].normal(0.0, config.tactile_stamp_jitter_s, len(frames[side]))
+                stamps = np.round(np.array([f.timestamp_s for f in frames[side]]) + errors, 6)
+                stamps = np.maximum.accumulate(stamps)
+                recorded = zip(frames[side], stamps, strict=True)
+                frames[side] = [dataclasses.replace(frame, timestamp_s=float(t)) for frame, t in recorded]
         union = np.union1d(times["left"], times["right"])
         truth = PoseStream(union, object_true(union), "object (true)")
         touch.pair.extra["timestamp"] = touch_time
@@ -508,7 +517,8 @@ class TrajectorySimulator:
 
 
 # ------------------------------------------------------------------------------------------------ files
-LATER_OPTIONS = {"tactile_phase_s": None, "tactile_whole_pad": False}  # TrajectoryConfig fields added in stop 19
+# TrajectoryConfig fields added in stop 19, and their defaults
+LATER_OPTIONS = {"tactile_phase_s": None, "tactile_whole_pad": False, "tactile_stamp_jitter_s": 0.0}
 
 
 def trajectory_settings(model: ObjectModel, seed: int, config: TrajectoryConfig) -> dict[str, Any]:

@@ -554,8 +554,8 @@ UNTOUCHED_SIGMAS = 5.0  # in a cloud of the whole pad, points deeper than the un
 def pressed_points(points_sensor: np.ndarray) -> np.ndarray:
     """The part of a tactile cloud pressed into the gel. A recorder may write the whole pad (every pixel of the
     reconstruction, the untouched gel at z = 0 give or take its errors) where SPEC's clouds hold the contact: where
-    most points lie within `UNTOUCHED_BAND_M` of z = 0 and a tenth of them above it (a contact's points lie below
-    the gel's rest surface, SPEC; the untouched gel's errors put about half of it above), those are the untouched
+    most points lie within `UNTOUCHED_BAND_M` of z = 0 and a tenth of the cloud above it (a contact's points lie
+    below the gel's rest surface, SPEC; the untouched gel's errors put about half of it above), those are the untouched
     gel, and only the points deeper than its level (their median) by `UNTOUCHED_SIGMAS` robust spreads are kept
     (none where the gel is flat, so a frame without contact reads as such). A cloud of the contact alone, or one
     whose contact covers most of the pad (the untouched rest is then left to `contact_samples`' depth rule), is
