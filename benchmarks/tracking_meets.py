@@ -62,6 +62,11 @@ reconstruction error switched off (the pad's smooth field, the depth scale error
 seed, path, slip and sensor streams, the cached touch estimate and its pinning (the touch's own clouds keep their
 errors), so the drift's change is what those errors did to the frames during the motion (~5 CPU s more a trajectory,
 not cached).
+
+`--trajectory NAME=VALUE ...` tracks each cached trajectory simulated again with `TrajectoryConfig` fields overridden
+(rates, the gels' phase, slip, jitter, motion time, cloud density, whole-pad clouds, stamp errors; the cached touch
+estimate kept after checking the touch is the same); `--simulate-again` does so without overrides (the cache may hold
+an older simulator's frames). `benchmarks/tracking_sweep.py` runs such variants one at a time.
 """
 
 from __future__ import annotations

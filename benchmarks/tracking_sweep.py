@@ -1,18 +1,18 @@
 """The closed loop on tactile and pose streams unlike the simulator's defaults: one change at a time, same touches.
 
     python benchmarks/tracking_sweep.py --cache /tmp/tracks --jobs 2 --out sweep.json
-    python benchmarks/tracking_sweep.py --cache /tmp/tracks --variants default tactile_15fps --correction NAME=VALUE
+    python benchmarks/tracking_sweep.py --cache /tmp/tracks --variants default "tactile 15 fps" --correction NAME=VALUE
     python benchmarks/tracking_sweep.py --records sweep.json  # print an earlier run again
 
 Other recorders differ from `yoto simulate trajectory`'s defaults (tactile frames at 25 fps on both gels, the right
 camera's phase random; pose streams at 120 / 100 Hz; slip rotation biased to the grasp axis; 0.2 mm / 0.1 deg jitter
-per arm; a 3 s motion; clouds of every 2nd pixel of the contact). Each variant (`VARIANTS`) changes one
-`TrajectoryConfig` field set from the benchmark's defaults and simulates the set's trajectories again with it (the same
-seed: the same touch, path and slip axes; the cached touch estimate of `tracking_meets.py --cache` is kept, so the
-variants differ only in what the tracker reads after the touch; the default is simulated again as well, by the same
-simulator). The set: seed 11's fruit, figurine and tool (tuned
-on) and seed 23's banana, lemon, mug and avocado (held out), 100 mm paths, the cached trajectories 0-2 (seed 11) and
-0-1 (seed 23): 17 tracks a variant, ~5 CPU s each to simulate again (more at 60 fps or stride 1) and 2-5 to track.
+per arm; a 3 s motion; clouds of every 2nd pixel of the contact; exact frame stamps). Each variant (`VARIANTS`)
+changes one `TrajectoryConfig` setting from the benchmark's defaults and simulates the set's trajectories again with
+it (the same seed: the same touch, path and slip axes; the cached touch estimate of `tracking_meets.py --cache` is
+kept, so the variants differ only in what the tracker reads after the touch; the default is simulated again as well,
+by the same simulator). The set: seed 11's fruit, figurine and tool (tuned on) and seed 23's banana, lemon, mug and
+avocado (held out), 100 mm paths, the cached trajectories 0-2 (seed 11) and 0-1 (seed 23): 17 tracks a variant, a
+few CPU s each to simulate again and 2-5 to track (all 17 variants: ~18 min on two loaded cores).
 
 Printed, one row per variant: the tracks; how many of those with a right touch meet the drift target on the final
 drift (0.5 mm and 0.5 deg, `evaluate.summarize_errors`' `final_drift`: the settled tail's mean error against the
@@ -150,7 +150,7 @@ def report(records: list[dict[str, Any]]) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--cache", default="/tmp/s12-track/cache", help="tracking_meets.py's --cache (the touches)")
+    parser.add_argument("--cache", help="tracking_meets.py's --cache (the touches; needed unless --records)")
     parser.add_argument("--workspace", default="yoto_workspace", help="workspace holding the object models")
     parser.add_argument("--meshes", default=meets_bench.MESHES, help="folder of the shared meshes (NAME/NAME.ply)")
     parser.add_argument("--jobs", type=int, default=1, help="processes (each track's CPU time is its own)")
@@ -165,6 +165,8 @@ def main() -> None:
         records = [r for path in args.records for r in json.loads(Path(path).read_text())["records"]]
         print(report(records))
         return
+    if not args.cache:
+        parser.error("--cache is needed to track")
     args.without, args.frames_via, args.frames_at_truth, args.images_cache = [], None, False, None
     variants = args.variants or list(VARIANTS)
     items = [(variant, job) for variant in variants for job in jobs() if not args.objects or job[1] in args.objects]
