@@ -62,6 +62,11 @@ reconstruction error switched off (the pad's smooth field, the depth scale error
 seed, path, slip and sensor streams, the cached touch estimate and its pinning (the touch's own clouds keep their
 errors), so the drift's change is what those errors did to the frames during the motion (~5 CPU s more a trajectory,
 not cached).
+
+`--trajectory NAME=VALUE ...` tracks each cached trajectory simulated again with `TrajectoryConfig` fields overridden
+(rates, the gels' phase, slip, jitter, motion time, cloud density, whole-pad clouds, stamp errors; the cached touch
+estimate kept after checking the touch is the same); `--simulate-again` does so without overrides (the cache may hold
+an older simulator's frames). `benchmarks/tracking_sweep.py` runs such variants one at a time.
 """
 
 from __future__ import annotations
@@ -208,6 +213,32 @@ def without_errors(trajectory: Any, job: tuple[int, str, int, int], args: argpar
     return same_path(again, trajectory, job)
 
 
+def trajectory_overrides(items: list[str]) -> dict[str, Any]:
+    """`TrajectoryConfig` fields from NAME=VALUE items (Python literals)."""
+    return {item.split("=", 1)[0]: ast.literal_eval(item.split("=", 1)[1]) for item in items}
+
+
+def with_trajectory(trajectory: Any, job: tuple[int, str, int, int], args: argparse.Namespace) -> Any:
+    """The job's trajectory simulated again with `TrajectoryConfig` fields overridden (`args.trajectory`: rates,
+    phases, slip, jitter, motion time, cloud density...). The same seed draws the same touch, path and slip axes
+    (each from its own random stream), but the streams' times, the slip's size or the motion's timing may differ,
+    so the truth is not compared: the touch's sensor poses and true pose are checked identical, and the cached
+    touch (its clouds and estimate) is kept."""
+    from yoto.simulate.trajectory import TrajectorySimulator
+
+    seed, name, length, index = job
+    base = TrackBenchConfig().trajectory
+    config = scaled_trajectory(dataclasses.replace(base, **trajectory_overrides(args.trajectory)), length / 1e3)
+    again = TrajectorySimulator(_model(object_spec(name, args.meshes), args.workspace), config).trajectory(seed, index)
+    same = np.allclose(again.touch.T_world_object, trajectory.touch.T_world_object, atol=1e-12) and all(
+        np.allclose(again.touch.pair.contact(side).T_world_sensor, trajectory.touch.pair.contact(side).T_world_sensor)
+        for side in ("left", "right")
+    )
+    if not same:
+        raise SystemExit(f"{key_of(dict(seed=seed, object=name, length_mm=length, index=index))}: the touch changed")
+    return dataclasses.replace(again, touch=trajectory.touch)
+
+
 @functools.cache
 def _image_route(source: str):
     from yoto.sensor.optical import image_route
@@ -246,6 +277,8 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
     touch_trajectory = trajectory
     if args.without:
         trajectory = without_errors(trajectory, job, args)
+    if getattr(args, "trajectory", None) or getattr(args, "simulate_again", False):
+        trajectory = with_trajectory(trajectory, job, args)
     if args.frames_via:
         trajectory = via_images(trajectory, job, args)
     touch = touch_from_pair(trajectory.touch.pair, T_touch, trajectory.touch_time_s, "simulated")
@@ -275,6 +308,8 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
         record["without"] = list(args.without)
     if args.frames_via:
         record["frames_via"] = args.frames_via
+    if getattr(args, "trajectory", None) or getattr(args, "simulate_again", False):
+        record["trajectory"] = list(args.trajectory)
     for loop, poses in (("open", result.T_world_object_open_loop), ("closed", result.T_world_object)):
         errors = tracking_errors(result.timestamps_s, poses, truth, T_touch, trajectory.touch.T_world_object)
         summary = summarize_errors(errors, motion)
@@ -288,6 +323,8 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
     record["frames"] = frames["frames"]
     record["frames_used"] = frames["frames_used"]
     record["unusable"] = frames["unusable"]
+    record["instants"] = len(result.corrections)
+    record["paired_instants"] = sum(len(c.used) + len(c.unusable) == 2 for c in result.corrections)
     record["instant_ms"] = [c.latency_ms for c in result.corrections]  # wall time, loading (reconstruction) included
     record["cpu_s"] = cpu_s
     used = [c for c in result.corrections if c.used]
@@ -707,6 +744,19 @@ def main() -> None:
         help="track the trajectories simulated again without these reconstruction errors (the cached touch kept)",
     )
     parser.add_argument("--lengths", nargs="*", type=int, help="only these path lengths (mm) of the seeds' sets")
+    parser.add_argument(
+        "--trajectory",
+        nargs="*",
+        default=[],
+        help="track the trajectories simulated again with TrajectoryConfig fields overridden, NAME=VALUE (the "
+        "cached touch kept; ~5 CPU s more a trajectory, not cached)",
+    )
+    parser.add_argument(
+        "--simulate-again",
+        action="store_true",
+        help="simulate the trajectories again with the working tree's simulator even without --trajectory (the "
+        "cache may hold an older simulator's frames; the cached touch kept)",
+    )
     parser.add_argument(
         "--frames-via",
         metavar="SOURCE",

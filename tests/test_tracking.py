@@ -185,17 +185,37 @@ def test_tactile_frames_of_both_sensors_are_paired_in_time():
     from yoto.tracking.streams import TactileStream
     from yoto.tracking.track import group_frames
 
-    left = TactileStream.in_memory(np.array([0.9, 1.00, 1.04, 1.08, 1.20]), [np.zeros((1, 3))] * 5)
-    right = TactileStream.in_memory(np.array([1.01, 1.05, 1.055, 1.30]), [np.zeros((1, 3))] * 4)
-    instants = group_frames({"left": left, "right": right}, start_s=1.0, tolerance_s=0.02)
-    assert instants == [
+    left = TactileStream.in_memory(np.array([0.9, 1.00, 1.02, 1.04, 1.06, 1.20]), [np.zeros((1, 3))] * 6)
+    right = TactileStream.in_memory(np.array([1.01, 1.03, 1.05, 1.055, 1.30]), [np.zeros((1, 3))] * 5)
+    instants = group_frames({"left": left, "right": right}, start_s=1.0, tolerance_s=0.005)
+    assert instants == [  # left's median period 0.02 s: frames within 0.01 s pair
         (1.01, [("left", 1), ("right", 0)]),
-        (1.05, [("left", 2), ("right", 1)]),
-        (1.055, [("right", 2)]),
-        (1.08, [("left", 3)]),
-        (1.20, [("left", 4)]),
-        (1.30, [("right", 3)]),
+        (1.03, [("left", 2), ("right", 1)]),
+        (1.05, [("left", 3), ("right", 2)]),
+        (1.06, [("left", 4), ("right", 3)]),
+        (1.20, [("left", 5)]),
+        (1.30, [("right", 4)]),
     ]
+
+
+def test_out_of_phase_gels_at_15_fps_pair_every_frame():
+    """Two cameras at 15 fps half a period apart (33 ms): each frame with the other gel's next one, not every
+    frame alone (a fixed 20 ms window paired none of them)."""
+    from yoto.tracking.streams import TactileStream
+    from yoto.tracking.track import group_frames, instant_window_s
+
+    left_s = np.round(100.0 + np.arange(12) / 15.0, 6)
+    right_s = np.round(left_s + 0.5 / 15.0, 6)
+    tactile = {
+        "left": TactileStream.in_memory(left_s, [np.zeros((1, 3))] * 12),
+        "right": TactileStream.in_memory(right_s, [np.zeros((1, 3))] * 12),
+    }
+    assert abs(instant_window_s(tactile, 0.02) - 0.5 / 15.0) < 2e-5
+    instants = group_frames(tactile, start_s=100.0, tolerance_s=0.02)
+    assert [frames for _, frames in instants] == [[("left", i), ("right", i)] for i in range(12)]
+    assert [time for time, _ in instants] == list(right_s)
+    default_rate = {side: TactileStream.in_memory(np.arange(10) / 25.0, [np.zeros((1, 3))] * 10) for side in tactile}
+    assert abs(instant_window_s(default_rate, 0.02) - 0.02) < 2e-5  # 25 fps: the 20 ms window as before
 
 
 def _bench_record(touch_mm: float, drift_mm: float, right: bool) -> dict:

@@ -88,6 +88,17 @@ def test_simulated_trajectory_is_consistent(builtin_models, fruit_trajectory):
     assert trajectory.touch.pair.extra["timestamp"] == trajectory.touch_time_s
     again = TrajectorySimulator(model, SHORT).trajectory(3, 1)
     assert np.array_equal(again.streams["left"].T_world_frame, trajectory.streams["left"].T_world_frame)
+    # Another recorder's cameras: in phase, each frame stamped 2 ms off its true time; the same frames otherwise.
+    other = dataclasses.replace(SHORT, tactile_phase_s=0.0, tactile_stamp_jitter_s=0.002)
+    recorded = TrajectorySimulator(model, other).trajectory(3, 1)
+    assert np.array_equal(recorded.truth.T_world_frame, trajectory.truth.T_world_frame)
+    left, right = ([frame.timestamp_s for frame in recorded.tactile[side]] for side in SIDES)
+    true_left = [frame.timestamp_s for frame in trajectory.tactile["left"]]
+    assert np.std(np.subtract(left, true_left)) == pytest.approx(0.002, rel=0.5)
+    assert np.std(np.subtract(right, left)) == pytest.approx(0.002 * np.sqrt(2), rel=0.5)  # in phase but for that
+    assert np.array_equal(
+        recorded.tactile["left"][5].T_object_sensor_true, trajectory.tactile["left"][5].T_object_sensor_true
+    )
 
 
 def test_closed_loop_corrects_the_slip_the_open_loop_keeps(builtin_models, fruit_trajectory):
@@ -1000,3 +1011,42 @@ def test_a_pad_misreading_the_press_at_rest_is_left_out_of_the_motion(builtin_mo
     )
     checked_mm = settled(trajectory, result, result.T_world_object)["settled"]["mm"]
     assert checked_mm < 0.5 < settled(trajectory, unchecked, unchecked.T_world_object)["settled"]["mm"]
+
+
+def test_clouds_of_the_whole_pad_are_tracked_as_their_contact(builtin_models):
+    """A recorder that writes the whole pad (every pixel, the untouched gel at z = 0 with the reconstruction's
+    errors; `TrajectoryConfig.tactile_whole_pad`): where most of a cloud is untouched gel, it is taken out
+    (`pressed_points`), so a flat pad reads as no contact and a release is seen (on main the flat pads' 19,200
+    points were registered as contacts and nothing ended); a cloud of the contact alone is left as it is."""
+    from yoto.tracking.track import pressed_points
+
+    rng = np.random.default_rng(0)
+    x, y = np.meshgrid((np.arange(160) - 79.5) * 1.268e-4, (np.arange(120) - 59.5) * 1.268e-4)
+    pressed_m = np.maximum(0.0, 1e-3 - (x**2 + y**2) / (2 * 0.0045)).ravel()  # a ball pressed 1 mm: 9% of the pad
+    pad = np.column_stack([x.ravel(), y.ravel(), -pressed_m + rng.normal(0.0, 2.5e-5, x.size)])
+    kept = pressed_points(pad)
+    truly = pressed_m[np.isin(pad[:, 2], kept[:, 2])]
+    assert (truly > 0).all() and len(kept) >= 0.95 * (pressed_m > 2e-4).sum()  # the untouched gel gone, the press kept
+    contact = pad[(pressed_m > 0) & (pad[:, 2] < -6e-5)]
+    assert pressed_points(contact) is contact
+    flat = pad.copy()
+    flat[:, 2] = rng.normal(0.0, 2.5e-5, len(flat))  # the gel's errors alone
+    assert len(pressed_points(flat)) < 30
+
+    model = builtin_models["fruit"]  # its contacts cover 60% of the pad: left as they are
+    whole = TrajectorySimulator(model, dataclasses.replace(SHORT, tactile_whole_pad=True)).trajectory(3, 1)
+    assert all(len(frame.points_sensor) == 160 * 120 for frame in whole.tactile["left"])
+    touch = touch_from_pair(whole.touch.pair, whole.touch.T_world_object, whole.touch_time_s)
+    result = track(touch, whole.streams, model, tactile_streams(whole))
+    speed = result.correction_summary()
+    assert speed["frames_used"] >= 0.9 * speed["frames"]
+    assert settled(whole, result, result.T_world_object)["settled"]["mm"] < 0.5
+    released_s = max(whole.tactile[side][-6].timestamp_s for side in SIDES)  # the gels let go: flat pads
+    tactile = {
+        side: TactileStream(
+            np.array([f.timestamp_s for f in whole.tactile[side]]),
+            lambda i, side=side: flat if i >= len(whole.tactile[side]) - 6 else whole.tactile[side][i].points_sensor,
+        )
+        for side in SIDES
+    }
+    assert track(touch, whole.streams, model, tactile).released_s == released_s

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from conftest import TOL
@@ -140,6 +142,30 @@ def test_recordings_are_read_through_the_rig_readers(tmp_path, rng):
     stream = read_sensor_stream(bag, "/vrpn_client_node/GelLeft/pose")
     np.testing.assert_allclose(stream.timestamps_s - 1.7e9, expected.timestamps_s, atol=1e-6)
     np.testing.assert_allclose(stream.T_world_frame, expected.T_world_frame, atol=1e-6)
+
+
+def test_trajectory_options_for_streams_unlike_the_defaults(capsys):
+    """`yoto simulate trajectory`'s options for another recorder's streams: rates, the gels' phase, cloud density
+    and whole-pad clouds reach the simulator's config; the default is left as it was."""
+    from yoto.cli import build_parser, main
+    from yoto.simulate.cli import trajectory_config
+    from yoto.simulate.trajectory import TrajectoryConfig, trajectory_settings
+
+    base = ["simulate", "trajectory", "--object", "fruit", "-n", "1"]
+    foreign = build_parser().parse_args(
+        base
+        + ["--pose-hz", "30", "--tactile-fps", "15", "--tactile-phase-ms", "33", "--pixel-stride", "4", "--whole-pad"]
+    )
+    config = trajectory_config(foreign)
+    assert (config.left_rate_hz, config.right_rate_hz, config.tactile_rate_hz) == (30.0, 30.0, 15.0)
+    assert config.tactile_phase_s == pytest.approx(0.033) and config.tactile_pixel_stride == 4
+    assert config.tactile_whole_pad
+    assert trajectory_config(build_parser().parse_args(base)) == TrajectoryConfig()
+    fruit = SimpleNamespace(name="fruit", meta={})  # a folder of the defaults keeps the settings stored before them
+    assert "tactile_whole_pad" not in trajectory_settings(fruit, 0, TrajectoryConfig())["config"]
+    assert trajectory_settings(fruit, 0, config)["config"]["tactile_whole_pad"] is True
+    assert main(base + ["--tactile-fps", "0"]) == 2
+    assert "--tactile-fps must be positive" in capsys.readouterr().err
 
 
 def test_commands_refuse_bad_arguments(capsys):

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from yoto.simulate.trajectory import TrajectoryConfig
 
 SIMULATE_EPILOG = """examples:
   yoto simulate pairs --object fruit -n 100 --seed 0
@@ -10,6 +14,7 @@ SIMULATE_EPILOG = """examples:
   yoto simulate press --object figurine --seed 3 --out press.png
   yoto simulate scan meshes/drill.ply --out drill_scan.ply --seed 0
   yoto simulate trajectory --object fruit -n 5 --out trajectories/fruit
+  yoto simulate trajectory --object fruit -n 5 --tactile-fps 15 --tactile-phase-ms 33 --pose-hz 30 --whole-pad
   yoto simulate recording --object fruit --gelsight gelsight.npz --out session/
 """
 
@@ -75,6 +80,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     trajectory.add_argument("--slip-mm", type=float, help="plastic slip at the end of the path (default 2)")
     trajectory.add_argument("--slip-deg", type=float, help="plastic slip rotation at the end (default 1.5)")
     trajectory.add_argument("--jitter-mm", type=float, help="per-axis jitter of each sensor pose (default 0.2)")
+    trajectory.add_argument("--pose-hz", type=float, help="rate of both sensor pose streams (default 120 and 100)")
+    trajectory.add_argument("--tactile-fps", type=float, help="tactile frame rate of each gel (default 25)")
+    trajectory.add_argument(
+        "--tactile-phase-ms", type=float, help="the right gel's frames this long after the left's (default random)"
+    )
+    trajectory.add_argument("--pixel-stride", type=int, help="clouds keep every n-th pixel row and column (default 2)")
+    trajectory.add_argument(
+        "--whole-pad",
+        action="store_true",
+        help="clouds of every pad pixel, untouched gel at z = 0",
+    )
     trajectory.add_argument("--sensor-noise-mm", type=float, default=0.0, help="sensor calibration error, position")
     trajectory.add_argument("--sensor-noise-deg", type=float, default=0.0, help="sensor calibration error, rotation")
     trajectory.add_argument(
@@ -187,25 +203,24 @@ def _run_pairs(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_trajectory(args: argparse.Namespace) -> int:
+def trajectory_config(args: argparse.Namespace) -> TrajectoryConfig:
+    """The `TrajectoryConfig` that `yoto simulate trajectory`'s options ask for (checked)."""
     import dataclasses
 
     import numpy as np
 
     from yoto.errors import InputError
     from yoto.simulate.scenarios import ScenarioConfig
-    from yoto.simulate.trajectory import TrajectoryConfig, write_trajectories
-    from yoto.workspace import workspace_dir
+    from yoto.simulate.trajectory import TrajectoryConfig
 
-    if args.count < 1:
-        raise InputError(f"-n must be at least 1, got {args.count}")
     for name in ("path_mm", "slip_mm", "slip_deg", "jitter_mm", "sensor_noise_mm", "sensor_noise_deg"):
         value = getattr(args, name)
         if value is not None and value < 0:
             raise InputError(f"--{name.replace('_', '-')} must not be negative, got {value}")
-    if args.path_mm == 0:
-        raise InputError("--path-mm must be positive")
-    model = _load_model(args)
+    for name in ("path_mm", "pose_hz", "tactile_fps", "pixel_stride"):
+        value = getattr(args, name)
+        if value is not None and value <= 0:
+            raise InputError(f"--{name.replace('_', '-')} must be positive, got {value}")
     config = TrajectoryConfig(
         scenario=ScenarioConfig(
             calibration_translation_m=args.sensor_noise_mm * 1e-3,
@@ -222,6 +237,26 @@ def _run_trajectory(args: argparse.Namespace) -> int:
         )
     if args.jitter_mm is not None:
         config = dataclasses.replace(config, jitter_translation_m=args.jitter_mm * 1e-3)
+    if args.pose_hz is not None:
+        config = dataclasses.replace(config, left_rate_hz=args.pose_hz, right_rate_hz=args.pose_hz)
+    if args.tactile_fps is not None:
+        config = dataclasses.replace(config, tactile_rate_hz=args.tactile_fps)
+    if args.tactile_phase_ms is not None:
+        config = dataclasses.replace(config, tactile_phase_s=args.tactile_phase_ms * 1e-3)
+    if args.pixel_stride is not None:
+        config = dataclasses.replace(config, tactile_pixel_stride=args.pixel_stride)
+    return dataclasses.replace(config, tactile_whole_pad=bool(args.whole_pad))
+
+
+def _run_trajectory(args: argparse.Namespace) -> int:
+    from yoto.errors import InputError
+    from yoto.simulate.trajectory import write_trajectories
+    from yoto.workspace import workspace_dir
+
+    if args.count < 1:
+        raise InputError(f"-n must be at least 1, got {args.count}")
+    config = trajectory_config(args)
+    model = _load_model(args)
     out_dir = args.out or workspace_dir(args.workspace) / "trajectories" / model.name
     report = write_trajectories(
         model,

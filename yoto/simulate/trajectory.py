@@ -99,6 +99,12 @@ class TrajectoryConfig:
     jitter_translation_m: float = 0.0002  # 1-sigma per axis of each pose sample, independent per arm
     jitter_rotation_rad: float = float(np.radians(0.1))  # 1-sigma per rotation-vector component of each sample
     tactile_pixel_stride: int = 2  # tactile clouds keep every n-th pixel row and column (file size)
+    tactile_phase_s: float | None = None  # the right gel's frames start this long after the left's (None: random
+    # within a frame period; 0: the two cameras in phase)
+    tactile_whole_pad: bool = False  # clouds hold every kept pixel of the pad, the untouched gel at z = 0 (plus the
+    # reconstruction's errors), as a reconstruction of the whole image writes them; False: the contact's pixels only
+    tactile_stamp_jitter_s: float = 0.0  # 1-sigma error of each frame's recorded time (a recorder stamping frames on
+    # arrival); the frame shows the gel at its true time
 
 
 @dataclass
@@ -362,6 +368,8 @@ class TrajectorySimulator:
             ),
         }
         tactile_phase = {"left": 0.0, "right": rng["timing"].uniform(0.0, 1.0 / config.tactile_rate_hz)}
+        if config.tactile_phase_s is not None:  # drawn all the same: the later draws stay the default's
+            tactile_phase["right"] = config.tactile_phase_s
         noise = config.scenario.press.noise
         frames: dict[str, list[TactileFrame]] = {}
         streams, sensors_true = {}, {}
@@ -403,6 +411,13 @@ class TrajectorySimulator:
             sensors_true[side] = PoseStream(times[side], true, f"{side} sensor (true)")
             streams[side] = PoseStream(times[side], true @ calibration @ jitter, f"{side} sensor")
 
+        if config.tactile_stamp_jitter_s > 0:  # the recorded times err; the frames stay in their order
+            for side in SIDES:
+                errors = rng["timing"].normal(0.0, config.tactile_stamp_jitter_s, len(frames[side]))
+                stamps = np.round(np.array([f.timestamp_s for f in frames[side]]) + errors, 6)
+                stamps = np.maximum.accumulate(stamps)
+                recorded = zip(frames[side], stamps, strict=True)
+                frames[side] = [dataclasses.replace(frame, timestamp_s=float(t)) for frame, t in recorded]
         union = np.union1d(times["left"], times["right"])
         truth = PoseStream(union, object_true(union), "object (true)")
         touch.pair.extra["timestamp"] = touch_time
@@ -453,7 +468,14 @@ class TrajectorySimulator:
         spec = self.config.scenario.press.spec
         if press.rejection == "no_contact":  # the camera still sees the gel: flat, untouched
             flat = None if self.images is None else self.images.image(np.zeros((spec.height_px, spec.width_px)), rng)
-            return TactileFrame(timestamp, np.empty((0, 3)), T_object_sensor_start, flat), 0.0
+            untouched = np.empty((0, 3))
+            if self.config.tactile_whole_pad and self.images is None:  # the whole flat pad, its errors on it
+                flat_map = np.zeros((spec.height_px, spec.width_px))
+                untouched, _ = self._reconstruct(flat_map, flat_map > 0, calibration_error, rng)
+                untouched = _keep_pixel_stride(
+                    untouched, self.config.tactile_pixel_stride, spec.pixel_size_m, spec.width_px, spec.height_px
+                )
+            return TactileFrame(timestamp, untouched, T_object_sensor_start, flat), 0.0
         if press.accepted:
             height_map, mask = press.height_map_m, press.contact_mask
         else:  # a contact the simulator would not accept as a new touch (border, thin edge...): the gel still sees it
@@ -484,6 +506,9 @@ class TrajectorySimulator:
                 return reconstruct(image, self.images.calibration).points_sensor, image
             except InputError:
                 return np.empty((0, 3)), image
+        if self.config.tactile_whole_pad:  # every pixel, however little pressed (the same noise draws)
+            mask = np.ones_like(mask, dtype=bool)
+            noise = dataclasses.replace(noise, mask_threshold_m=-np.inf)
         if noise.is_noise_free:
             return spec.height_map_to_points(height_map, mask), None
         scale_error, bias = calibration_error
@@ -492,8 +517,17 @@ class TrajectorySimulator:
 
 
 # ------------------------------------------------------------------------------------------------ files
+# TrajectoryConfig fields added in stop 19, and their defaults
+LATER_OPTIONS = {"tactile_phase_s": None, "tactile_whole_pad": False, "tactile_stamp_jitter_s": 0.0}
+
+
 def trajectory_settings(model: ObjectModel, seed: int, config: TrajectoryConfig) -> dict[str, Any]:
-    """What determines a folder's trajectories; stored beside them so a resumed run can check it is the same."""
+    """What determines a folder's trajectories; stored beside them so a resumed run can check it is the same.
+    Options added later are stored only where they differ from their default (earlier folders stay resumable)."""
+    stored = asdict(config)
+    for name, default in LATER_OPTIONS.items():
+        if stored[name] == default:
+            del stored[name]
     return json.loads(
         json.dumps(
             {
@@ -501,7 +535,7 @@ def trajectory_settings(model: ObjectModel, seed: int, config: TrajectoryConfig)
                 "object": model.name,
                 "object_source": model.meta.get("source", {}),
                 "seed": seed,
-                "config": asdict(config),
+                "config": stored,
             },
             default=str,
         )

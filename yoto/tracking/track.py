@@ -102,7 +102,8 @@ class CorrectionConfig:
     voxel_m: float = 0.0004  # side of the square bins over the pad (sensor x, y) whose means are those points
     min_depth_fraction: float = 0.4  # only points pressed at least this share of the frame's deepest point count:
     # the rim, where the gel barely touches and sinks in beside the object, is where reconstructions are off
-    sync_tolerance_s: float = 0.02  # a left and a right frame this close in time are registered together
+    sync_tolerance_s: float = 0.02  # a left and a right frame this close in time are registered together; or
+    # closer than half the slower gel's frame period where that is longer (`instant_window_s`)
     iterations: int = 10  # Gauss-Newton iterations at most ...
     step_tolerance_m: float = 1e-6  # ... stopping when a step moves less than this ...
     step_tolerance_rad: float = 1e-5  # ... and turns less than this (far below what a frame can tell)
@@ -664,11 +665,27 @@ def tactile_timing_warnings(
     return warnings
 
 
+STAMP_RESOLUTION_S = 1e-5  # timestamps rounded to microseconds (file names) are this close to the true half period
+
+
+def instant_window_s(tactile: dict[str, TactileStream], tolerance_s: float) -> float:
+    """How far apart a left and a right frame may be to be registered together: `tolerance_s`, or half the slower
+    gel's frame period (median) where that is longer. Two cameras out of phase, or slower than 25 fps, leave up to
+    half a period between a frame and the other gel's nearest; a fixed window would then leave most frames alone,
+    and a lone contact corrects only the directions it pins. Each frame is registered at its own time's sensor
+    pose, so the pair's time difference costs only the slip between the two (2 mm per 100 mm of travel: a few
+    hundredths of a millimetre over 1/30 s at 50 mm/s)."""
+    periods = [float(np.median(np.diff(stream.timestamps_s))) for stream in tactile.values() if len(stream) > 1]
+    return max(tolerance_s, 0.5 * max(periods, default=0.0) + STAMP_RESOLUTION_S)
+
+
 def group_frames(
     tactile: dict[str, TactileStream], start_s: float, tolerance_s: float
 ) -> list[tuple[float, list[tuple[str, int]]]]:
-    """Tactile instants from the touch on: each left frame with the nearest right frame within `tolerance_s` (not
-    already taken), the rest alone. Returns (instant time = its latest frame's, [(side, frame index)]) by time."""
+    """Tactile instants from the touch on: each left frame with the nearest right frame within `tolerance_s`, or
+    half the slower gel's frame period where that is longer (`instant_window_s`), not already taken; the rest
+    alone. Returns (instant time = its latest frame's, [(side, frame index)]) by time."""
+    tolerance_s = instant_window_s(tactile, tolerance_s)
     stamps = {side: tactile[side].timestamps_s if side in tactile else np.empty(0) for side in SIDES}
     right = stamps["right"]
     taken = right < start_s - 1e-6  # frames before the touch are never used
@@ -724,6 +741,31 @@ def contact_samples(points_sensor: np.ndarray, config: CorrectionConfig) -> np.n
     if len(points) > config.points_per_contact:
         points = points[np.random.default_rng(0).choice(len(points), config.points_per_contact, replace=False)]
     return points
+
+
+UNTOUCHED_BAND_M = 6e-5  # a point this close to the gel's rest surface (z = 0) may be untouched gel: a
+# reconstruction's errors there are 0.02-0.03 mm; the simulator's clouds hold only pixels pressed deeper than this
+UNTOUCHED_SIGMAS = 5.0  # in a cloud of the whole pad, points deeper than the untouched gel's level by this many of
+# its spreads are pressed
+
+
+def pressed_points(points_sensor: np.ndarray) -> np.ndarray:
+    """The part of a tactile cloud pressed into the gel. A recorder may write the whole pad (every pixel of the
+    reconstruction, the untouched gel at z = 0 give or take its errors) where SPEC's clouds hold the contact: where
+    most points lie within `UNTOUCHED_BAND_M` of z = 0 and a tenth of the cloud above it (a contact's points lie
+    below the gel's rest surface, SPEC; the untouched gel's errors put about half of it above), those are the untouched
+    gel, and only the points deeper than its level (their median) by `UNTOUCHED_SIGMAS` robust spreads are kept
+    (none where the gel is flat, so a frame without contact reads as such). A cloud of the contact alone, or one
+    whose contact covers most of the pad (the untouched rest is then left to `contact_samples`' depth rule), is
+    returned as it is."""
+    band = np.abs(points_sensor[:, 2]) <= UNTOUCHED_BAND_M
+    above = int(np.count_nonzero(points_sensor[:, 2] > 0.0))
+    if 2 * int(band.sum()) <= len(points_sensor) or 10 * above < len(points_sensor):
+        return points_sensor
+    untouched = points_sensor[band, 2]
+    level = float(np.median(untouched))
+    spread = 1.4826 * float(np.median(np.abs(untouched - level)))
+    return points_sensor[points_sensor[:, 2] < level - UNTOUCHED_SIGMAS * spread]
 
 
 def frame_indentation_m(points_sensor: np.ndarray) -> float:
@@ -1260,7 +1302,7 @@ class _Corrector:
             except InputError as exc:
                 unusable[side] = f"unreadable ({exc})"
                 continue
-            points = points[np.isfinite(points).all(axis=1)]
+            points = pressed_points(points[np.isfinite(points).all(axis=1)])
             if len(points) < MIN_TACTILE_POINTS:
                 unusable[side] = f"too few points ({len(points)})"
                 continue
