@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from yoto.contacts import read_gel
+from yoto.contacts import GelReading, read_gel
 from yoto.errors import InputError
 from yoto.io import read_ply_points
 from yoto.rig.motive import is_motive_csv
@@ -115,9 +115,18 @@ def frame_contact(points_sensor: np.ndarray, path: Path) -> np.ndarray:
             "(SPEC: z <= 0 where the gel is pressed)",
             path,
         )
+    return felt_contact(points, gel)
+
+
+def felt_contact(points_sensor: np.ndarray, gel: GelReading | None = None) -> np.ndarray:
+    """What the gel felt of a frame's finite points (`contacts.read_gel`, the one rule): the untouched gel of a cloud
+    of the whole pad taken out (`GelReading.felt`), none where the object only kisses the gel or it is not pressed
+    beyond its noise (its flat gel or a speck would be registered as the contact). A cloud of the contact alone is
+    returned as it is, so applying it twice changes nothing."""
+    gel = read_gel(points_sensor) if gel is None else gel
     if gel.kiss or not gel.pressed:
-        return points[:0]  # the object leaves the gel: its flat gel or a speck would be registered as the contact
-    return gel.felt(points)
+        return points_sensor[:0]
+    return gel.felt(points_sensor)
 
 
 def read_tactile_folder(folder: str | Path, name: str | None = None) -> TactileStream:

@@ -57,7 +57,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from yoto.contacts import KISS_DEPTH_M, MIN_TACTILE_POINTS, MINI_PAD_M, SIDES, ContactPair, TactileContact
+from yoto.contacts import MIN_TACTILE_POINTS, MINI_PAD_M, SIDES, ContactPair, TactileContact
 from yoto.errors import InputError, YotoError
 from yoto.geometry import (
     invert_transform,
@@ -88,7 +88,7 @@ from yoto.tracking.fusion import (
     stream_jitter,
 )
 from yoto.tracking.pad_error import PadError, PadErrorConfig
-from yoto.tracking.streams import TactileStream
+from yoto.tracking.streams import TactileStream, felt_contact
 from yoto.trajectory import PoseStream
 
 TOUCH_MATCH_ROTATION_M_PER_RAD = 0.05  # how rotation counts against translation when matching the touch in time
@@ -540,8 +540,8 @@ class _NewTouchSearch:
                 points = np.asarray(stream.load(index), dtype=np.float64).reshape(-1, 3)
             except InputError:
                 return None
-            points = points[np.isfinite(points).all(axis=1)]
-            if len(points) < MIN_TACTILE_POINTS or frame_indentation_m(points) < KISS_DEPTH_M:
+            points = felt_contact(points[np.isfinite(points).all(axis=1)])  # none where the gel only kisses
+            if len(points) < MIN_TACTILE_POINTS:
                 self.run = 0
                 return None
             clouds[side] = (float(stream.timestamps_s[index]), points)
@@ -741,31 +741,6 @@ def contact_samples(points_sensor: np.ndarray, config: CorrectionConfig) -> np.n
     if len(points) > config.points_per_contact:
         points = points[np.random.default_rng(0).choice(len(points), config.points_per_contact, replace=False)]
     return points
-
-
-UNTOUCHED_BAND_M = 6e-5  # a point this close to the gel's rest surface (z = 0) may be untouched gel: a
-# reconstruction's errors there are 0.02-0.03 mm; the simulator's clouds hold only pixels pressed deeper than this
-UNTOUCHED_SIGMAS = 5.0  # in a cloud of the whole pad, points deeper than the untouched gel's level by this many of
-# its spreads are pressed
-
-
-def pressed_points(points_sensor: np.ndarray) -> np.ndarray:
-    """The part of a tactile cloud pressed into the gel. A recorder may write the whole pad (every pixel of the
-    reconstruction, the untouched gel at z = 0 give or take its errors) where SPEC's clouds hold the contact: where
-    most points lie within `UNTOUCHED_BAND_M` of z = 0 and a tenth of the cloud above it (a contact's points lie
-    below the gel's rest surface, SPEC; the untouched gel's errors put about half of it above), those are the untouched
-    gel, and only the points deeper than its level (their median) by `UNTOUCHED_SIGMAS` robust spreads are kept
-    (none where the gel is flat, so a frame without contact reads as such). A cloud of the contact alone, or one
-    whose contact covers most of the pad (the untouched rest is then left to `contact_samples`' depth rule), is
-    returned as it is."""
-    band = np.abs(points_sensor[:, 2]) <= UNTOUCHED_BAND_M
-    above = int(np.count_nonzero(points_sensor[:, 2] > 0.0))
-    if 2 * int(band.sum()) <= len(points_sensor) or 10 * above < len(points_sensor):
-        return points_sensor
-    untouched = points_sensor[band, 2]
-    level = float(np.median(untouched))
-    spread = 1.4826 * float(np.median(np.abs(untouched - level)))
-    return points_sensor[points_sensor[:, 2] < level - UNTOUCHED_SIGMAS * spread]
 
 
 def frame_indentation_m(points_sensor: np.ndarray) -> float:
@@ -1302,7 +1277,8 @@ class _Corrector:
             except InputError as exc:
                 unusable[side] = f"unreadable ({exc})"
                 continue
-            points = pressed_points(points[np.isfinite(points).all(axis=1)])
+            # the one rule for what the gel felt, however the stream was built (a folder's reader applies it too)
+            points = felt_contact(points[np.isfinite(points).all(axis=1)])
             if len(points) < MIN_TACTILE_POINTS:
                 unusable[side] = f"too few points ({len(points)})"
                 continue
