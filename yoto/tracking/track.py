@@ -15,7 +15,7 @@ regrasp), its `TrackResult`, the pairing of frames into instants (`group_frames`
 of the frames' times against the pose streams (`tactile_timing_warnings`). The other parts: `config.py`
 (`TrackConfig`, `CorrectionConfig`), `touch.py` (`Touch`, the touch's time), `frame_registration.py` (a frame's
 samples, its registration's settings and information), `pinning.py` (`Pinning`, `retouch`), `correction.py`,
-`release.py`; their public names are importable from here as well.
+`release.py`; the names other code imported from this module before it was split are importable from here still.
 
 Frames: YOTO's canonical `object` frame inside (origin at the centroid: corrections rotate about it); results
 convert to the mesh file's frame with `T_world_mesh = T_world_object @ T_object_mesh`.
@@ -33,15 +33,12 @@ from yoto.errors import InputError
 from yoto.objects.model import ObjectModel
 from yoto.registration import one_blas_thread
 from yoto.tracking.config import CorrectionConfig, TrackConfig
-from yoto.tracking.correction import Correction, _Corrector, fuse_holding
+from yoto.tracking.correction import Correction, _Corrector
 from yoto.tracking.frame_registration import (
     contact_information,
     contact_samples,
-    frame_indentation_m,
     observable_unit,
     pad_rest_solver,
-    predicted_indentation_m,
-    registration_prior,
     registration_solver,
     secant_scaling,
 )
@@ -50,14 +47,7 @@ from yoto.tracking.pad_error import PadError
 from yoto.tracking.pinning import Pinning, Retouch, retouch, touch_pinning
 from yoto.tracking.release import LetGo, NewTouchEstimator, Regrasp, ReleaseWatch, _NewTouchSearch, open_loop_poses
 from yoto.tracking.streams import TactileStream
-from yoto.tracking.touch import (
-    TOUCH_MATCH_ROTATION_M_PER_RAD,
-    Touch,
-    find_touch_time,
-    sensor_pose_mismatch,
-    touch_from_pair,
-    touch_time_of,
-)
+from yoto.tracking.touch import Touch, find_touch_time, touch_from_pair, touch_time_of
 from yoto.trajectory import PoseStream
 
 
@@ -347,7 +337,7 @@ def group_frames(
     return instants
 
 
-# the closed loop's parts, importable from here as well (see the module's docstring)
+# this module's names, and those of its parts that other code imported from here before the split
 __all__ = [
     "Correction",
     "CorrectionConfig",
@@ -358,26 +348,20 @@ __all__ = [
     "ReleaseWatch",
     "Retouch",
     "STAMP_RESOLUTION_S",
-    "TOUCH_MATCH_ROTATION_M_PER_RAD",
     "Touch",
     "TrackConfig",
     "TrackResult",
     "contact_information",
     "contact_samples",
     "find_touch_time",
-    "frame_indentation_m",
-    "fuse_holding",
     "group_frames",
     "instant_window_s",
     "observable_unit",
     "open_loop_poses",
     "pad_rest_solver",
-    "predicted_indentation_m",
-    "registration_prior",
     "registration_solver",
     "retouch",
     "secant_scaling",
-    "sensor_pose_mismatch",
     "tactile_timing_warnings",
     "touch_from_pair",
     "touch_pinning",
