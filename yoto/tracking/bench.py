@@ -28,19 +28,13 @@ from yoto.objects.model import ObjectModel
 from yoto.provenance import run_info
 from yoto.registration import plane_distances, point_to_plane_gauss_newton
 from yoto.simulate.trajectory import SimulatedTrajectory, TactileFrame, TrajectoryConfig, TrajectorySimulator
+from yoto.tracking.config import CorrectionConfig, TrackConfig
 from yoto.tracking.evaluate import ErrorCurve, motion_interval, plot_tracking, summarize_errors, tracking_errors
+from yoto.tracking.frame_registration import contact_samples, pad_rest_solver, registration_solver
 from yoto.tracking.pad_error import PadError
 from yoto.tracking.streams import TactileStream, image_frames
-from yoto.tracking.track import (
-    CorrectionConfig,
-    TrackConfig,
-    contact_samples,
-    group_frames,
-    pad_rest_solver,
-    registration_solver,
-    touch_from_pair,
-    track,
-)
+from yoto.tracking.touch import touch_from_pair
+from yoto.tracking.track import group_frames, track
 
 RIGHT_TOUCH_M = 0.005  # a touch within 5 mm and 5 deg of the truth is right (SPEC)
 RIGHT_TOUCH_RAD = float(np.radians(5.0))

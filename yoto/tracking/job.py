@@ -26,6 +26,7 @@ from yoto.geometry import (
 from yoto.io import read_json, write_json_atomic
 from yoto.objects.model import ObjectModel
 from yoto.sensor.pair_images import ImageSides
+from yoto.tracking.config import TrackConfig
 from yoto.tracking.evaluate import (
     ErrorCurve,
     motion_interval,
@@ -34,19 +35,12 @@ from yoto.tracking.evaluate import (
     tracking_errors,
     truth_at,
 )
+from yoto.tracking.frame_registration import contact_samples
+from yoto.tracking.pinning import Retouch, retouch
+from yoto.tracking.release import NewTouchEstimator
 from yoto.tracking.streams import TactileStream, holds_images, read_sensor_stream, read_tactile_stream
-from yoto.tracking.track import (
-    NewTouchEstimator,
-    Retouch,
-    TrackConfig,
-    TrackResult,
-    contact_samples,
-    retouch,
-    tactile_timing_warnings,
-    touch_from_pair,
-    touch_time_of,
-    track,
-)
+from yoto.tracking.touch import touch_from_pair, touch_time_of
+from yoto.tracking.track import TrackResult, tactile_timing_warnings, track
 from yoto.trajectory import PoseStream, write_tum
 
 
