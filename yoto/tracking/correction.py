@@ -62,7 +62,7 @@ from yoto.tracking.frame_registration import (
 from yoto.tracking.fusion import SensorPoses, StreamJitter, fuse_object_poses, sensor_poses
 from yoto.tracking.pad_error import PadError
 from yoto.tracking.streams import TactileStream, felt_contact
-from yoto.tracking.touch import TOUCH_MATCH_ROTATION_M_PER_RAD, Touch
+from yoto.tracking.touch import Touch, pose_distance_m
 from yoto.trajectory import PoseStream
 
 
@@ -264,10 +264,7 @@ class _Corrector:
             return False
         here = sensors.T_world_sensor[side][-1] @ self.grasps[side]
         there = sensors.T_world_sensor[other][-1] @ self.grasps[other]
-        apart = np.linalg.norm(here[:3, 3] - there[:3, 3]) + TOUCH_MATCH_ROTATION_M_PER_RAD * rotation_angle_rad(
-            here, there
-        )
-        return bool(apart > self.config.correction.lifted_apart_m)
+        return bool(pose_distance_m(here, there[None])[0] > self.config.correction.lifted_apart_m)
 
     def _touch_again(self, side: str, row: int, sensors: SensorPoses, stamp: float) -> None:
         """A side that had let go touches again: its grasps (closed and open loop) are the object's pose now, from

@@ -23,12 +23,12 @@ import numpy as np
 
 from yoto.contacts import MIN_TACTILE_POINTS, SIDES, ContactPair, TactileContact
 from yoto.errors import InputError, YotoError
-from yoto.geometry import invert_transform, so3_log
+from yoto.geometry import invert_transform
 from yoto.tracking.config import CorrectionConfig, TrackConfig
 from yoto.tracking.correction import Correction, fuse_holding
 from yoto.tracking.fusion import SensorPoses, StreamJitter, sensor_poses
 from yoto.tracking.streams import TactileStream, felt_contact
-from yoto.tracking.touch import TOUCH_MATCH_ROTATION_M_PER_RAD, Touch
+from yoto.tracking.touch import Touch, pose_distance_m
 from yoto.trajectory import PoseStream
 
 
@@ -163,9 +163,7 @@ class _NewTouchSearch:
         hypotheses = np.asarray(estimate.hypotheses.T_world_object) if estimate.ambiguous else None
         chosen = 0
         if hypotheses is not None and len(hypotheses) > 1:
-            angles = np.linalg.norm(so3_log(np.einsum("ji,njk->nik", last_pose[:3, :3], hypotheses[:, :3, :3])), axis=1)
-            offsets = np.linalg.norm(hypotheses[:, :3, 3] - last_pose[:3, 3], axis=1)
-            chosen = int(np.argmin(offsets + TOUCH_MATCH_ROTATION_M_PER_RAD * angles))
+            chosen = int(np.argmin(pose_distance_m(last_pose, hypotheses)))
         T_world_object = hypotheses[chosen] if hypotheses is not None else np.asarray(estimate.T_world_object)
         grasps = {side: invert_transform(T_world_sensor[side]) @ T_world_object for side in SIDES}
         touch = Touch(instant_s, T_world_object, grasps, "both gels touching again after a release")

@@ -40,6 +40,13 @@ def touch_from_pair(pair: ContactPair, T_world_object: np.ndarray, time_s: float
     return Touch(float(time_s), np.asarray(T_world_object, dtype=np.float64), grasps, time_source)
 
 
+def pose_distance_m(T_reference: np.ndarray, T_poses: np.ndarray) -> np.ndarray:
+    """(N,) how far each of `T_poses` (N, 4, 4) lies from `T_reference` (4, 4): metres of translation plus the rotation
+    counted at TOUCH_MATCH_ROTATION_M_PER_RAD (5 cm per radian)."""
+    angles = np.linalg.norm(so3_log(np.einsum("ji,njk->nik", T_reference[:3, :3], T_poses[:, :3, :3])), axis=1)
+    return np.linalg.norm(T_poses[:, :3, 3] - T_reference[:3, 3], axis=1) + TOUCH_MATCH_ROTATION_M_PER_RAD * angles
+
+
 def sensor_pose_mismatch(
     pair: ContactPair, streams: dict[str, PoseStream], times_s: np.ndarray, config: FusionConfig = FusionConfig()
 ) -> np.ndarray:
@@ -50,8 +57,7 @@ def sensor_pose_mismatch(
     for k, side in enumerate(SIDES):
         target = pair.contact(side).T_world_sensor
         live = poses.T_world_sensor[side]
-        angles = np.linalg.norm(so3_log(np.einsum("ji,njk->nik", target[:3, :3], live[:, :3, :3])), axis=1)
-        offsets = np.linalg.norm(live[:, :3, 3] - target[:3, 3], axis=1) + TOUCH_MATCH_ROTATION_M_PER_RAD * angles
+        offsets = pose_distance_m(target, live)
         mismatch[k, poses.covered[side]] = offsets[poses.covered[side]]
     return mismatch
 
