@@ -9,9 +9,10 @@ followed:
   sensor is trusted little around it;
 - each stream is smoothed in time (a local quadratic, glitches left out): jitter averages over the samples of the
   window, smooth motion passes. The half-window is chosen per stream, for its positions and its rotations apart,
-  between `smoothing_s` and `max_smoothing_s`: the one that minimises the predicted error of a smoothed sample, its
+  between `smoothing_s` and `max_smoothing_s`: widened only while the predicted error of a smoothed sample, its
   noise (the stream's jitter over the samples the window holds) plus its bias (how far a longer window's fits move
-  from the shortest's beyond what noise explains: where the motion bends fast, a long window cuts its corners);
+  from the shortest's beyond what noise explains: where the motion bends fast, a long window cuts its corners),
+  exceeds `smoothed_translation_m` / `smoothed_rotation_rad` (a noisy or slow stream, not the usual ones);
 - both streams are interpolated to each output time (they have their own rates and phases); a time inside a
   dropout (samples further apart than `max_gap_s`, or 1.5 periods of a slower stream) uses the other sensor alone;
 - rotations are averaged with weights 1 / sigma_rotation^2 and positions of the object's centroid with weights
@@ -96,13 +97,11 @@ def _windows(stream: PoseStream, neighbours: int) -> tuple[np.ndarray, np.ndarra
     return window, offsets, translations, rotations
 
 
-def _local_fit(
-    times: np.ndarray, values: np.ndarray, weights: np.ndarray, degree: int = 2
-) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted least-squares polynomials in time through each window: the coefficients (N, degree + 1, C) and the
-    inverse normal matrices (N, degree + 1, degree + 1), whose [0, 0] is the fit's noise variance at t = 0 over a
-    sample's. `times`, `weights` (N, W); `values` (N, W, C)."""
-    design = np.stack([times**power for power in range(degree + 1)], axis=-1)  # (N, W, degree + 1)
+def _local_fit(times: np.ndarray, values: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least-squares quadratics in time through each window: the coefficients (N, 3, C) and the inverse
+    normal matrices (N, 3, 3), whose [0, 0] is the fit's noise variance at t = 0 over a sample's. `times`, `weights`
+    (N, W); `values` (N, W, C)."""
+    design = np.stack([np.ones_like(times), times, times**2], axis=-1)  # (N, W, 3)
     inverse = np.linalg.inv(np.einsum("nw,nwi,nwj->nij", weights, design, design))
     return inverse @ np.einsum("nw,nwi,nwc->nic", weights, design, values), inverse
 
