@@ -176,6 +176,8 @@ def smooth_stream(stream: PoseStream, jitter: StreamJitter, config: FusionConfig
     if shortest < 1:
         return stream
     longest = int(min(max(round(config.max_smoothing_s / period), shortest), (len(stream) - 1) // 4))
+    if config.smoothing_s / period < 1.4:  # below some 28 Hz (+- 50 ms hold 3 samples, which pass through their
+        longest = shortest  # quadratic) the jitter estimate's +- 4 samples do not tell noise from motion: as before
     candidates = [shortest]
     while candidates[-1] < longest:
         candidates.append(min(max(round(candidates[-1] * 1.5), candidates[-1] + 1), longest))
