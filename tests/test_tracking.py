@@ -9,8 +9,8 @@ import pytest
 from conftest import TOL
 
 from yoto.contacts import ContactPair, TactileContact
-from yoto.geometry import invert_transform, make_transform, random_perturbation, random_rotations, so3_exp
-from yoto.tracking.fusion import FusionConfig, stream_jitter
+from yoto.geometry import invert_transform, make_transform, random_perturbation, random_rotations, so3_exp, so3_log
+from yoto.tracking.fusion import FusionConfig, smooth_stream, stream_jitter
 from yoto.tracking.track import Touch, TrackConfig, find_touch_time, touch_from_pair, track
 from yoto.trajectory import PoseStream
 
@@ -112,6 +112,54 @@ def test_smoothing_keeps_smooth_motion(grasps):
     streams = {side: sensor_stream(times, grasp) for side, grasp in grasps.items()}
     translation, rotation = errors(track(touch_at(grasps), streams))
     assert translation.max() < 5e-6 and rotation.max() < np.radians(0.001)
+
+
+def test_the_smoothing_window_follows_each_streams_jitter_rate_and_bend(grasps, rng):
+    """A 30 Hz stream with 0.4 mm / 0.2 deg of jitter: +- 50 ms hold 5 samples (67 ms: the smoothed pose keeps 0.7 of
+    the jitter); the windows chosen for it (widened while the predicted noise plus bias exceeds 0.12 mm / 0.06 deg)
+    come much closer to the motion. A 120 Hz stream with 0.2 mm keeps +- 50 ms. A noisy stream that bends fast (a
+    4 Hz, 3 mm shake) keeps a short window: a long one would cut the shake's corners."""
+    times = START + np.arange(0, 3.0, 1 / 30)
+    clean = sensor_stream(times, grasps["left"])
+    noisy = sensor_stream(times, grasps["left"], rng, 4e-4, np.radians(0.2))
+
+    def smoothed_error(stream: PoseStream, truth: PoseStream, config: FusionConfig) -> tuple[float, float]:
+        jitter = stream_jitter(stream, config)
+        poses = smooth_stream(stream, jitter, config).T_world_frame
+        rotation = so3_log(np.einsum("nji,njk->nik", truth.T_world_frame[:, :3, :3], poses[:, :3, :3]))
+        translation = poses[:, :3, 3] - truth.T_world_frame[:, :3, 3]
+        return float(np.sqrt(np.mean(translation**2))), float(np.sqrt(np.mean(rotation**2)))
+
+    fixed = FusionConfig(max_smoothing_s=0.05)  # +- 50 ms whatever the stream (the window before stop 19)
+    fixed_t, fixed_r = smoothed_error(noisy, clean, fixed)
+    chosen_t, chosen_r = smoothed_error(noisy, clean, FusionConfig())
+    sigma_r = np.radians(0.2) / np.sqrt(3.0)  # per rotation-vector component: the angle's 0.2 deg about any axis
+    assert fixed_t > 0.6 * 4e-4 and fixed_r > 0.6 * sigma_r  # 0.65, 0.70 of the jitter
+    assert chosen_t < 0.45 * 4e-4 and chosen_r < 0.6 * sigma_r
+    jitter = stream_jitter(noisy)
+    smooth_stream(noisy, jitter)
+    assert jitter.smoothing_s[0] > 0.2 and jitter.smoothing_s[1] > 0.1
+    assert max(jitter.smoothing_s) <= FusionConfig().max_smoothing_s + 1 / 60
+    usual = sensor_stream(START + np.arange(0, 3.0, 1 / 120), grasps["left"], rng, 2e-4, np.radians(0.1))
+    jitter = stream_jitter(usual)
+    smooth_stream(usual, jitter)
+    assert jitter.smoothing_s == pytest.approx((0.05, 0.05), abs=1e-4)
+
+    times = START + np.arange(0, 3.0, 1 / 120)
+    shake = np.zeros((len(times), 4, 4))
+    shake[:, :3, :3] = np.eye(3)
+    shake[:, :3, 3] = 0.003 * np.sin(2 * np.pi * 4.0 * (times - START))[:, None] * [1.0, 0.5, 0.0]
+    shake[:, 3, 3] = 1.0
+    shaken = PoseStream(times, shake @ clean.T_world_frame[:1].repeat(len(times), 0))
+    shaken_noisy = PoseStream(
+        times, np.array([pose @ random_perturbation(rng, 4e-4, 0.0) for pose in shaken.T_world_frame])
+    )
+    jitter = stream_jitter(shaken_noisy)
+    smooth_stream(shaken_noisy, jitter)
+    wide = FusionConfig(smoothing_s=FusionConfig().max_smoothing_s)
+    assert jitter.smoothing_s[0] < 0.1  # 75 ms: 113 would cut the corners
+    assert smoothed_error(shaken_noisy, shaken, FusionConfig())[0] < 2e-4
+    assert smoothed_error(shaken_noisy, shaken, wide)[0] > 5e-4
 
 
 def test_jitter_estimate_and_glitches(grasps, rng):

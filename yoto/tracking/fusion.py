@@ -7,8 +7,12 @@ followed:
 - each stream's jitter is estimated from the stream itself: the scatter of each sample about a quadratic fit of
   its neighbours in time (smooth motion fits, noise does not). A sample far off its fit is a glitch and its
   sensor is trusted little around it;
-- each stream is smoothed in time (a local quadratic over +- `smoothing_s`, glitches left out): jitter averages
-  over the samples of the window, smooth motion passes;
+- each stream is smoothed in time (a local quadratic, glitches left out): jitter averages over the samples of the
+  window, smooth motion passes. The half-window is chosen per stream, for its positions and its rotations apart,
+  between `smoothing_s` and `max_smoothing_s`: widened only while the predicted error of a smoothed sample, its
+  noise (the stream's jitter over the samples the window holds) plus its bias (how far a longer window's fits move
+  from the shortest's beyond what noise explains: where the motion bends fast, a long window cuts its corners),
+  exceeds `smoothed_translation_m` / `smoothed_rotation_rad` (a noisy or slow stream, not the usual ones);
 - both streams are interpolated to each output time (they have their own rates and phases); a time inside a
   dropout (samples further apart than `max_gap_s`, or 1.5 periods of a slower stream) uses the other sensor alone;
 - rotations are averaged with weights 1 / sigma_rotation^2 and positions of the object's centroid with weights
@@ -39,8 +43,13 @@ class FusionConfig:
     min_jitter_translation_m: float = 2e-5  # floors on the jitter estimates (a perfectly smooth stream, e.g. a
     min_jitter_rotation_rad: float = float(np.radians(0.01))  # simulated one, is not trusted infinitely)
     glitch_sigmas: float = 6.0  # a sample this many jitters off its neighbours' fit is a glitch
-    smoothing_s: float = 0.05  # each stream is replaced by a local quadratic fit over +- this (0: raw samples).
-    # Centred: a pose uses samples up to this far ahead (offline files; a live loop would wait this long)
+    smoothing_s: float = 0.05  # each stream is replaced by a local quadratic fit over +- at least this (0: raw
+    # samples) ...
+    max_smoothing_s: float = 0.25  # ... and at most this, chosen per stream from its jitter, rate and bend (at most
+    # smoothing_s: a fixed +- smoothing_s). Centred: a pose uses samples up to this far ahead (offline files)
+    smoothed_translation_m: float = 1.2e-4  # a window is widened only while the smoothed stream's predicted error
+    smoothed_rotation_rad: float = float(np.radians(0.06))  # exceeds these (per axis; 0.2 mm / 0.1 deg of jitter
+    # at 100-120 Hz, smoothed over +- 50 ms, is 0.09 mm / 0.045 deg: left as it is)
 
 
 @dataclass
@@ -50,7 +59,9 @@ class StreamJitter:
     translation_m: float  # robust 1-sigma per axis of a raw sample about the smooth motion
     rotation_rad: float  # robust 1-sigma per rotation-vector component
     glitch: np.ndarray  # (N,) bool, samples far off the fit of their neighbours
-    smoothing_gain: float = 1.0  # variance of a smoothed sample's noise over a raw sample's (1: not smoothed)
+    smoothing_gain: float = 1.0  # variance of a smoothed position's noise over a raw sample's (1: not smoothed)
+    rotation_smoothing_gain: float = 1.0  # the same for the rotations
+    smoothing_s: tuple[float, float] = (0.0, 0.0)  # the half-windows chosen for positions and rotations
 
     @property
     def smoothed_translation_m(self) -> float:
@@ -58,13 +69,16 @@ class StreamJitter:
 
     @property
     def smoothed_rotation_rad(self) -> float:
-        return self.rotation_rad * float(np.sqrt(self.smoothing_gain))
+        return self.rotation_rad * float(np.sqrt(self.rotation_smoothing_gain))
 
     def describe(self) -> str:
+        smoothed = (
+            f", smoothed to {self.smoothed_translation_m * 1e3:.3f} mm / {np.degrees(self.smoothed_rotation_rad):.3f}"
+            f" deg (+- {self.smoothing_s[0] * 1e3:.0f} / {self.smoothing_s[1] * 1e3:.0f} ms)"
+        )
         return (
             f"jitter {self.translation_m * 1e3:.3f} mm / {np.degrees(self.rotation_rad):.3f} deg, "
-            f"{int(self.glitch.sum())} glitches"
-            + (f", smoothed to {self.smoothed_translation_m * 1e3:.3f} mm" if self.smoothing_gain < 1.0 else "")
+            f"{int(self.glitch.sum())} glitches" + (smoothed if max(self.smoothing_s) > 0 else "")
         )
 
 
@@ -84,12 +98,19 @@ def _windows(stream: PoseStream, neighbours: int) -> tuple[np.ndarray, np.ndarra
 
 
 def _local_fit(times: np.ndarray, values: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted least-squares quadratics in time through each window: the fit at t = 0 (N, C) and its noise
-    variance over a sample's (N,). `times`, `weights` (N, W); `values` (N, W, C)."""
+    """Weighted least-squares quadratics in time through each window: the coefficients (N, 3, C) and the inverse
+    normal matrices (N, 3, 3), whose [0, 0] is the fit's noise variance at t = 0 over a sample's. `times`, `weights`
+    (N, W); `values` (N, W, C)."""
     design = np.stack([np.ones_like(times), times, times**2], axis=-1)  # (N, W, 3)
     inverse = np.linalg.inv(np.einsum("nw,nwi,nwj->nij", weights, design, design))
-    coefficients = inverse @ np.einsum("nw,nwi,nwc->nic", weights, design, values)  # (N, 3 terms, C)
-    return coefficients[:, 0, :], inverse[:, 0, 0]
+    return inverse @ np.einsum("nw,nwi,nwc->nic", weights, design, values), inverse
+
+
+def _centred_kernel(half_window: int) -> np.ndarray:
+    """A local quadratic through 2k + 1 regular samples, at the middle one, as weights on the samples."""
+    times = np.arange(-half_window, half_window + 1, dtype=np.float64)
+    design = np.stack([np.ones_like(times), times, times**2], axis=-1)
+    return np.linalg.solve(design.T @ design, design.T)[0]
 
 
 def stream_jitter(stream: PoseStream, config: FusionConfig = FusionConfig()) -> StreamJitter:
@@ -101,9 +122,10 @@ def stream_jitter(stream: PoseStream, config: FusionConfig = FusionConfig()) -> 
         return StreamJitter(config.min_jitter_translation_m, config.min_jitter_rotation_rad, np.zeros(count, bool))
     window, offsets, translations, rotations = _windows(stream, k)
     others = (offsets != 0.0).astype(np.float64)
-    fit_t, fit_noise = _local_fit(offsets, translations, others)
+    fit_t, inverse = _local_fit(offsets, translations, others)
     fit_r, _ = _local_fit(offsets, rotations, others)
-    scale = np.sqrt(1.0 + fit_noise)[:, None]  # var(sample - fit) = var(sample) (1 + the fit's share)
+    fit_t, fit_r = fit_t[:, 0, :], fit_r[:, 0, :]
+    scale = np.sqrt(1.0 + inverse[:, 0, 0])[:, None]  # var(sample - fit) = var(sample) (1 + the fit's share)
     normalised_t, normalised_r = -fit_t / scale, -fit_r / scale  # the sample's own value is 0 in its frame
     sigma_t = max(1.4826 * float(np.median(np.abs(normalised_t))), config.min_jitter_translation_m)
     sigma_r = max(1.4826 * float(np.median(np.abs(normalised_r))), config.min_jitter_rotation_rad)
@@ -113,26 +135,84 @@ def stream_jitter(stream: PoseStream, config: FusionConfig = FusionConfig()) -> 
     return StreamJitter(sigma_t, sigma_r, glitch)
 
 
+def _smoothed(
+    stream: PoseStream, jitter: StreamJitter, half_window: int, shortest: int, config: FusionConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each sample's local quadratic over +- `half_window` samples (glitches left out): the fitted translations and
+    rotation vectors relative to the sample (N, 3) each, (N,) whether the fit holds enough samples, (N,) its noise
+    variance over a sample's."""
+    count = len(stream)
+    window, offsets, translations, rotations = _windows(stream, half_window)
+    weights = (~jitter.glitch[window]).astype(np.float64)
+    # Near an end the window stays centred, as wide as the samples there allow (a shifted window extrapolates and its
+    # bias grows with its length), and no narrower than the shortest window shifted inside the stream.
+    from_end = np.minimum(np.arange(count), np.arange(count)[::-1])
+    reach = np.maximum(np.minimum(from_end, half_window), 2 * shortest - from_end)
+    weights[np.abs(window - np.arange(count)[:, None]) > reach[:, None]] = 0.0
+    period = float(np.median(np.diff(stream.timestamps_s)))
+    reach_s = config.smoothing_s if half_window == shortest else half_window * period
+    weights[np.abs(offsets) * period > reach_s * 1.5] = 0.0  # samples across a dropout
+    usable = weights.sum(axis=1) >= 3
+    weights[~usable] = 1.0  # too few: the raw sample is kept (these rows' fits are only kept invertible)
+    fits, inverse = _local_fit(offsets, np.concatenate([translations, rotations], axis=2), weights)
+    fit = np.where(usable[:, None], fits[:, 0, :], 0.0)
+    return fit[:, :3], fit[:, 3:], usable, inverse[:, 0, 0]
+
+
 def smooth_stream(stream: PoseStream, jitter: StreamJitter, config: FusionConfig = FusionConfig()) -> PoseStream:
-    """The stream with each sample replaced by a local quadratic fit (glitches left out of every fit) over
-    +- `smoothing_s`; `jitter.smoothing_gain` is set to the median noise reduction (variance ratio)."""
+    """The stream with each sample replaced by a local quadratic fit (glitches left out of every fit).
+
+    The half-window is chosen, for the positions and for the rotations apart, among lengths from `smoothing_s` to
+    `max_smoothing_s` (steps of 1.5x): the shortest whose predicted error of a smoothed sample is within
+    `smoothed_translation_m` / `smoothed_rotation_rad`, else the one with the least predicted error: its noise
+    (the stream's jitter times the window's noise gain) plus its squared bias, measured on the stream as how far the
+    window's fits move from the shortest window's beyond what the two fits' noise explains (mean over the samples
+    a full window away from the ends). `jitter.smoothing_gain`, `rotation_smoothing_gain` and `smoothing_s` are set
+    to the chosen windows' median noise reduction (variance ratio) and half-widths (s)."""
     if config.smoothing_s <= 0 or len(stream) < 3:
         return stream
     period = float(np.median(np.diff(stream.timestamps_s)))
-    k = int(min(round(config.smoothing_s / period), (len(stream) - 1) // 2))
-    if k < 1:
+    shortest = int(min(round(config.smoothing_s / period), (len(stream) - 1) // 2))
+    if shortest < 1:
         return stream
-    window, offsets, translations, rotations = _windows(stream, k)
-    weights = (~jitter.glitch[window]).astype(np.float64)
-    weights[np.abs(offsets) * period > config.smoothing_s * 1.5] = 0.0  # samples across a dropout
-    usable = weights.sum(axis=1) >= 3
-    weights[~usable] = 1.0  # too few: the raw sample is kept below (these rows' fits are only kept invertible)
-    fit_t, gain = _local_fit(offsets, translations, weights)
-    fit_r, _ = _local_fit(offsets, rotations, weights)
+    longest = int(min(max(round(config.max_smoothing_s / period), shortest), (len(stream) - 1) // 4))
+    if config.smoothing_s / period < 1.4:  # below some 28 Hz (+- 50 ms hold 3 samples, which pass through their
+        longest = shortest  # quadratic) the jitter estimate's +- 4 samples do not tell noise from motion: as before
+    candidates = [shortest]
+    while candidates[-1] < longest:
+        candidates.append(min(max(round(candidates[-1] * 1.5), candidates[-1] + 1), longest))
+    fits = {shortest: _smoothed(stream, jitter, shortest, shortest, config)}
+    count = len(stream)
+    interior = np.minimum(np.arange(count), np.arange(count)[::-1]) >= candidates[-1]
+    reference = _centred_kernel(shortest)
+    chosen = []
+    targets = (config.smoothed_translation_m, config.smoothed_rotation_rad)
+    for channel, sigma in enumerate((jitter.translation_m, jitter.rotation_rad)):
+        best = (np.inf, shortest)
+        for k in candidates:
+            if k not in fits:
+                fits[k] = _smoothed(stream, jitter, k, shortest, config)
+            kernel = _centred_kernel(k)
+            gain = float(kernel @ kernel)
+            # var(fit_k - fit_shortest) from noise alone, per component
+            difference = (
+                gain + float(reference @ reference) - 2.0 * float(kernel[k - shortest : k + shortest + 1] @ reference)
+            )
+            rows = interior & fits[k][2] & fits[shortest][2]
+            moved = fits[k][channel] - fits[shortest][channel]
+            bias_squared = max(float(np.mean(moved[rows] ** 2)) - sigma**2 * difference, 0.0) if rows.any() else 0.0
+            best = min(best, (sigma**2 * gain + bias_squared, k))
+            if best[0] <= targets[channel] ** 2:  # smooth enough: no longer window
+                break
+        chosen.append(best[1])
     poses = stream.T_world_frame.copy()
-    poses[:, :3, 3] += np.where(usable[:, None], fit_t, 0.0)
-    poses[:, :3, :3] = poses[:, :3, :3] @ so3_exp(np.where(usable[:, None], fit_r, 0.0))
-    jitter.smoothing_gain = float(np.median(gain[usable])) if usable.any() else 1.0
+    translations, _, usable_t, gain_t = fits[chosen[0]]
+    _, rotations, usable_r, gain_r = fits[chosen[1]]
+    poses[:, :3, 3] += translations
+    poses[:, :3, :3] = poses[:, :3, :3] @ so3_exp(rotations)
+    jitter.smoothing_gain = float(np.median(gain_t[usable_t])) if usable_t.any() else 1.0
+    jitter.rotation_smoothing_gain = float(np.median(gain_r[usable_r])) if usable_r.any() else 1.0
+    jitter.smoothing_s = (chosen[0] * period, chosen[1] * period)
     return PoseStream(stream.timestamps_s, poses, stream.name, stream.source)
 
 
