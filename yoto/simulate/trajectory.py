@@ -517,16 +517,17 @@ class TrajectorySimulator:
 
 
 # ------------------------------------------------------------------------------------------------ files
-# TrajectoryConfig fields added in stop 19, and their defaults
-LATER_OPTIONS = {"tactile_phase_s": None, "tactile_whole_pad": False, "tactile_stamp_jitter_s": 0.0}
+# TrajectoryConfig fields added in stop 19 (stored only where they differ from the dataclass's defaults)
+LATER_OPTIONS = ("tactile_phase_s", "tactile_whole_pad", "tactile_stamp_jitter_s")
 
 
 def trajectory_settings(model: ObjectModel, seed: int, config: TrajectoryConfig) -> dict[str, Any]:
     """What determines a folder's trajectories; stored beside them so a resumed run can check it is the same.
     Options added later are stored only where they differ from their default (earlier folders stay resumable)."""
     stored = asdict(config)
-    for name, default in LATER_OPTIONS.items():
-        if stored[name] == default:
+    defaults = TrajectoryConfig()
+    for name in LATER_OPTIONS:
+        if stored[name] == getattr(defaults, name):
             del stored[name]
     return json.loads(
         json.dumps(
