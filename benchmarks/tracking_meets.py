@@ -277,7 +277,8 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
     touch_trajectory = trajectory
     if args.without:
         trajectory = without_errors(trajectory, job, args)
-    if getattr(args, "trajectory", None) or getattr(args, "simulate_again", False):
+    simulated_again = bool(getattr(args, "trajectory", None) or getattr(args, "simulate_again", False))
+    if simulated_again:
         trajectory = with_trajectory(trajectory, job, args)
     if args.frames_via:
         trajectory = via_images(trajectory, job, args)
@@ -308,7 +309,7 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
         record["without"] = list(args.without)
     if args.frames_via:
         record["frames_via"] = args.frames_via
-    if getattr(args, "trajectory", None) or getattr(args, "simulate_again", False):
+    if simulated_again:
         record["trajectory"] = list(args.trajectory)
     for loop, poses in (("open", result.T_world_object_open_loop), ("closed", result.T_world_object)):
         errors = tracking_errors(result.timestamps_s, poses, truth, T_touch, trajectory.touch.T_world_object)
