@@ -14,6 +14,8 @@ ROOT = Path(__file__).resolve().parent.parent
 FENCE = re.compile(r"^\s*(```|~~~)")
 INLINE_CODE = re.compile(r"(`+)(?:(?!\1).)+?\1")
 LINK = re.compile(r"!?\[(?:[^\[\]]|\[[^\]]*\])*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
+# The end of a link whose text began on an earlier line: "...](target)" with no "[" before it on this line.
+WRAPPED_LINK_END = re.compile(r"^[^\[\]]*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
 HEADING = re.compile(r"^ {0,3}(#{1,6})\s+(.*?)\s*#*\s*$")
 
 
@@ -55,7 +57,8 @@ def broken_links(path: Path, root: Path = ROOT) -> list[str]:
     """Each relative link of a Markdown file whose target file or heading is missing, as 'file:line: target'."""
     problems = []
     for number, line in _prose_lines(path.read_text(encoding="utf-8")):
-        for match in LINK.finditer(INLINE_CODE.sub("", line)):
+        prose = INLINE_CODE.sub("", line)
+        for match in [*WRAPPED_LINK_END.finditer(prose), *LINK.finditer(prose)]:
             target = match.group(1)
             if re.match(r"^[a-z][a-z0-9+.-]*:", target, re.IGNORECASE):  # http:, https:, mailto:
                 continue
@@ -96,11 +99,13 @@ def test_the_check_finds_a_missing_file_a_missing_heading_and_ignores_code(tmp_p
         "![moved one folder down, not fixed](figures/a.png)\n"
         "[a heading that is not there](../guide.md#measured-2)\n"
         "[a page that is not there](../tracking.md)\n"
+        "[a link's text that wraps\nonto the next line](../guide.md#no-such-heading)\n"
     )
     assert broken_links(page, tmp_path) == [
         "docs/journal/page.md:8: figures/a.png (no such file)",
         "docs/journal/page.md:9: ../guide.md#measured-2 (no such heading)",
         "docs/journal/page.md:10: ../tracking.md (no such file)",
+        "docs/journal/page.md:12: ../guide.md#no-such-heading (no such heading)",
     ]
 
 
