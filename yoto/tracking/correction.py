@@ -40,6 +40,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -86,6 +87,15 @@ class Correction:
     indentation_m: dict[str, float] = field(default_factory=dict)  # side -> how deep its frame read the press
 
 
+class OpenLoopChange(NamedTuple):
+    """A change of the open loop's grasps after the touch (`_Corrector.open_changes`): from `time_s` on, `side`
+    carries the object with `T_sensor_object`, or (None) it let go and carries it no more."""
+
+    time_s: float
+    side: str
+    T_sensor_object: np.ndarray | None
+
+
 def fuse_holding(
     sensors: SensorPoses, grasps: dict[str, np.ndarray], holding: set[str], rows: np.ndarray | slice = slice(None)
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -117,7 +127,8 @@ class _Corrector:
         _ = model.kdtree  # built now, before the first frame, so that no live frame waits for it
         c = config.correction
         self.grasps = dict(touch.T_sensor_object)
-        self.open_grasps = dict(touch.T_sensor_object)  # the open loop's grasps (the divergence guard's anchor)
+        self.open_grasps = dict(touch.T_sensor_object)  # the open loop's grasps (the divergence guard's anchor; the
+        # output's open loop follows their changes, `open_changes`)
         self.unit = observable_unit(c)
         self.rate = np.zeros(6)  # slip per metre of travel (rad/m, m/m), object frame
         self.bias = np.zeros(6)  # the registrations' bias (rad, m)
@@ -150,6 +161,7 @@ class _Corrector:
         self.lifted: set[str] = set()  # ... and those without contact whose sensor left the object (`lifted_apart_m`):
         # while the other touches, it alone predicts the pose (a side letting go, its sensor withdrawing)
         self.touched_again: list[tuple[str, float]] = []  # (side, its frame's time) of each let-go side touching again
+        self.open_changes: list[OpenLoopChange] = []  # the open loop's grasps since the touch, as they changed
 
     def _initial_covariance(self) -> np.ndarray:
         """The filter's covariance at the touch: its pose's uncertainty and the slip rate's prior (the bias's is set
@@ -251,10 +263,11 @@ class _Corrector:
         """The tracked T_world_object (K, 4, 4) at the chosen rows of `sensors`, from the sides that hold it."""
         return fuse_holding(sensors, self.grasps, self.holding, rows)[0]
 
-    def let_go(self, side: str) -> None:
-        """`side` let go: from now on the other side's grasp alone carries the object (its own grasp still follows
-        the corrections, unused, until it touches again)."""
+    def let_go(self, side: str, since_s: float) -> None:
+        """`side` let go (its first frame without contact at `since_s`): from now on the other side's grasp alone
+        carries the object (its own grasp still follows the corrections, unused, until it touches again)."""
         self.gone.add(side)
+        self.open_changes.append(OpenLoopChange(since_s, side, None))
 
     def _apart(self, side: str, sensors: SensorPoses) -> bool:
         """Whether `side`'s grasp puts the object more than `lifted_apart_m` from where the other side's puts it, at
@@ -273,6 +286,7 @@ class _Corrector:
         self.grasps[side] = T_sensor_world @ self.fuse(sensors, slice(row, row + 1))[0]
         open_now = fuse_holding(sensors, self.open_grasps, self.holding, slice(row, row + 1))[0][0]
         self.open_grasps[side] = T_sensor_world @ open_now
+        self.open_changes.append(OpenLoopChange(stamp, side, self.open_grasps[side]))
         self.gone.discard(side)
         self.touch_press[side] = predicted_indentation_m(self.model, invert_transform(self.grasps[side]))
         self.rest_read.pop(side, None)

@@ -1,6 +1,6 @@
 """Letting go and grasping again: `ReleaseWatch` sees a release of both gels or one gel letting go on its own
 (`LetGo`); `_NewTouchSearch` makes a new touch after a release (`Regrasp`, through a `NewTouchEstimator`: the pose
-stage); `open_loop_poses` is the open loop carried by the sides that still hold.
+stage); `open_loop_poses` is the open loop carried by the sides that still hold, as the closed loop changed its grasps.
 
 When both gels stay without contact (`ReleaseWatch`: a few frames each, a fifth of a second), the object was let go:
 the grasp ends there, and the poses after it hold the last pose before it (`TrackResult.released_s`). Given the pose
@@ -25,7 +25,7 @@ from yoto.contacts import MIN_TACTILE_POINTS, SIDES, ContactPair, TactileContact
 from yoto.errors import InputError, YotoError
 from yoto.geometry import invert_transform
 from yoto.tracking.config import CorrectionConfig, TrackConfig
-from yoto.tracking.correction import Correction, fuse_holding
+from yoto.tracking.correction import Correction, OpenLoopChange, fuse_holding
 from yoto.tracking.fusion import SensorPoses, StreamJitter, sensor_poses
 from yoto.tracking.streams import TactileStream, felt_contact
 from yoto.tracking.touch import Touch, pose_distance_m
@@ -177,33 +177,30 @@ class _NewTouchSearch:
 
 
 def open_loop_poses(
-    sensors: SensorPoses, T_sensor_object: dict[str, np.ndarray], let_go: list[LetGo], rows: slice
+    sensors: SensorPoses, T_sensor_object: dict[str, np.ndarray], changes: list[OpenLoopChange], rows: slice
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The open loop (K, 4, 4) over `rows` from one touch's grasps where sides let go (`LetGo`, in time order), and
-    the sensors' weights (K, 2): from each side's `time_s` the other alone, and from its `touched_again_s` its grasp
-    the fused pose then in its live sensor pose."""
+    """The open loop (K, 4, 4) over `rows` from one touch's grasps as the closed loop changed them where sides let
+    go and touched again (`_Corrector.open_changes`), and the sensors' weights (K, 2): from a side's first frame
+    without contact the other alone, and from its frame touching again the grasp the closed loop took for it then
+    (the open-loop pose in its live sensor pose)."""
     times = sensors.timestamps_s
     first, last = rows.start or 0, len(times) if rows.stop is None else rows.stop
-    changes = sorted(
-        [(event.time_s, 0, event.side) for event in let_go]
-        + [(event.touched_again_s, 1, event.side) for event in let_go if event.touched_again_s is not None]
-    )
     grasps, holding = dict(T_sensor_object), set(SIDES)
     poses, weights = np.empty((last - first, 4, 4)), np.empty((last - first, len(SIDES)))
     row = first
-    for time_s, again, side in changes + [(np.inf, 0, "")]:
-        upto = int(np.clip(np.searchsorted(times, time_s - 1e-9), row, last))
+    ordered = sorted(changes, key=lambda change: (change.time_s, change.T_sensor_object is not None))
+    for change in [*ordered, OpenLoopChange(np.inf, "", None)]:
+        upto = int(np.clip(np.searchsorted(times, change.time_s - 1e-9), row, last))
         if upto > row:
             poses[row - first : upto - first], weights[row - first : upto - first] = fuse_holding(
                 sensors, grasps, holding, slice(row, upto)
             )
         row = upto
-        if not side:
+        if not change.side:
             break
-        if not again:
-            holding.discard(side)
-        elif row < last:
-            now = fuse_holding(sensors, grasps, holding, slice(row, row + 1))[0][0]
-            grasps[side] = invert_transform(sensors.T_world_sensor[side][row]) @ now
-            holding.add(side)
+        if change.T_sensor_object is None:
+            holding.discard(change.side)
+        else:
+            grasps[change.side] = change.T_sensor_object
+            holding.add(change.side)
     return poses, weights

@@ -173,7 +173,8 @@ def track(
     if model is None:
         raise ValueError("the closed loop registers tactile frames on the object: pass its model")
     times = sensors.timestamps_s
-    corrector = first = _Corrector(model, touch, streams, sensors.jitter, config)
+    corrector = _Corrector(model, touch, streams, sensors.jitter, config)
+    correctors = [corrector]  # each grasp's closed loop
     instants = group_frames(tactile, touch.time_s, config.correction.sync_tolerance_s)
     starts = np.searchsorted(times, [instant_time for instant_time, _ in instants], side="left")
     closed = np.empty_like(open_loop)
@@ -198,6 +199,7 @@ def track(
                 if begin >= len(times):
                     break
                 corrector = _Corrector(model, regrasp.touch, streams, sensors.jitter, config)
+                correctors.append(corrector)
                 open_loop[begin:], weights[begin:] = fuse_object_poses(
                     sensors, regrasp.touch.T_sensor_object, slice(begin, None)
                 )
@@ -216,7 +218,7 @@ def track(
             stamps = {side: float(tactile[side].timestamps_s[i]) for side, i in frames}
             released_s = release.saw(record, stamps)
             for event in release.let_go(stamps):  # the outputs since its first frame without contact: the other
-                corrector.let_go(event.side)  # side alone
+                corrector.let_go(event.side, event.time_s)  # side alone
                 grasp_let_go[-1].append(event)
                 since = int(np.searchsorted(times, event.time_s - 1e-9))
                 if since < begin:
@@ -246,15 +248,16 @@ def track(
     result.let_go = [event for events in grasp_let_go for event in events]
     touches = [grasp_touch for grasp_touch, _ in result.grasps()]
     grasp_starts = np.searchsorted(times, [grasp_touch.time_s - 1e-9 for grasp_touch in touches] + [np.inf])
-    for index, events in enumerate(grasp_let_go):  # the open loop carried by the sides that hold, grasp by grasp
-        if events:
+    for index, grasp_loop in enumerate(correctors):  # the open loop carried by the sides that hold, grasp by grasp
+        if grasp_loop.open_changes:
             rows = slice(int(grasp_starts[index]), int(grasp_starts[index + 1]))
-            open_loop[rows], weights[rows] = open_loop_poses(sensors, touches[index].T_sensor_object, events, rows)
+            changes = grasp_loop.open_changes
+            open_loop[rows], weights[rows] = open_loop_poses(sensors, touches[index].T_sensor_object, changes, rows)
     result.T_world_object = closed
     result.T_world_object_open_loop, result.sensor_weights = open_loop, weights
     result.pad_errors = corrector.pads
-    if first.pair_instants:
-        result.pinning = Pinning.of(first.pair_shared / first.pair_instants, first.unit)
+    if correctors[0].pair_instants:
+        result.pinning = Pinning.of(correctors[0].pair_shared / correctors[0].pair_instants, correctors[0].unit)
     return result
 
 
