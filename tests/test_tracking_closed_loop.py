@@ -15,8 +15,8 @@ from yoto.contacts import SIDES, read_contact_pair
 from yoto.geometry import invert_transform, rotation_angle_rad, transform_points
 from yoto.io import write_ply_points
 from yoto.simulate.trajectory import TrajectoryConfig, TrajectorySimulator, write_trajectories, write_trajectory
-from yoto.tracking import track as track_module
 from yoto.tracking.bench import contact_planes_at_truth, registration_at_truth, tactile_streams, truth_registrations
+from yoto.tracking.correction import ClosedLoop
 from yoto.tracking.evaluate import motion_interval, summarize_errors, tracking_errors
 from yoto.tracking.pad_error import PadErrorConfig
 from yoto.tracking.streams import TactileStream
@@ -812,13 +812,13 @@ def test_a_closed_loop_led_astray_is_re_anchored_on_what_the_frames_say(builtin_
         plain.T_world_object,
         track(touch, trajectory.streams, model, tactile_streams(trajectory), unguarded).T_world_object,
     )
-    predict = track_module._Corrector._predict
+    predict = ClosedLoop._predict
 
     def astray(self, sensors, now_s):
         predict(self, sensors, now_s)
         self._apply(np.array([0.0, 0.0, np.radians(3.0), 0.0, 0.0, 0.0]))
 
-    monkeypatch.setattr(track_module._Corrector, "_predict", astray)
+    monkeypatch.setattr(ClosedLoop, "_predict", astray)
     lost = track(touch, trajectory.streams, model, tactile_streams(trajectory), unguarded)
     guarded = track(touch, trajectory.streams, model, tactile_streams(trajectory))
     lost_deg = settled(trajectory, lost, lost.T_world_object)["settled"]["deg"]
@@ -857,7 +857,7 @@ def test_the_registrations_bias_follows_what_a_pad_map_changes_under_the_rest_co
     from yoto.geometry import twist_of_pose
     from yoto.registration import point_to_plane_gauss_newton
     from yoto.tracking.pad_error import PadError
-    from yoto.tracking.track import _Corrector, contact_samples, registration_solver
+    from yoto.tracking.track import contact_samples, registration_solver
 
     model = builtin_models["fruit"]
     config = TrackConfig()
@@ -872,7 +872,7 @@ def test_the_registrations_bias_follows_what_a_pad_map_changes_under_the_rest_co
     bump = 3e-5 * np.exp(-np.sum((nodes - centre) ** 2, axis=-1) / (2 * 0.002**2)) + 4e-3 * (nodes[..., 0] - centre[0])
     left.values = bump.reshape(-1)
 
-    corrector = _Corrector.__new__(_Corrector)
+    corrector = ClosedLoop.__new__(ClosedLoop)
     corrector.config, corrector.model, corrector.pads, corrector.bias = config, model, pads, np.zeros(6)
     corrector.rest_reference = {
         side: (samples[side], f.T_object_sensor_true, np.zeros(len(samples[side]))) for side, f in frames.items()

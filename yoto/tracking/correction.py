@@ -1,4 +1,4 @@
-"""The closed loop's filter: `_Corrector` takes tactile instants one by one and corrects the tracked grasps,
+"""The closed loop's filter: `ClosedLoop` takes tactile instants one by one and corrects the tracked grasps,
 each instant's record a `Correction`; `fuse_holding` is the object's pose from the sides that hold it.
 
 **Closed loop.** Slip moves the object in the gels, and the grasps drift with it. Each new tactile frame is a
@@ -88,7 +88,7 @@ class Correction:
 
 
 class OpenLoopChange(NamedTuple):
-    """A change of the open loop's grasps after the touch (`_Corrector.open_changes`): from `time_s` on, `side`
+    """A change of the open loop's grasps after the touch (`ClosedLoop.open_changes`): from `time_s` on, `side`
     carries the object with `T_sensor_object`, or (None) it let go and carries it no more."""
 
     time_s: float
@@ -107,7 +107,7 @@ def fuse_holding(
     return fuse_object_poses(sensors, grasps, rows)
 
 
-class _Corrector:
+class ClosedLoop:
     """The closed loop's state: the grasps, and a Kalman filter on (error, slip rate, measurement bias).
 
     Error-state filter: the grasps hold the current estimate; the state is the object-frame error of the grasps

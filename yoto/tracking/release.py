@@ -1,5 +1,5 @@
 """Letting go and grasping again: `ReleaseWatch` sees a release of both gels or one gel letting go on its own
-(`LetGo`); `_NewTouchSearch` makes a new touch after a release (`Regrasp`, through a `NewTouchEstimator`: the pose
+(`LetGo`); `NewTouchSearch` makes a new touch after a release (`Regrasp`, through a `NewTouchEstimator`: the pose
 stage); `open_loop_poses` is the open loop carried by the sides that still hold, as the closed loop changed its grasps.
 
 When both gels stay without contact (`ReleaseWatch`: a few frames each, a fifth of a second), the object was let go:
@@ -111,7 +111,7 @@ class ReleaseWatch:
         return out
 
 
-class _NewTouchSearch:
+class NewTouchSearch:
     """After a release: waits for both gels to touch again (`regrasp_frames` instants in a row with contact on both,
     each pressed deeper than a kiss) and estimates the object's pose from that pair; where the estimate is ambiguous,
     takes the hypothesis nearest the last tracked pose. Keeps why estimates were refused."""
@@ -180,7 +180,7 @@ def open_loop_poses(
     sensors: SensorPoses, T_sensor_object: dict[str, np.ndarray], changes: list[OpenLoopChange], rows: slice
 ) -> tuple[np.ndarray, np.ndarray]:
     """The open loop (K, 4, 4) over `rows` from one touch's grasps as the closed loop changed them where sides let
-    go and touched again (`_Corrector.open_changes`), and the sensors' weights (K, 2): from a side's first frame
+    go and touched again (`ClosedLoop.open_changes`), and the sensors' weights (K, 2): from a side's first frame
     without contact the other alone, and from its frame touching again the grasp the closed loop took for it then
     (the open-loop pose in its live sensor pose)."""
     times = sensors.timestamps_s

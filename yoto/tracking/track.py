@@ -33,7 +33,7 @@ from yoto.errors import InputError
 from yoto.objects.model import ObjectModel
 from yoto.registration import one_blas_thread
 from yoto.tracking.config import CorrectionConfig, TrackConfig
-from yoto.tracking.correction import Correction, _Corrector
+from yoto.tracking.correction import ClosedLoop, Correction
 from yoto.tracking.frame_registration import (
     contact_information,
     contact_samples,
@@ -45,7 +45,7 @@ from yoto.tracking.frame_registration import (
 from yoto.tracking.fusion import StreamJitter, fuse_object_poses, sensor_poses, smooth_stream, stream_jitter
 from yoto.tracking.pad_error import PadError
 from yoto.tracking.pinning import Pinning, Retouch, retouch, touch_pinning
-from yoto.tracking.release import LetGo, NewTouchEstimator, Regrasp, ReleaseWatch, _NewTouchSearch, open_loop_poses
+from yoto.tracking.release import LetGo, NewTouchEstimator, NewTouchSearch, Regrasp, ReleaseWatch, open_loop_poses
 from yoto.tracking.streams import TactileStream
 from yoto.tracking.touch import Touch, find_touch_time, touch_from_pair, touch_time_of
 from yoto.trajectory import PoseStream
@@ -173,7 +173,7 @@ def track(
     if model is None:
         raise ValueError("the closed loop registers tactile frames on the object: pass its model")
     times = sensors.timestamps_s
-    corrector = _Corrector(model, touch, streams, sensors.jitter, config)
+    corrector = ClosedLoop(model, touch, streams, sensors.jitter, config)
     correctors = [corrector]  # each grasp's closed loop
     instants = group_frames(tactile, touch.time_s, config.correction.sync_tolerance_s)
     starts = np.searchsorted(times, [instant_time for instant_time, _ in instants], side="left")
@@ -181,7 +181,7 @@ def track(
     open_loop, weights = open_loop.copy(), weights.copy()
     begin = 0  # the first output row not yet written
     grasp_let_go: list[list[LetGo]] = [[]]  # each grasp's sides that let go on their own
-    searching: _NewTouchSearch | None = None  # after a release, with `new_touch`: waiting for both gels again
+    searching: NewTouchSearch | None = None  # after a release, with `new_touch`: waiting for both gels again
     # Each instant's products are small (a few hundred points, the sliding map's few hundred nodes): on a busy
     # 2-core machine two BLAS threads waiting for each other made the closed loop 10-40x slower.
     release = ReleaseWatch(config.correction, tuple(tactile))
@@ -198,7 +198,7 @@ def track(
                 begin = int(np.searchsorted(times, regrasp.touch.time_s - 1e-9))
                 if begin >= len(times):
                     break
-                corrector = _Corrector(model, regrasp.touch, streams, sensors.jitter, config)
+                corrector = ClosedLoop(model, regrasp.touch, streams, sensors.jitter, config)
                 correctors.append(corrector)
                 open_loop[begin:], weights[begin:] = fuse_object_poses(
                     sensors, regrasp.touch.T_sensor_object, slice(begin, None)
@@ -239,7 +239,7 @@ def track(
             result.frames_after_release = sum(len(later) for _, later in instants[number + 1 :])
             if new_touch is None:
                 break
-            searching = _NewTouchSearch(new_touch, config, streams, sensors.jitter)
+            searching = NewTouchSearch(new_touch, config, streams, sensors.jitter)
         else:
             if begin < len(closed) and searching is None:
                 closed[begin:] = corrector.fuse(sensors, slice(begin, None))
