@@ -1,5 +1,5 @@
 """The closed loop's filter: `ClosedLoop` takes tactile instants one by one and corrects the tracked grasps,
-each instant's record a `Correction`; `fuse_holding` is the object's pose from the sides that hold it.
+each instant's record a `Correction`.
 
 **Closed loop.** Slip moves the object in the gels, and the grasps drift with it. Each new tactile frame is a
 measurement of where the object really is: its points, mapped into the object frame through the live sensor pose
@@ -37,7 +37,6 @@ points in their sensor's frame until mapped through the live sensor pose and the
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -60,7 +59,7 @@ from yoto.tracking.frame_registration import (
     registration_prior,
     registration_solver,
 )
-from yoto.tracking.fusion import SensorPoses, StreamJitter, fuse_object_poses, sensor_poses
+from yoto.tracking.fusion import SensorPoses, StreamJitter, fuse_holding, sensor_poses
 from yoto.tracking.pad_error import PadError
 from yoto.tracking.streams import TactileStream, felt_contact
 from yoto.tracking.touch import Touch, pose_distance_m
@@ -94,17 +93,6 @@ class OpenLoopChange(NamedTuple):
     time_s: float
     side: str
     T_sensor_object: np.ndarray | None
-
-
-def fuse_holding(
-    sensors: SensorPoses, grasps: dict[str, np.ndarray], holding: set[str], rows: np.ndarray | slice = slice(None)
-) -> tuple[np.ndarray, np.ndarray]:
-    """`fuse_object_poses` (poses and sensor weights at the chosen rows) from the sensors that hold the object: a
-    side that let go carries it no more, as if its stream had no pose there."""
-    if len(holding) < len(SIDES):
-        covered = {side: sensors.covered[side] & (side in holding) for side in SIDES}
-        sensors = dataclasses.replace(sensors, covered=covered)
-    return fuse_object_poses(sensors, grasps, rows)
 
 
 class ClosedLoop:

@@ -25,8 +25,8 @@ from yoto.contacts import MIN_TACTILE_POINTS, SIDES, ContactPair, TactileContact
 from yoto.errors import InputError, YotoError
 from yoto.geometry import invert_transform
 from yoto.tracking.config import CorrectionConfig, TrackConfig
-from yoto.tracking.correction import Correction, OpenLoopChange, fuse_holding
-from yoto.tracking.fusion import SensorPoses, StreamJitter, sensor_poses
+from yoto.tracking.correction import Correction, OpenLoopChange
+from yoto.tracking.fusion import SensorPoses, StreamJitter, fuse_holding, sensor_poses
 from yoto.tracking.streams import TactileStream, felt_contact
 from yoto.tracking.touch import Touch, pose_distance_m
 from yoto.trajectory import PoseStream
