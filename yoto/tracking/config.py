@@ -1,6 +1,6 @@
-"""How the track is set: `TrackConfig` (the open loop's fusion, the touch's checks, the re-touch advice) and its
-closed loop's `CorrectionConfig` (frame sampling, registration, the filter, the pads' errors, the divergence guard,
-release and regrasp).
+"""How the track is set: `TrackConfig` (the open loop's fusion, the touch's checks, the re-touch advice), its
+closed loop's `CorrectionConfig` (frame sampling, registration, the filter, the pads' errors, the divergence guard)
+and `ReleaseConfig` (a release, one gel letting go, a new touch after a release).
 
 Lengths in metres, angles in radians; directions are the canonical `object` frame's (origin at the centroid).
 """
@@ -85,6 +85,12 @@ class CorrectionConfig:
     # frames read that shallow (median) is left out of the motion too: it misreads this contact's shape (0.5 also
     # drops the cracker box's left pad through `shading:3`, 0.42 of its press, whose track met the target)
     shallow_gap_m: float = 0.001  # (the reported sensor poses put the sensors' distance a few tenths off)
+
+
+@dataclass(frozen=True)
+class ReleaseConfig:
+    """When the object is let go (a release, one gel letting go), and when a new touch follows (`release.py`)."""
+
     release_frames: int = 5  # the object is released (let go) when, after contact, both sensors' frames show no
     release_s: float = 0.2  # contact (too few points) for at least this many frames each, over at least this long:
     # the track ends there (a lift-off of one side, or both for a few frames, keeps the prediction); 0 frames: off.
@@ -103,6 +109,7 @@ class TrackConfig:
 
     fusion: FusionConfig = FusionConfig()
     correction: CorrectionConfig = CorrectionConfig()
+    release: ReleaseConfig = ReleaseConfig()
     touch_mismatch_warning_m: float = 0.005  # warn when the streams never come this close to the pair's sensor poses
     min_touch_confidence: float = 0.5  # warn when the touch's pose is less likely than this to be right
     weak_pinning_warning: float = 1.0  # warn when the two contacts pin a direction of the pose only this loosely

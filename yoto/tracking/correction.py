@@ -265,7 +265,7 @@ class ClosedLoop:
             return False
         here = sensors.T_world_sensor[side][-1] @ self.grasps[side]
         there = sensors.T_world_sensor[other][-1] @ self.grasps[other]
-        return bool(pose_distance_m(here, there[None])[0] > self.config.correction.lifted_apart_m)
+        return bool(pose_distance_m(here, there[None])[0] > self.config.release.lifted_apart_m)
 
     def _touch_again(self, side: str, row: int, sensors: SensorPoses, stamp: float) -> None:
         """A side that had let go touches again: its grasps (closed and open loop) are the object's pose now, from

@@ -24,7 +24,7 @@ import numpy as np
 from yoto.contacts import MIN_TACTILE_POINTS, SIDES, ContactPair, TactileContact
 from yoto.errors import InputError, YotoError
 from yoto.geometry import invert_transform
-from yoto.tracking.config import CorrectionConfig, TrackConfig
+from yoto.tracking.config import ReleaseConfig, TrackConfig
 from yoto.tracking.correction import Correction, OpenLoopChange
 from yoto.tracking.fusion import SensorPoses, StreamJitter, fuse_holding, sensor_poses
 from yoto.tracking.streams import TactileStream, felt_contact
@@ -69,7 +69,7 @@ class ReleaseWatch:
     left out as a bad fit or a shallow read) shows contact. Needs frames of both sensors: without one side's,
     nothing says that side let go."""
 
-    def __init__(self, config: CorrectionConfig, sides: tuple[str, ...]):
+    def __init__(self, config: ReleaseConfig, sides: tuple[str, ...]):
         self.frames, self.span_s = config.release_frames, config.release_s
         self.watching = config.release_frames > 0 and set(sides) >= set(SIDES)
         self.touched = False  # a frame with contact seen since the touch
@@ -131,7 +131,7 @@ class NewTouchSearch:
         self, instant_s: float, frames: dict[str, tuple[TactileStream, int]], last_pose: np.ndarray
     ) -> Regrasp | None:
         """Take one instant; the new touch when it makes one."""
-        if len(frames) < len(SIDES) or len(self.refused) >= self.config.correction.regrasp_attempts:
+        if len(frames) < len(SIDES) or len(self.refused) >= self.config.release.regrasp_attempts:
             return None  # a lone frame neither counts nor breaks the run
         clouds = {}
         for side, (stream, index) in frames.items():
@@ -145,7 +145,7 @@ class NewTouchSearch:
                 return None
             clouds[side] = (float(stream.timestamps_s[index]), points)
         self.run += 1
-        if self.run < self.config.correction.regrasp_frames:
+        if self.run < self.config.release.regrasp_frames:
             return None
         stamps = np.array([stamp for stamp, _ in clouds.values()])
         sensors = sensor_poses(self.streams, stamps, self.config.fusion, self.jitter)

@@ -184,7 +184,7 @@ def track(
     searching: NewTouchSearch | None = None  # after a release, with `new_touch`: waiting for both gels again
     # Each instant's products are small (a few hundred points, the sliding map's few hundred nodes): on a busy
     # 2-core machine two BLAS threads waiting for each other made the closed loop 10-40x slower.
-    release = ReleaseWatch(config.correction, tuple(tactile))
+    release = ReleaseWatch(config.release, tuple(tactile))
     with one_blas_thread():
         for number, ((instant_time, frames), start) in enumerate(zip(instants, starts, strict=True)):
             instant_frames = {side: (tactile[side], i) for side, i in frames}
@@ -203,7 +203,7 @@ def track(
                 open_loop[begin:], weights[begin:] = fuse_object_poses(
                     sensors, regrasp.touch.T_sensor_object, slice(begin, None)
                 )
-                release, searching = ReleaseWatch(config.correction, tuple(tactile)), None
+                release, searching = ReleaseWatch(config.release, tuple(tactile)), None
                 grasp_let_go.append([])
                 continue
             if start > begin:  # the outputs before this instant follow the grasps as they were
