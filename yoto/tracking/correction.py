@@ -140,7 +140,8 @@ class ClosedLoop:
         # pad's error removed from them as the bias now holds it (`bias_follows_pads`)
         self.rest_reference: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self.travel_m = 0.0  # the sensors' travel since the touch (rotation counted at `turn_radius_m`)
-        self.guard_wait = 0  # instants until the divergence guard may check again
+        self.guard_wait = 0  # applied instants the divergence guard still skips ...
+        self.guard_next_s = -np.inf  # ... and the time before which it does not check again
         self.pair_shared, self.pair_instants = np.zeros((6, 6)), 0  # the shared-error information summed over the
         # applied two-contact instants, and their count (`TrackResult.pinning`)
         self.unpinned: np.ndarray | None = None  # (K, 6) orthonormal directions (observable units) the guard found
@@ -185,8 +186,21 @@ class ClosedLoop:
         )
         return float(np.sum(slip**2 / variance)) > c.guard_bound
 
+    def _guard_due(self, instant_s: float) -> bool:
+        """Whether the divergence guard checks at this applied instant (at `instant_s`): the tracked slip beyond the
+        slip model, the last check `guard_every_s` and `guard_every` applied instants back at least."""
+        c = self.config.correction
+        if self.guard_wait > 0 or instant_s < self.guard_next_s - 1e-9:
+            self.guard_wait = max(self.guard_wait - 1, 0)
+            return False
+        if not self._slip_beyond_model():
+            return False
+        self.guard_wait, self.guard_next_s = c.guard_every, instant_s + c.guard_every_s
+        return True
+
     def _guard(
         self,
+        instant_s: float,
         sensors: SensorPoses,
         rows: dict[str, int],
         points_sensor: dict[str, np.ndarray],
@@ -197,14 +211,10 @@ class ClosedLoop:
         closed loop's registration and stay near it, the evidence never asked for the departure (a direction the
         contacts barely pin, followed by the slip rate): re-anchor the loop on that fit, the slip rate back to its
         prior. A real pivot the frames see fits worse from open loop, or leads that fit away from it, and is kept.
-        Returns "" (no check), "kept" or "re-anchored"."""
+        Returns "" (no check, `_guard_due`), "kept" or "re-anchored"."""
         c = self.config.correction
-        if self.guard_wait > 0:
-            self.guard_wait -= 1
+        if not self._guard_due(instant_s):
             return ""
-        if not self._slip_beyond_model():
-            return ""
-        self.guard_wait = c.guard_every
         predicted = self.fuse(sensors)  # after this instant's update
         open_loop = fuse_holding(sensors, self.open_grasps, self.holding)[0]
         closed, opened, facing = [], [], {}
@@ -431,7 +441,7 @@ class ClosedLoop:
                     record.sigma_rad = float(np.sqrt(np.linalg.eigvalsh(error[:3, :3])[-1]))
                     record.sigma_m = float(np.sqrt(np.linalg.eigvalsh(error[3:, 3:])[-1]))
                     record.guard = self._guard(
-                        sensors, rows, {side: points_sensor[side] for side in record.used}, fractions
+                        instant_s, sensors, rows, {side: points_sensor[side] for side in record.used}, fractions
                     )
                     if self.pads and (self.moving or not c.pad_error.rest_map):  # what the registered frames leave
                         for side in record.used:  # unexplained teaches the pads' sliding maps

@@ -62,7 +62,7 @@ NewTouchEstimator = Callable[[ContactPair], Any]
 
 class ReleaseWatch:
     """Sees the object let go: after a frame with contact, both sensors' frames show none ("too few points": the
-    gel flat) for at least `release_frames` frames each and `release_s` from each side's first such frame. One side
+    gel flat) for at least `release_s` from each side's first such frame, in at least `release_frames` frames. One side
     alone without contact as long, while the other's latest frame touches, let go on its own (`let_go`): the other
     holds the object. A side lifting off for less, or both for a moment, is neither (the closed loop keeps its
     prediction through it). A frame that could not be read neither counts nor breaks a stretch; any other (used, or
@@ -112,9 +112,10 @@ class ReleaseWatch:
 
 
 class NewTouchSearch:
-    """After a release: waits for both gels to touch again (`regrasp_frames` instants in a row with contact on both,
-    each pressed deeper than a kiss) and estimates the object's pose from that pair; where the estimate is ambiguous,
-    takes the hypothesis nearest the last tracked pose. Keeps why estimates were refused."""
+    """After a release: waits for both gels to touch again (contact on both, each pressed deeper than a kiss, in every
+    instant over `regrasp_s`, at least `regrasp_frames` instants in a row) and estimates the object's pose from that
+    pair; where the estimate is ambiguous, takes the hypothesis nearest the last tracked pose. Keeps why estimates
+    were refused."""
 
     def __init__(
         self,
@@ -124,7 +125,8 @@ class NewTouchSearch:
         jitter: dict[str, StreamJitter],
     ):
         self.estimate, self.config, self.streams, self.jitter = estimate, config, streams, jitter
-        self.run = 0  # instants in a row with both gels touching
+        self.run = 0  # instants in a row with both gels touching ...
+        self.run_from_s = 0.0  # ... since this one's time
         self.refused: list[str] = []
 
     def saw(
@@ -144,8 +146,11 @@ class NewTouchSearch:
                 self.run = 0
                 return None
             clouds[side] = (float(stream.timestamps_s[index]), points)
+        if self.run == 0:
+            self.run_from_s = instant_s
         self.run += 1
-        if self.run < self.config.release.regrasp_frames:
+        settled = instant_s - self.run_from_s >= self.config.release.regrasp_s - 1e-9
+        if self.run < self.config.release.regrasp_frames or not settled:
             return None
         stamps = np.array([stamp for stamp, _ in clouds.values()])
         sensors = sensor_poses(self.streams, stamps, self.config.fusion, self.jitter)
