@@ -13,8 +13,8 @@ touch the pose stage's with the benchmark's localizer; both are simulated once a
 ~60 MB a trajectory, ~5 CPU s each to simulate and localize), so later runs only track (~2 CPU s a trajectory).
 The cache is not keyed by code: empty it when the simulator or the pose stage changes. Tracking is done by the
 working tree's code (`yoto.tracking.track`, its default `TrackConfig`; `--correction NAME=VALUE` overrides a
-`CorrectionConfig` field, `pad_error.NAME=VALUE` a `PadErrorConfig` one; `--fusion NAME=VALUE` a `FusionConfig`
-one), BLAS on one thread.
+`CorrectionConfig` field, `pad_error.NAME=VALUE` a `PadErrorConfig` one, a `ReleaseConfig` field's name that one;
+`--fusion NAME=VALUE` a `FusionConfig` one), BLAS on one thread.
 
 Printed, over the trajectories whose touch was right (within 5 mm and 5 deg):
 - meets: settled drift under 0.5 mm and 0.5 deg (the issue's target: the drift is counted from the last frame
@@ -106,6 +106,7 @@ from yoto.tracking.bench import (  # noqa: E402
     touch_estimate,
     truth_registrations,
 )
+from yoto.tracking.config import ReleaseConfig  # noqa: E402
 from yoto.tracking.evaluate import (  # noqa: E402
     final_drift_twist,
     motion_interval,
@@ -196,6 +197,7 @@ def same_path(again: Any, trajectory: Any, job: tuple[int, str, int, int]) -> An
     return dataclasses.replace(again, touch=trajectory.touch, touch_time_s=trajectory.touch_time_s)
 
 
+RELEASE_FIELDS = {field.name for field in dataclasses.fields(ReleaseConfig)}  # `--correction` takes these too
 NOISE_FIELDS = {"bias": "bias_std_m", "scale": "scale_std", "pixel": "pixel_std_m"}  # --without -> the press's noise
 
 
@@ -284,8 +286,8 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
         trajectory = via_images(trajectory, job, args)
     touch = touch_from_pair(trajectory.touch.pair, T_touch, trajectory.touch_time_s, "simulated")
     config = TrackBenchConfig().track
-    if args.correction:  # CorrectionConfig fields overridden, NAME=VALUE (a Python literal; pad_error.NAME too)
-        correction = config.correction
+    if args.correction:  # CorrectionConfig fields overridden, NAME=VALUE (a Python literal; pad_error.NAME too, and
+        correction, release = config.correction, config.release  # ReleaseConfig's, once CorrectionConfig's)
         for item in args.correction:
             field_name, value = item.split("=", 1)
             if field_name.startswith("pad_error."):
@@ -293,9 +295,11 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
                 correction = dataclasses.replace(
                     correction, pad_error=dataclasses.replace(correction.pad_error, **changed)
                 )
+            elif field_name in RELEASE_FIELDS:
+                release = dataclasses.replace(release, **{field_name: ast.literal_eval(value)})
             else:
                 correction = dataclasses.replace(correction, **{field_name: ast.literal_eval(value)})
-        config = dataclasses.replace(config, correction=correction)
+        config = dataclasses.replace(config, correction=correction, release=release)
     if args.fusion:  # FusionConfig fields overridden, NAME=VALUE
         changed = {item.split("=", 1)[0]: ast.literal_eval(item.split("=", 1)[1]) for item in args.fusion}
         config = dataclasses.replace(config, fusion=dataclasses.replace(config.fusion, **changed))
@@ -734,7 +738,9 @@ def main() -> None:
     parser.add_argument("--workspace", default="yoto_workspace", help="workspace holding the object models")
     parser.add_argument("--meshes", default=MESHES, help="folder of the shared meshes (NAME/NAME.ply)")
     parser.add_argument("--jobs", type=int, default=1, help="processes (each track's CPU time is its own)")
-    parser.add_argument("--correction", nargs="*", help="CorrectionConfig fields overridden: NAME=VALUE")
+    parser.add_argument(
+        "--correction", nargs="*", help="CorrectionConfig (or ReleaseConfig) fields overridden: NAME=VALUE"
+    )
     parser.add_argument("--fusion", nargs="*", help="FusionConfig fields overridden: NAME=VALUE")
     parser.add_argument("--build-only", action="store_true", help="simulate and cache, do not track")
     parser.add_argument(

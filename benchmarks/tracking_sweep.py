@@ -156,7 +156,9 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=1, help="processes (each track's CPU time is its own)")
     parser.add_argument("--variants", nargs="*", choices=sorted(VARIANTS), help="only these variants (default: all)")
     parser.add_argument("--objects", nargs="*", help="only these objects of the set")
-    parser.add_argument("--correction", nargs="*", help="CorrectionConfig fields overridden: NAME=VALUE")
+    parser.add_argument(
+        "--correction", nargs="*", help="CorrectionConfig (or ReleaseConfig) fields overridden: NAME=VALUE"
+    )
     parser.add_argument("--fusion", nargs="*", help="FusionConfig fields overridden: NAME=VALUE")
     parser.add_argument("--out", help="JSON of every track's figures")
     parser.add_argument("--records", nargs="+", help="report earlier --out files again, together")

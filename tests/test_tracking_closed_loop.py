@@ -15,8 +15,8 @@ from yoto.contacts import SIDES, read_contact_pair
 from yoto.geometry import invert_transform, rotation_angle_rad, transform_points
 from yoto.io import write_ply_points
 from yoto.simulate.trajectory import TrajectoryConfig, TrajectorySimulator, write_trajectories, write_trajectory
-from yoto.tracking import track as track_module
 from yoto.tracking.bench import contact_planes_at_truth, registration_at_truth, tactile_streams, truth_registrations
+from yoto.tracking.correction import ClosedLoop
 from yoto.tracking.evaluate import motion_interval, summarize_errors, tracking_errors
 from yoto.tracking.pad_error import PadErrorConfig
 from yoto.tracking.streams import TactileStream
@@ -812,13 +812,13 @@ def test_a_closed_loop_led_astray_is_re_anchored_on_what_the_frames_say(builtin_
         plain.T_world_object,
         track(touch, trajectory.streams, model, tactile_streams(trajectory), unguarded).T_world_object,
     )
-    predict = track_module._Corrector._predict
+    predict = ClosedLoop._predict
 
     def astray(self, sensors, now_s):
         predict(self, sensors, now_s)
         self._apply(np.array([0.0, 0.0, np.radians(3.0), 0.0, 0.0, 0.0]))
 
-    monkeypatch.setattr(track_module._Corrector, "_predict", astray)
+    monkeypatch.setattr(ClosedLoop, "_predict", astray)
     lost = track(touch, trajectory.streams, model, tactile_streams(trajectory), unguarded)
     guarded = track(touch, trajectory.streams, model, tactile_streams(trajectory))
     lost_deg = settled(trajectory, lost, lost.T_world_object)["settled"]["deg"]
@@ -857,7 +857,7 @@ def test_the_registrations_bias_follows_what_a_pad_map_changes_under_the_rest_co
     from yoto.geometry import twist_of_pose
     from yoto.registration import point_to_plane_gauss_newton
     from yoto.tracking.pad_error import PadError
-    from yoto.tracking.track import _Corrector, contact_samples, registration_solver
+    from yoto.tracking.track import contact_samples, registration_solver
 
     model = builtin_models["fruit"]
     config = TrackConfig()
@@ -872,7 +872,7 @@ def test_the_registrations_bias_follows_what_a_pad_map_changes_under_the_rest_co
     bump = 3e-5 * np.exp(-np.sum((nodes - centre) ** 2, axis=-1) / (2 * 0.002**2)) + 4e-3 * (nodes[..., 0] - centre[0])
     left.values = bump.reshape(-1)
 
-    corrector = _Corrector.__new__(_Corrector)
+    corrector = ClosedLoop.__new__(ClosedLoop)
     corrector.config, corrector.model, corrector.pads, corrector.bias = config, model, pads, np.zeros(6)
     corrector.rest_reference = {
         side: (samples[side], f.T_object_sensor_true, np.zeros(len(samples[side]))) for side, f in frames.items()
@@ -1053,3 +1053,65 @@ def test_clouds_of_the_whole_pad_are_tracked_as_their_contact(builtin_models):
         for side in SIDES
     }
     assert track(touch, whole.streams, model, tactile).released_s == released_s
+
+
+def test_a_release_and_a_let_go_are_a_fifth_of_a_second_not_five_frames_at_15_fps():
+    """`ReleaseConfig.release_s`: at 15 fps both gels without contact for 4 frames (0.2 s from the first) are a
+    release, seen at that 4th frame (five frames, 0.27 s, under the rule that counted frames); one gel as long while
+    the other touches has let go; 3 frames (0.13 s) are a lift-off."""
+    from yoto.tracking.config import ReleaseConfig
+    from yoto.tracking.correction import Correction
+    from yoto.tracking.release import ReleaseWatch
+
+    def watched(flat: dict[str, range]) -> tuple[list[tuple[float, float]], list[tuple[str, float, float]]]:
+        watch, released, let_go = ReleaseWatch(ReleaseConfig(), SIDES), [], []
+        for frame in range(12):
+            stamps = {side: 1.0 + frame / 15.0 for side in SIDES}
+            unusable = {side: "too few points (0)" for side in SIDES if frame in flat[side]}
+            record = Correction(stamps["left"], tuple(side for side in SIDES if side not in unusable), unusable)
+            released_s = watch.saw(record, stamps)
+            if released_s is not None and not released:
+                released.append((released_s, stamps["left"]))
+            let_go += [(event.side, event.time_s, event.seen_s) for event in watch.let_go(stamps)]
+        return released, let_go
+
+    after_3 = (pytest.approx(1.2), pytest.approx(1.4))  # (the first frame without contact, the one that made it)
+    assert watched({"left": range(3, 12), "right": range(3, 12)}) == ([after_3], [])
+    assert watched({"left": range(0), "right": range(3, 12)}) == ([], [("right", *after_3)])
+    assert watched({"left": range(3, 6), "right": range(3, 6)}) == ([], [])
+
+
+def test_a_new_touch_waits_for_the_press_to_settle_in_time_at_60_fps(fruit_trajectory):
+    """`ReleaseConfig.regrasp_s`: after a release, both gels touching make a new touch once they have touched in
+    every instant for 0.08 s: at 60 fps the 6th instant (the rule that counted 3 instants took the 3rd, 0.03 s after
+    the first). Each refused estimate starts the wait again; 3 refusals end the search."""
+    from yoto.errors import InputError
+    from yoto.tracking.fusion import stream_jitter
+    from yoto.tracking.release import NewTouchSearch
+
+    trajectory = fruit_trajectory
+    clouds = {side: next(f.points_sensor for f in trajectory.tactile[side] if len(f.points_sensor)) for side in SIDES}
+    times = trajectory.touch_time_s + 0.1 + np.arange(24) / 60.0
+    tactile = {side: TactileStream(times, lambda i, side=side: clouds[side]) for side in SIDES}
+    jitter = {side: stream_jitter(trajectory.streams[side]) for side in SIDES}
+
+    def refuse(pair):
+        raise InputError("refused")
+
+    search = NewTouchSearch(refuse, TrackConfig(), trajectory.streams, jitter)
+    for index, time_s in enumerate(times):
+        assert search.saw(float(time_s), {side: (tactile[side], index) for side in SIDES}, np.eye(4)) is None
+    refused_at = [float(reason.split(" s:")[0]) for reason in search.refused]
+    assert refused_at == pytest.approx([times[5], times[11], times[17]], abs=6e-4)
+
+
+def test_the_divergence_guard_checks_a_quarter_second_apart_whatever_the_frame_rate():
+    """`CorrectionConfig.guard_every_s`: while the slip stays beyond the model, the guard checks every 0.24 s: at
+    25 fps every 6th instant (as the rule that skipped 5 instants did), at 60 fps every 15th (not every 6th, 0.1 s)
+    and at 15 fps every 4th (not every 6th, 0.4 s)."""
+    loop = ClosedLoop.__new__(ClosedLoop)
+    loop._slip_beyond_model = lambda: True  # type: ignore[method-assign]
+    for rate, every in ((25.0, 6), (60.0, 15), (15.0, 4)):
+        loop.config, loop.guard_wait, loop.guard_next_s = TrackConfig(), 0, -np.inf
+        due = [instant for instant in range(40) if loop._guard_due(1.0 + instant / rate)]
+        assert due == list(range(0, 40, every))

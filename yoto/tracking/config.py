@@ -1,6 +1,6 @@
-"""How the track is set: `TrackConfig` (the open loop's fusion, the touch's checks, the re-touch advice) and its
-closed loop's `CorrectionConfig` (frame sampling, registration, the filter, the pads' errors, the divergence guard,
-release and regrasp).
+"""How the track is set: `TrackConfig` (the open loop's fusion, the touch's checks, the re-touch advice), its
+closed loop's `CorrectionConfig` (frame sampling, registration, the filter, the pads' errors, the divergence guard)
+and `ReleaseConfig` (a release, one gel letting go, a new touch after a release).
 
 Lengths in metres, angles in radians; directions are the canonical `object` frame's (origin at the centroid).
 """
@@ -71,7 +71,9 @@ class CorrectionConfig:
     # its inlier share), the frames never asked for the departure: the loop re-anchors on that fit
     guard_support_fraction: float = 0.5  # ... and stay there: the fit moves the pose less than this share of the
     # departure (observable units); frames that see a real pivot lead it away from the open loop
-    guard_every: int = 5  # instants between two such checks while the slip stays beyond the bound
+    guard_every_s: float = 0.24  # while the slip stays beyond the bound, such checks at least this long apart ...
+    guard_every: int = 1  # ... and at least this many applied instants between them (0.24 s: 6 instants at 25 fps,
+    # what 5 instants between checks gave there; at other frame rates the same time between checks, not a frame count)
     secant_directions: int = 3  # an instant's information (both contacts; a lone contact's own rule is above) is
     # checked along its this many weakest directions (observable units): its points re-matched to the surface at
     # +-`secant_step` there, the cost's actual rise against the planes' prediction; where the surface rises less (a
@@ -85,15 +87,25 @@ class CorrectionConfig:
     # frames read that shallow (median) is left out of the motion too: it misreads this contact's shape (0.5 also
     # drops the cracker box's left pad through `shading:3`, 0.42 of its press, whose track met the target)
     shallow_gap_m: float = 0.001  # (the reported sensor poses put the sensors' distance a few tenths off)
-    release_frames: int = 5  # the object is released (let go) when, after contact, both sensors' frames show no
-    release_s: float = 0.2  # contact (too few points) for at least this many frames each, over at least this long:
-    # the track ends there (a lift-off of one side, or both for a few frames, keeps the prediction); 0 frames: off.
-    # One side alone without contact as long, the other touching, let go: the other carries the object alone
+
+
+@dataclass(frozen=True)
+class ReleaseConfig:
+    """When the object is let go (a release, one gel letting go), and when a new touch follows (`release.py`)."""
+
+    release_s: float = 0.2  # the object is released (let go) when, after contact, both sensors' frames show no
+    # contact (too few points) for at least this long each (from each side's first such frame to its latest) ...
+    release_frames: int = 3  # ... in at least this many frames each (a floor for slow cameras; 0: off): the track
+    # ends there (a lift-off of one side, or both for a moment, keeps the prediction). One side alone without contact
+    # as long, the other touching, let go: the other carries the object alone. A duration, not a frame count: at
+    # 25 fps 0.2 s takes 6 frames, at 15 fps 4, at 60 fps 13
     lifted_apart_m: float = 0.002  # a side whose frame shows no contact and whose grasp puts the object this far
     # from where the other side's puts it (position plus 50 mm per radian) predicts nothing until it touches again:
     # its sensor is leaving the object (a lift-off in place, the sides agreeing, keeps both)
-    regrasp_frames: int = 3  # after a release, both gels touching in this many instants in a row make a new touch
-    # (its pose estimated from the latest pair: the press has settled), when `track` is given a `NewTouchEstimator`
+    regrasp_s: float = 0.08  # after a release, both gels touching in every instant over this long (the first such
+    # instant to the latest) ...
+    regrasp_frames: int = 2  # ... and in at least this many instants make a new touch (its pose estimated from the
+    # latest pair: the press has settled), when `track` is given a `NewTouchEstimator` (0.08 s: 3 instants at 25 fps)
     regrasp_attempts: int = 3  # new touches whose estimate was refused before the track stops looking until the end
 
 
@@ -103,6 +115,7 @@ class TrackConfig:
 
     fusion: FusionConfig = FusionConfig()
     correction: CorrectionConfig = CorrectionConfig()
+    release: ReleaseConfig = ReleaseConfig()
     touch_mismatch_warning_m: float = 0.005  # warn when the streams never come this close to the pair's sensor poses
     min_touch_confidence: float = 0.5  # warn when the touch's pose is less likely than this to be right
     weak_pinning_warning: float = 1.0  # warn when the two contacts pin a direction of the pose only this loosely

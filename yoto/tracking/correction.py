@@ -1,5 +1,5 @@
-"""The closed loop's filter: `_Corrector` takes tactile instants one by one and corrects the tracked grasps,
-each instant's record a `Correction`; `fuse_holding` is the object's pose from the sides that hold it.
+"""The closed loop's filter: `ClosedLoop` takes tactile instants one by one and corrects the tracked grasps,
+each instant's record a `Correction`.
 
 **Closed loop.** Slip moves the object in the gels, and the grasps drift with it. Each new tactile frame is a
 measurement of where the object really is: its points, mapped into the object frame through the live sensor pose
@@ -37,9 +37,9 @@ points in their sensor's frame until mapped through the live sensor pose and the
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -59,7 +59,7 @@ from yoto.tracking.frame_registration import (
     registration_prior,
     registration_solver,
 )
-from yoto.tracking.fusion import SensorPoses, StreamJitter, fuse_object_poses, sensor_poses
+from yoto.tracking.fusion import SensorPoses, StreamJitter, fuse_holding, sensor_poses
 from yoto.tracking.pad_error import PadError
 from yoto.tracking.streams import TactileStream, felt_contact
 from yoto.tracking.touch import Touch, pose_distance_m
@@ -86,18 +86,16 @@ class Correction:
     indentation_m: dict[str, float] = field(default_factory=dict)  # side -> how deep its frame read the press
 
 
-def fuse_holding(
-    sensors: SensorPoses, grasps: dict[str, np.ndarray], holding: set[str], rows: np.ndarray | slice = slice(None)
-) -> tuple[np.ndarray, np.ndarray]:
-    """`fuse_object_poses` (poses and sensor weights at the chosen rows) from the sensors that hold the object: a
-    side that let go carries it no more, as if its stream had no pose there."""
-    if len(holding) < len(SIDES):
-        covered = {side: sensors.covered[side] & (side in holding) for side in SIDES}
-        sensors = dataclasses.replace(sensors, covered=covered)
-    return fuse_object_poses(sensors, grasps, rows)
+class OpenLoopChange(NamedTuple):
+    """A change of the open loop's grasps after the touch (`ClosedLoop.open_changes`): from `time_s` on, `side`
+    carries the object with `T_sensor_object`, or (None) it let go and carries it no more."""
+
+    time_s: float
+    side: str
+    T_sensor_object: np.ndarray | None
 
 
-class _Corrector:
+class ClosedLoop:
     """The closed loop's state: the grasps, and a Kalman filter on (error, slip rate, measurement bias).
 
     Error-state filter: the grasps hold the current estimate; the state is the object-frame error of the grasps
@@ -117,7 +115,8 @@ class _Corrector:
         _ = model.kdtree  # built now, before the first frame, so that no live frame waits for it
         c = config.correction
         self.grasps = dict(touch.T_sensor_object)
-        self.open_grasps = dict(touch.T_sensor_object)  # the open loop's grasps (the divergence guard's anchor)
+        self.open_grasps = dict(touch.T_sensor_object)  # the open loop's grasps (the divergence guard's anchor; the
+        # output's open loop follows their changes, `open_changes`)
         self.unit = observable_unit(c)
         self.rate = np.zeros(6)  # slip per metre of travel (rad/m, m/m), object frame
         self.bias = np.zeros(6)  # the registrations' bias (rad, m)
@@ -141,7 +140,8 @@ class _Corrector:
         # pad's error removed from them as the bias now holds it (`bias_follows_pads`)
         self.rest_reference: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self.travel_m = 0.0  # the sensors' travel since the touch (rotation counted at `turn_radius_m`)
-        self.guard_wait = 0  # instants until the divergence guard may check again
+        self.guard_wait = 0  # applied instants the divergence guard still skips ...
+        self.guard_next_s = -np.inf  # ... and the time before which it does not check again
         self.pair_shared, self.pair_instants = np.zeros((6, 6)), 0  # the shared-error information summed over the
         # applied two-contact instants, and their count (`TrackResult.pinning`)
         self.unpinned: np.ndarray | None = None  # (K, 6) orthonormal directions (observable units) the guard found
@@ -150,6 +150,7 @@ class _Corrector:
         self.lifted: set[str] = set()  # ... and those without contact whose sensor left the object (`lifted_apart_m`):
         # while the other touches, it alone predicts the pose (a side letting go, its sensor withdrawing)
         self.touched_again: list[tuple[str, float]] = []  # (side, its frame's time) of each let-go side touching again
+        self.open_changes: list[OpenLoopChange] = []  # the open loop's grasps since the touch, as they changed
 
     def _initial_covariance(self) -> np.ndarray:
         """The filter's covariance at the touch: its pose's uncertainty and the slip rate's prior (the bias's is set
@@ -185,8 +186,21 @@ class _Corrector:
         )
         return float(np.sum(slip**2 / variance)) > c.guard_bound
 
+    def _guard_due(self, instant_s: float) -> bool:
+        """Whether the divergence guard checks at this applied instant (at `instant_s`): the tracked slip beyond the
+        slip model, the last check `guard_every_s` and `guard_every` applied instants back at least."""
+        c = self.config.correction
+        if self.guard_wait > 0 or instant_s < self.guard_next_s - 1e-9:
+            self.guard_wait = max(self.guard_wait - 1, 0)
+            return False
+        if not self._slip_beyond_model():
+            return False
+        self.guard_wait, self.guard_next_s = c.guard_every, instant_s + c.guard_every_s
+        return True
+
     def _guard(
         self,
+        instant_s: float,
         sensors: SensorPoses,
         rows: dict[str, int],
         points_sensor: dict[str, np.ndarray],
@@ -197,14 +211,10 @@ class _Corrector:
         closed loop's registration and stay near it, the evidence never asked for the departure (a direction the
         contacts barely pin, followed by the slip rate): re-anchor the loop on that fit, the slip rate back to its
         prior. A real pivot the frames see fits worse from open loop, or leads that fit away from it, and is kept.
-        Returns "" (no check), "kept" or "re-anchored"."""
+        Returns "" (no check, `_guard_due`), "kept" or "re-anchored"."""
         c = self.config.correction
-        if self.guard_wait > 0:
-            self.guard_wait -= 1
+        if not self._guard_due(instant_s):
             return ""
-        if not self._slip_beyond_model():
-            return ""
-        self.guard_wait = c.guard_every
         predicted = self.fuse(sensors)  # after this instant's update
         open_loop = fuse_holding(sensors, self.open_grasps, self.holding)[0]
         closed, opened, facing = [], [], {}
@@ -251,10 +261,11 @@ class _Corrector:
         """The tracked T_world_object (K, 4, 4) at the chosen rows of `sensors`, from the sides that hold it."""
         return fuse_holding(sensors, self.grasps, self.holding, rows)[0]
 
-    def let_go(self, side: str) -> None:
-        """`side` let go: from now on the other side's grasp alone carries the object (its own grasp still follows
-        the corrections, unused, until it touches again)."""
+    def let_go(self, side: str, since_s: float) -> None:
+        """`side` let go (its first frame without contact at `since_s`): from now on the other side's grasp alone
+        carries the object (its own grasp still follows the corrections, unused, until it touches again)."""
         self.gone.add(side)
+        self.open_changes.append(OpenLoopChange(since_s, side, None))
 
     def _apart(self, side: str, sensors: SensorPoses) -> bool:
         """Whether `side`'s grasp puts the object more than `lifted_apart_m` from where the other side's puts it, at
@@ -264,7 +275,7 @@ class _Corrector:
             return False
         here = sensors.T_world_sensor[side][-1] @ self.grasps[side]
         there = sensors.T_world_sensor[other][-1] @ self.grasps[other]
-        return bool(pose_distance_m(here, there[None])[0] > self.config.correction.lifted_apart_m)
+        return bool(pose_distance_m(here, there[None])[0] > self.config.release.lifted_apart_m)
 
     def _touch_again(self, side: str, row: int, sensors: SensorPoses, stamp: float) -> None:
         """A side that had let go touches again: its grasps (closed and open loop) are the object's pose now, from
@@ -273,6 +284,7 @@ class _Corrector:
         self.grasps[side] = T_sensor_world @ self.fuse(sensors, slice(row, row + 1))[0]
         open_now = fuse_holding(sensors, self.open_grasps, self.holding, slice(row, row + 1))[0][0]
         self.open_grasps[side] = T_sensor_world @ open_now
+        self.open_changes.append(OpenLoopChange(stamp, side, self.open_grasps[side]))
         self.gone.discard(side)
         self.touch_press[side] = predicted_indentation_m(self.model, invert_transform(self.grasps[side]))
         self.rest_read.pop(side, None)
@@ -429,7 +441,7 @@ class _Corrector:
                     record.sigma_rad = float(np.sqrt(np.linalg.eigvalsh(error[:3, :3])[-1]))
                     record.sigma_m = float(np.sqrt(np.linalg.eigvalsh(error[3:, 3:])[-1]))
                     record.guard = self._guard(
-                        sensors, rows, {side: points_sensor[side] for side in record.used}, fractions
+                        instant_s, sensors, rows, {side: points_sensor[side] for side in record.used}, fractions
                     )
                     if self.pads and (self.moving or not c.pad_error.rest_map):  # what the registered frames leave
                         for side in record.used:  # unexplained teaches the pads' sliding maps

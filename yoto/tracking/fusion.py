@@ -291,3 +291,16 @@ def fuse_object_poses(
     weights = w_r.T.copy()
     weights[none] = 0.0
     return fused, weights
+
+
+def fuse_holding(
+    sensors: SensorPoses, grasps: dict[str, np.ndarray], holding: set[str], rows: np.ndarray | slice = slice(None)
+) -> tuple[np.ndarray, np.ndarray]:
+    """`fuse_object_poses` (poses and sensor weights at the chosen rows) from the sensors that hold the object: a
+    side that let go carries it no more, as if its stream had no pose there."""
+    if len(holding) < len(SIDES):
+        covered = {side: sensors.covered[side] & (side in holding) for side in SIDES}
+        sensors = SensorPoses(
+            sensors.timestamps_s, sensors.T_world_sensor, covered, sensors.jitter, sensors.near_glitch
+        )
+    return fuse_object_poses(sensors, grasps, rows)

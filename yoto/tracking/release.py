@@ -1,6 +1,6 @@
 """Letting go and grasping again: `ReleaseWatch` sees a release of both gels or one gel letting go on its own
-(`LetGo`); `_NewTouchSearch` makes a new touch after a release (`Regrasp`, through a `NewTouchEstimator`: the pose
-stage); `open_loop_poses` is the open loop carried by the sides that still hold.
+(`LetGo`); `NewTouchSearch` makes a new touch after a release (`Regrasp`, through a `NewTouchEstimator`: the pose
+stage); `open_loop_poses` is the open loop carried by the sides that still hold, as the closed loop changed its grasps.
 
 When both gels stay without contact (`ReleaseWatch`: a few frames each, a fifth of a second), the object was let go:
 the grasp ends there, and the poses after it hold the last pose before it (`TrackResult.released_s`). Given the pose
@@ -24,9 +24,9 @@ import numpy as np
 from yoto.contacts import MIN_TACTILE_POINTS, SIDES, ContactPair, TactileContact
 from yoto.errors import InputError, YotoError
 from yoto.geometry import invert_transform
-from yoto.tracking.config import CorrectionConfig, TrackConfig
-from yoto.tracking.correction import Correction, fuse_holding
-from yoto.tracking.fusion import SensorPoses, StreamJitter, sensor_poses
+from yoto.tracking.config import ReleaseConfig, TrackConfig
+from yoto.tracking.correction import Correction, OpenLoopChange
+from yoto.tracking.fusion import SensorPoses, StreamJitter, fuse_holding, sensor_poses
 from yoto.tracking.streams import TactileStream, felt_contact
 from yoto.tracking.touch import Touch, pose_distance_m
 from yoto.trajectory import PoseStream
@@ -62,14 +62,14 @@ NewTouchEstimator = Callable[[ContactPair], Any]
 
 class ReleaseWatch:
     """Sees the object let go: after a frame with contact, both sensors' frames show none ("too few points": the
-    gel flat) for at least `release_frames` frames each and `release_s` from each side's first such frame. One side
+    gel flat) for at least `release_s` from each side's first such frame, in at least `release_frames` frames. One side
     alone without contact as long, while the other's latest frame touches, let go on its own (`let_go`): the other
     holds the object. A side lifting off for less, or both for a moment, is neither (the closed loop keeps its
     prediction through it). A frame that could not be read neither counts nor breaks a stretch; any other (used, or
     left out as a bad fit or a shallow read) shows contact. Needs frames of both sensors: without one side's,
     nothing says that side let go."""
 
-    def __init__(self, config: CorrectionConfig, sides: tuple[str, ...]):
+    def __init__(self, config: ReleaseConfig, sides: tuple[str, ...]):
         self.frames, self.span_s = config.release_frames, config.release_s
         self.watching = config.release_frames > 0 and set(sides) >= set(SIDES)
         self.touched = False  # a frame with contact seen since the touch
@@ -111,10 +111,11 @@ class ReleaseWatch:
         return out
 
 
-class _NewTouchSearch:
-    """After a release: waits for both gels to touch again (`regrasp_frames` instants in a row with contact on both,
-    each pressed deeper than a kiss) and estimates the object's pose from that pair; where the estimate is ambiguous,
-    takes the hypothesis nearest the last tracked pose. Keeps why estimates were refused."""
+class NewTouchSearch:
+    """After a release: waits for both gels to touch again (contact on both, each pressed deeper than a kiss, in every
+    instant over `regrasp_s`, at least `regrasp_frames` instants in a row) and estimates the object's pose from that
+    pair; where the estimate is ambiguous, takes the hypothesis nearest the last tracked pose. Keeps why estimates
+    were refused."""
 
     def __init__(
         self,
@@ -124,14 +125,15 @@ class _NewTouchSearch:
         jitter: dict[str, StreamJitter],
     ):
         self.estimate, self.config, self.streams, self.jitter = estimate, config, streams, jitter
-        self.run = 0  # instants in a row with both gels touching
+        self.run = 0  # instants in a row with both gels touching ...
+        self.run_from_s = 0.0  # ... since this one's time
         self.refused: list[str] = []
 
     def saw(
         self, instant_s: float, frames: dict[str, tuple[TactileStream, int]], last_pose: np.ndarray
     ) -> Regrasp | None:
         """Take one instant; the new touch when it makes one."""
-        if len(frames) < len(SIDES) or len(self.refused) >= self.config.correction.regrasp_attempts:
+        if len(frames) < len(SIDES) or len(self.refused) >= self.config.release.regrasp_attempts:
             return None  # a lone frame neither counts nor breaks the run
         clouds = {}
         for side, (stream, index) in frames.items():
@@ -144,8 +146,11 @@ class _NewTouchSearch:
                 self.run = 0
                 return None
             clouds[side] = (float(stream.timestamps_s[index]), points)
+        if self.run == 0:
+            self.run_from_s = instant_s
         self.run += 1
-        if self.run < self.config.correction.regrasp_frames:
+        settled = instant_s - self.run_from_s >= self.config.release.regrasp_s - 1e-9
+        if self.run < self.config.release.regrasp_frames or not settled:
             return None
         stamps = np.array([stamp for stamp, _ in clouds.values()])
         sensors = sensor_poses(self.streams, stamps, self.config.fusion, self.jitter)
@@ -177,33 +182,30 @@ class _NewTouchSearch:
 
 
 def open_loop_poses(
-    sensors: SensorPoses, T_sensor_object: dict[str, np.ndarray], let_go: list[LetGo], rows: slice
+    sensors: SensorPoses, T_sensor_object: dict[str, np.ndarray], changes: list[OpenLoopChange], rows: slice
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The open loop (K, 4, 4) over `rows` from one touch's grasps where sides let go (`LetGo`, in time order), and
-    the sensors' weights (K, 2): from each side's `time_s` the other alone, and from its `touched_again_s` its grasp
-    the fused pose then in its live sensor pose."""
+    """The open loop (K, 4, 4) over `rows` from one touch's grasps as the closed loop changed them where sides let
+    go and touched again (`ClosedLoop.open_changes`), and the sensors' weights (K, 2): from a side's first frame
+    without contact the other alone, and from its frame touching again the grasp the closed loop took for it then
+    (the open-loop pose in its live sensor pose)."""
     times = sensors.timestamps_s
     first, last = rows.start or 0, len(times) if rows.stop is None else rows.stop
-    changes = sorted(
-        [(event.time_s, 0, event.side) for event in let_go]
-        + [(event.touched_again_s, 1, event.side) for event in let_go if event.touched_again_s is not None]
-    )
     grasps, holding = dict(T_sensor_object), set(SIDES)
     poses, weights = np.empty((last - first, 4, 4)), np.empty((last - first, len(SIDES)))
     row = first
-    for time_s, again, side in changes + [(np.inf, 0, "")]:
-        upto = int(np.clip(np.searchsorted(times, time_s - 1e-9), row, last))
+    ordered = sorted(changes, key=lambda change: (change.time_s, change.T_sensor_object is not None))
+    for change in [*ordered, OpenLoopChange(np.inf, "", None)]:
+        upto = int(np.clip(np.searchsorted(times, change.time_s - 1e-9), row, last))
         if upto > row:
             poses[row - first : upto - first], weights[row - first : upto - first] = fuse_holding(
                 sensors, grasps, holding, slice(row, upto)
             )
         row = upto
-        if not side:
+        if not change.side:
             break
-        if not again:
-            holding.discard(side)
-        elif row < last:
-            now = fuse_holding(sensors, grasps, holding, slice(row, row + 1))[0][0]
-            grasps[side] = invert_transform(sensors.T_world_sensor[side][row]) @ now
-            holding.add(side)
+        if change.T_sensor_object is None:
+            holding.discard(change.side)
+        else:
+            grasps[change.side] = change.T_sensor_object
+            holding.add(change.side)
     return poses, weights

@@ -33,7 +33,7 @@ from yoto.errors import InputError
 from yoto.objects.model import ObjectModel
 from yoto.registration import one_blas_thread
 from yoto.tracking.config import CorrectionConfig, TrackConfig
-from yoto.tracking.correction import Correction, _Corrector
+from yoto.tracking.correction import ClosedLoop, Correction
 from yoto.tracking.frame_registration import (
     contact_information,
     contact_samples,
@@ -45,7 +45,7 @@ from yoto.tracking.frame_registration import (
 from yoto.tracking.fusion import StreamJitter, fuse_object_poses, sensor_poses, smooth_stream, stream_jitter
 from yoto.tracking.pad_error import PadError
 from yoto.tracking.pinning import Pinning, Retouch, retouch, touch_pinning
-from yoto.tracking.release import LetGo, NewTouchEstimator, Regrasp, ReleaseWatch, _NewTouchSearch, open_loop_poses
+from yoto.tracking.release import LetGo, NewTouchEstimator, NewTouchSearch, Regrasp, ReleaseWatch, open_loop_poses
 from yoto.tracking.streams import TactileStream
 from yoto.tracking.touch import Touch, find_touch_time, touch_from_pair, touch_time_of
 from yoto.trajectory import PoseStream
@@ -173,17 +173,18 @@ def track(
     if model is None:
         raise ValueError("the closed loop registers tactile frames on the object: pass its model")
     times = sensors.timestamps_s
-    corrector = first = _Corrector(model, touch, streams, sensors.jitter, config)
+    corrector = ClosedLoop(model, touch, streams, sensors.jitter, config)
+    correctors = [corrector]  # each grasp's closed loop
     instants = group_frames(tactile, touch.time_s, config.correction.sync_tolerance_s)
     starts = np.searchsorted(times, [instant_time for instant_time, _ in instants], side="left")
     closed = np.empty_like(open_loop)
     open_loop, weights = open_loop.copy(), weights.copy()
     begin = 0  # the first output row not yet written
     grasp_let_go: list[list[LetGo]] = [[]]  # each grasp's sides that let go on their own
-    searching: _NewTouchSearch | None = None  # after a release, with `new_touch`: waiting for both gels again
+    searching: NewTouchSearch | None = None  # after a release, with `new_touch`: waiting for both gels again
     # Each instant's products are small (a few hundred points, the sliding map's few hundred nodes): on a busy
     # 2-core machine two BLAS threads waiting for each other made the closed loop 10-40x slower.
-    release = ReleaseWatch(config.correction, tuple(tactile))
+    release = ReleaseWatch(config.release, tuple(tactile))
     with one_blas_thread():
         for number, ((instant_time, frames), start) in enumerate(zip(instants, starts, strict=True)):
             instant_frames = {side: (tactile[side], i) for side, i in frames}
@@ -197,11 +198,12 @@ def track(
                 begin = int(np.searchsorted(times, regrasp.touch.time_s - 1e-9))
                 if begin >= len(times):
                     break
-                corrector = _Corrector(model, regrasp.touch, streams, sensors.jitter, config)
+                corrector = ClosedLoop(model, regrasp.touch, streams, sensors.jitter, config)
+                correctors.append(corrector)
                 open_loop[begin:], weights[begin:] = fuse_object_poses(
                     sensors, regrasp.touch.T_sensor_object, slice(begin, None)
                 )
-                release, searching = ReleaseWatch(config.correction, tuple(tactile)), None
+                release, searching = ReleaseWatch(config.release, tuple(tactile)), None
                 grasp_let_go.append([])
                 continue
             if start > begin:  # the outputs before this instant follow the grasps as they were
@@ -216,7 +218,7 @@ def track(
             stamps = {side: float(tactile[side].timestamps_s[i]) for side, i in frames}
             released_s = release.saw(record, stamps)
             for event in release.let_go(stamps):  # the outputs since its first frame without contact: the other
-                corrector.let_go(event.side)  # side alone
+                corrector.let_go(event.side, event.time_s)  # side alone
                 grasp_let_go[-1].append(event)
                 since = int(np.searchsorted(times, event.time_s - 1e-9))
                 if since < begin:
@@ -237,7 +239,7 @@ def track(
             result.frames_after_release = sum(len(later) for _, later in instants[number + 1 :])
             if new_touch is None:
                 break
-            searching = _NewTouchSearch(new_touch, config, streams, sensors.jitter)
+            searching = NewTouchSearch(new_touch, config, streams, sensors.jitter)
         else:
             if begin < len(closed) and searching is None:
                 closed[begin:] = corrector.fuse(sensors, slice(begin, None))
@@ -246,15 +248,16 @@ def track(
     result.let_go = [event for events in grasp_let_go for event in events]
     touches = [grasp_touch for grasp_touch, _ in result.grasps()]
     grasp_starts = np.searchsorted(times, [grasp_touch.time_s - 1e-9 for grasp_touch in touches] + [np.inf])
-    for index, events in enumerate(grasp_let_go):  # the open loop carried by the sides that hold, grasp by grasp
-        if events:
+    for index, grasp_loop in enumerate(correctors):  # the open loop carried by the sides that hold, grasp by grasp
+        if grasp_loop.open_changes:
             rows = slice(int(grasp_starts[index]), int(grasp_starts[index + 1]))
-            open_loop[rows], weights[rows] = open_loop_poses(sensors, touches[index].T_sensor_object, events, rows)
+            changes = grasp_loop.open_changes
+            open_loop[rows], weights[rows] = open_loop_poses(sensors, touches[index].T_sensor_object, changes, rows)
     result.T_world_object = closed
     result.T_world_object_open_loop, result.sensor_weights = open_loop, weights
     result.pad_errors = corrector.pads
-    if first.pair_instants:
-        result.pinning = Pinning.of(first.pair_shared / first.pair_instants, first.unit)
+    if correctors[0].pair_instants:
+        result.pinning = Pinning.of(correctors[0].pair_shared / correctors[0].pair_instants, correctors[0].unit)
     return result
 
 
