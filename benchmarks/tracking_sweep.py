@@ -79,6 +79,24 @@ VARIANTS: dict[str, list[str]] = {
         f"tactile_phase_s={0.5 / 15.0!r}",
         "tactile_stamp_jitter_s=0.003",
     ],
+    # pose streams as mocap and robot arms deliver them (stop 20)
+    "mocap outliers 1%": ["pose_outlier_share=0.01"],
+    "mocap outliers 2%, a flip": ["pose_outlier_share=0.02", "pose_flips=1"],
+    "pose dropouts 2 per stream": ["pose_dropouts=2"],
+    "arms 1000 / 500 Hz, kinematic error": [
+        "left_rate_hz=1000.0",
+        "right_rate_hz=500.0",
+        "jitter_translation_m=1e-05",
+        f"jitter_rotation_rad={float(np.radians(0.005))!r}",
+        "arm_error_m=0.0003",
+        f"arm_error_rad={float(np.radians(0.1))!r}",
+    ],
+    "arms 1000 / 500 Hz, no kinematic error": [
+        "left_rate_hz=1000.0",
+        "right_rate_hz=500.0",
+        "jitter_translation_m=1e-05",
+        f"jitter_rotation_rad={float(np.radians(0.005))!r}",
+    ],
 }
 
 
