@@ -117,7 +117,8 @@ class TrajectoryConfig:
     # axis of its marker set's symmetry (through the markers' centre, `FLIP_CENTRE_M` from the sensor's origin)
     pose_flip_s: float = 1.0
     pose_dropouts: int = 0  # per stream: stretches without samples (the body occluded by the arm), each
-    # `pose_dropout_s` long (uniform), after the touch, never overlapping the other stream's
+    # `pose_dropout_s` long (uniform), after the touch, never within 0.1 s of another (either stream's; as many as
+    # fit in 100 draws each)
     pose_dropout_s: tuple[float, float] = (0.2, 1.0)
     arm_error_m: float = 0.0  # a robot arm's forward kinematics: each arm's reported pose errs by a smooth function
     arm_error_rad: float = 0.0  # of where it is (per component, this amplitude times a sine of the sensor's position
