@@ -205,8 +205,8 @@ def test_a_flipped_rigid_body_is_left_out(grasps, rng):
     translation, rotation = errors(result)
     assert translation.max() < 1e-3 and np.degrees(rotation.max()) < 0.5
     left = result.jitter["left"]
-    assert 100 <= left.left_out <= int(inside.sum())  # the flip but its glitches, nothing else
-    assert len(left.dropouts_s) == 1 and 0.9 < left.dropouts_s[0] < 1.0
+    assert left.left_out == inside.sum()  # the flip, its first and last samples (glitches) too, nothing else
+    assert len(left.dropouts_s) == 1 and 0.99 < left.dropouts_s[0] < 1.01
     assert result.jitter["right"].left_out == 0 and "left out" in left.describe()
 
 
@@ -221,7 +221,7 @@ def test_a_burst_longer_than_the_glitch_test_is_left_out(grasps, rng):
     result = track(touch_at(grasps), streams)
     translation, rotation = errors(result)
     assert translation.max() < 1e-3 and np.degrees(rotation.max()) < 0.5
-    assert 0 < result.jitter["right"].left_out <= 12 and result.jitter["right"].dropouts_s == ()
+    assert result.jitter["right"].left_out == 12 and len(result.jitter["right"].dropouts_s) == 1  # 108 ms: bridged
 
 
 def test_the_simulators_pose_streams_as_mocap_and_arms_deliver_them(grasps, rng):

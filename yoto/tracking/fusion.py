@@ -175,7 +175,8 @@ def implausible_samples(stream: PoseStream, jitter: StreamJitter, config: Fusion
     other's nearest sample within `glitch_sigmas` of the carried fit's noise or within the jump floors
     (`jump_translation_m`, `jump_rotation_rad`), in translation and in rotation. From each of the longest stretches
     a chain goes out both ways, joining each stretch that agrees with the last one joined; the chain holding the
-    most samples is the stream's motion, and the stretches outside it are left out (glitches stay glitches)."""
+    most samples is the stream's motion, and the stretches outside it are left out; so is each glitch that the motion
+    of the samples kept nearest it misses by as much (a glitch within it stays, left out of the smoothing)."""
     count = len(stream)
     implausible = np.zeros(count, bool)
     good = np.flatnonzero(~jitter.glitch)
@@ -219,6 +220,14 @@ def implausible_samples(stream: PoseStream, jitter: StreamJitter, config: Fusion
             best = (size, chain)
     for index in set(range(len(stretches))) - set(best[1]):
         implausible[stretches[index]] = True
+    # Each glitch against the motion of the stream's samples kept nearest it in time (a flipped body's first and last
+    # samples are glitches, the samples beside them too): one that motion cannot reach is left out as well.
+    kept = np.flatnonzero(~implausible & ~jitter.glitch)
+    for glitch in np.flatnonzero(jitter.glitch):
+        before, after = kept[kept < glitch][-fit_samples:], kept[kept > glitch][:fit_samples][::-1]
+        nearest = [side for side in (before, after) if len(side)]
+        side = min(nearest, key=lambda samples: abs(times[samples[-1]] - times[glitch]))
+        implausible[glitch] = not within(_carried(times[side], poses[side], times[glitch], poses[glitch]))
     return implausible
 
 
