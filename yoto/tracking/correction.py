@@ -386,7 +386,7 @@ class _Corrector:
         pose_noise: dict[str, np.ndarray] = {}
         rows = {side: row for row, side in enumerate(clouds)}
         for row, (side, (_, points)) in enumerate(clouds.items()):
-            if not sensors.placed(side)[row]:  # its own stream's pose, or carried across its dropout
+            if not sensors.covered[side][row]:
                 unusable[side] = "no sensor pose at the frame's time"
                 continue
             if side in shallow:

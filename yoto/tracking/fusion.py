@@ -23,12 +23,12 @@ Poses here are of YOTO's canonical `object` frame (origin at the centroid), so "
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from yoto.contacts import SIDES
-from yoto.geometry import invert_transform, so3_exp, so3_log
+from yoto.geometry import so3_exp, so3_log
 from yoto.trajectory import PoseStream
 
 ANCHORS = 5  # the longest stretches of a stream between glitches tried as its motion (`implausible_samples`)
@@ -51,8 +51,6 @@ class FusionConfig:
     smoothed_translation_m: float = 1.2e-4  # a window is widened only while the smoothed stream's predicted error
     smoothed_rotation_rad: float = float(np.radians(0.06))  # exceeds these (per axis; 0.2 mm / 0.1 deg of jitter
     # at 100-120 Hz, smoothed over +- 50 ms, is 0.09 mm / 0.045 deg: left as it is)
-    bridge_dropouts: bool = True  # inside a dropout of one stream, its sensor's pose is carried by the other's
-    # (their relative pose interpolated across the dropout), so the closed loop still places its frames
     jump_translation_m: float = 0.002  # a stretch of samples between glitches that its neighbours' motion, carried
     jump_rotation_rad: float = float(np.radians(2.0))  # across the glitches, misses by more than this and by more
     # than glitch_sigmas of the carried fit's noise is a mis-fitted rigid body (a flipped one): left out of the stream
@@ -69,8 +67,8 @@ class StreamJitter:
     rotation_smoothing_gain: float = 1.0  # the same for the rotations
     smoothing_s: tuple[float, float] = (0.0, 0.0)  # the half-windows chosen for positions and rotations
     left_out: int = 0  # samples left out of the stream: stretches between glitches its motion could not reach
-    dropouts_s: tuple[float, ...] = ()  # gaps longer than `max_gap_s` in the stream (left out samples included),
-    # bridged by the other sensor
+    dropouts_s: tuple[float, ...] = ()  # gaps longer than `max_gap_s` in the stream (left out samples included):
+    # the other sensor alone carries the object there
 
     @property
     def smoothed_translation_m(self) -> float:
@@ -88,7 +86,7 @@ class StreamJitter:
         faults = f", {self.left_out} samples off its motion left out" if self.left_out else ""
         if self.dropouts_s:
             faults += (
-                f", {len(self.dropouts_s)} dropouts (longest {max(self.dropouts_s):.2f} s) bridged by the other sensor"
+                f", {len(self.dropouts_s)} dropouts (longest {max(self.dropouts_s):.2f} s): the other sensor alone"
             )
         return (
             f"jitter {self.translation_m * 1e3:.3f} mm / {np.degrees(self.rotation_rad):.3f} deg, "
@@ -267,7 +265,7 @@ def smooth_stream(stream: PoseStream, jitter: StreamJitter, config: FusionConfig
     to the chosen windows' median noise reduction (variance ratio) and half-widths (s).
 
     First the samples its motion cannot have reached (`implausible_samples`) are left out of the stream (a stretch
-    longer than `max_gap_s` is then a dropout, bridged by the other sensor); `jitter.glitch` follows, and
+    longer than `max_gap_s` is then a dropout: the other sensor alone there); `jitter.glitch` follows, and
     `jitter.left_out` and `jitter.dropouts_s` say what was left out and which gaps remain."""
     implausible = implausible_samples(stream, jitter, config)
     if implausible.any():
@@ -334,17 +332,10 @@ class SensorPoses:
     covered: dict[str, np.ndarray]  # side -> (M,) bool: the stream has samples around this time
     jitter: dict[str, StreamJitter]  # side -> the stream's jitter
     near_glitch: dict[str, np.ndarray]  # side -> (M,) bool: a neighbouring sample is a glitch
-    bridged: dict[str, np.ndarray] = field(default_factory=dict)  # side -> (M,) bool: inside a dropout of this
-    # stream, its pose carried by the other sensor's (`bridge_dropouts`); still not covered: the fused pose is the
-    # other's alone, but the closed loop can place this sensor's frames
 
     @property
     def any_covered(self) -> np.ndarray:
         return self.covered["left"] | self.covered["right"]
-
-    def placed(self, side: str) -> np.ndarray:
-        """(M,) bool: where `side`'s pose is known, from its own stream or carried across its dropout."""
-        return self.covered[side] | self.bridged[side] if side in self.bridged else self.covered[side]
 
     def select(self, keep: np.ndarray) -> SensorPoses:
         return SensorPoses(
@@ -353,50 +344,7 @@ class SensorPoses:
             {side: mask[keep] for side, mask in self.covered.items()},
             self.jitter,
             {side: mask[keep] for side, mask in self.near_glitch.items()},
-            {side: mask[keep] for side, mask in self.bridged.items()},
         )
-
-
-def _relative(
-    streams: dict[str, PoseStream], side: str, times: np.ndarray, gap_s: dict[str, float]
-) -> tuple[np.ndarray, np.ndarray]:
-    """`side`'s pose in the other sensor's frame at `side`'s own samples at `times` (exact sample times), and
-    whether the other stream covers them."""
-    other = SIDES[1 - SIDES.index(side)]
-    own, _ = streams[side].interpolate(times)
-    theirs, covered = streams[other].interpolate(times, gap_s[other])
-    return np.einsum("nij,njk->nik", invert_transform(theirs), own), covered
-
-
-def _bridge(
-    streams: dict[str, PoseStream],
-    side: str,
-    times: np.ndarray,
-    covered: dict[str, np.ndarray],
-    gap_s: dict[str, float],
-) -> tuple[np.ndarray, np.ndarray]:
-    """`side`'s poses inside its dropouts, carried by the other sensor: T_world_other(t) @ T_other_side(t), the
-    sensors' relative pose interpolated between its values at the dropout's two ends (the grasp held by both arms:
-    it changes only as the arms are out of step). Returns the poses at the bridged rows and the rows (M,) bool."""
-    other = SIDES[1 - SIDES.index(side)]
-    stamps = streams[side].timestamps_s
-    rows = ~covered[side] & covered[other] & (times > stamps[0]) & (times < stamps[-1])
-    if not rows.any():
-        return np.zeros((0, 4, 4)), rows
-    upper = np.searchsorted(stamps, times[rows], side="right")
-    ends = np.stack([stamps[upper - 1], stamps[upper]])  # (2, K) the dropout's last sample before and first after
-    relative, known = _relative(streams, side, ends.ravel(), gap_s)
-    known = np.asarray(known.reshape(2, -1).all(axis=0))
-    relative = relative.reshape(2, -1, 4, 4)
-    fraction = (times[rows] - ends[0]) / (ends[1] - ends[0])
-    step = so3_log(np.einsum("kji,kjl->kil", relative[0, :, :3, :3], relative[1, :, :3, :3]))
-    carried = relative[0].copy()
-    carried[:, :3, :3] = relative[0, :, :3, :3] @ so3_exp(step * fraction[:, None])
-    carried[:, :3, 3] = (1.0 - fraction)[:, None] * relative[0, :, :3, 3] + fraction[:, None] * relative[1, :, :3, 3]
-    theirs, _ = streams[other].interpolate(times[rows])
-    bridged = rows.copy()
-    bridged[rows] = known
-    return (theirs @ carried)[known], bridged
 
 
 def sensor_poses(
@@ -409,19 +357,13 @@ def sensor_poses(
     times = np.asarray(timestamps_s, dtype=np.float64)
     jitter = jitter or {side: stream_jitter(streams[side], config) for side in SIDES}
     poses, covered, near_glitch = {}, {}, {}
-    gap_s = {side: streams[side].dropout_gap_s(config.max_gap_s) for side in SIDES}
     for side in SIDES:
         stream = streams[side]
-        poses[side], covered[side] = stream.interpolate(times, gap_s[side])
+        poses[side], covered[side] = stream.interpolate(times, stream.dropout_gap_s(config.max_gap_s))
         upper = np.clip(np.searchsorted(stream.timestamps_s, times, side="left"), 0, len(stream) - 1)
         lower = np.clip(upper - 1, 0, len(stream) - 1)
         near_glitch[side] = jitter[side].glitch[upper] | jitter[side].glitch[lower]
-    bridged = {}
-    if config.bridge_dropouts:
-        for side in SIDES:
-            carried, bridged[side] = _bridge(streams, side, times, covered, gap_s)
-            poses[side][bridged[side]] = carried
-    return SensorPoses(times, poses, covered, jitter, near_glitch, bridged)
+    return SensorPoses(times, poses, covered, jitter, near_glitch)
 
 
 def fuse_object_poses(

@@ -435,7 +435,7 @@ def report_payload(job: TrackJob, model: ObjectModel, outcome: TrackOutcome) -> 
                 "rotation_deg": float(np.degrees(jitter.rotation_rad)),
                 "glitches": int(jitter.glitch.sum()),
                 "left_out": jitter.left_out,  # samples off the stream's motion (a mis-fitted or flipped body)
-                "dropouts_s": list(jitter.dropouts_s),  # gaps the other sensor bridged
+                "dropouts_s": list(jitter.dropouts_s),  # gaps longer than max_gap_s: the other sensor alone there
             }
             for side, jitter in result.jitter.items()
         },
