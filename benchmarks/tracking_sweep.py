@@ -6,8 +6,10 @@
 
 Other recorders differ from `yoto simulate trajectory`'s defaults (tactile frames at 25 fps on both gels, the right
 camera's phase random; pose streams at 120 / 100 Hz; slip rotation biased to the grasp axis; 0.2 mm / 0.1 deg jitter
-per arm; a 3 s motion; clouds of every 2nd pixel of the contact; exact frame stamps). Each variant (`VARIANTS`)
-changes one `TrajectoryConfig` setting from the benchmark's defaults and simulates the set's trajectories again with
+per arm; a 3 s motion; clouds of every 2nd pixel of the contact; exact frame stamps; no mis-fitted, flipped or
+occluded bodies, no arm kinematics: the last five variants, stop 20). Each variant (`VARIANTS`)
+changes one `TrajectoryConfig` setting (the arms' variants: rates, noise and error together) from the benchmark's
+defaults and simulates the set's trajectories again with
 it (the same seed: the same touch, path and slip axes; the cached touch estimate of `tracking_meets.py --cache` is
 kept, so the variants differ only in what the tracker reads after the touch; the default is simulated again as well,
 by the same simulator). The set: seed 11's fruit, figurine and tool (tuned on) and seed 23's banana, lemon, mug and
@@ -78,6 +80,24 @@ VARIANTS: dict[str, list[str]] = {
         "tactile_rate_hz=15.0",
         f"tactile_phase_s={0.5 / 15.0!r}",
         "tactile_stamp_jitter_s=0.003",
+    ],
+    # pose streams as mocap and robot arms deliver them (stop 20)
+    "mocap outliers 1%": ["pose_outlier_share=0.01"],
+    "mocap outliers 2%, a flip": ["pose_outlier_share=0.02", "pose_flips=1"],
+    "pose dropouts 2 per stream": ["pose_dropouts=2"],
+    "arms 1000 / 500 Hz, kinematic error": [
+        "left_rate_hz=1000.0",
+        "right_rate_hz=500.0",
+        "jitter_translation_m=1e-05",
+        f"jitter_rotation_rad={float(np.radians(0.005))!r}",
+        "arm_error_m=0.0003",
+        f"arm_error_rad={float(np.radians(0.1))!r}",
+    ],
+    "arms 1000 / 500 Hz, no kinematic error": [
+        "left_rate_hz=1000.0",
+        "right_rate_hz=500.0",
+        "jitter_translation_m=1e-05",
+        f"jitter_rotation_rad={float(np.radians(0.005))!r}",
     ],
 }
 

@@ -10,6 +10,7 @@ from conftest import TOL
 
 from yoto.contacts import ContactPair, TactileContact
 from yoto.geometry import invert_transform, make_transform, random_perturbation, random_rotations, so3_exp, so3_log
+from yoto.simulate.trajectory import TrajectoryConfig, _as_recorded
 from yoto.tracking.fusion import FusionConfig, smooth_stream, stream_jitter
 from yoto.tracking.track import Touch, TrackConfig, find_touch_time, touch_from_pair, track
 from yoto.trajectory import PoseStream
@@ -181,6 +182,86 @@ def test_a_glitch_in_one_stream_does_not_reach_the_output(grasps):
     streams["left"].T_world_frame[100, :3, 3] += [0.0, 0.02, 0.0]
     translation, _ = errors(track(touch_at(grasps), streams))
     assert translation.max() < 1e-4
+
+
+def mocap_streams(grasps, rng) -> dict[str, PoseStream]:
+    """Both streams at 120 Hz for 3 s, with 0.2 mm / 0.1 deg of jitter."""
+    times = START + np.arange(0, 3.0, 1 / 120)
+    return {side: sensor_stream(times, grasp, rng, 2e-4, np.radians(0.1)) for side, grasp in grasps.items()}
+
+
+def test_a_flipped_rigid_body_is_left_out(grasps, rng):
+    """A second of the left body fitted half a turn about an axis through its markers' centre (a flip about a symmetry
+    axis of the marker set): its ends are glitches, its inside a smooth motion. Main 7b24095 fused it: 104 mm /
+    180 deg off at worst."""
+    streams = mocap_streams(grasps, rng)
+    times = streams["left"].timestamps_s
+    flip = make_transform(so3_exp(np.pi * np.array([0.0, 0.6, 0.8])), np.zeros(3))
+    centre = np.array([0.03, 0.02, 0.0])
+    flip[:3, 3] = centre - flip[:3, :3] @ centre
+    inside = (times > START + 1.0) & (times < START + 2.0)
+    streams["left"].T_world_frame[inside] = streams["left"].T_world_frame[inside] @ flip
+    result = track(touch_at(grasps), streams)
+    translation, rotation = errors(result)
+    assert translation.max() < 1e-3 and np.degrees(rotation.max()) < 0.5
+    left = result.jitter["left"]
+    assert left.left_out == inside.sum()  # the flip, its first and last samples (glitches) too, nothing else
+    assert len(left.dropouts_s) == 1 and 0.99 < left.dropouts_s[0] < 1.01
+    assert result.jitter["right"].left_out == 0 and "left out" in left.describe()
+
+
+def test_a_burst_longer_than_the_glitch_test_is_left_out(grasps, rng):
+    """The right body mis-fitted for 100 ms (12 samples) by 10 mm / 8 deg: the glitch test marks only the burst's ends
+    (each middle sample's neighbours are mostly the burst's own). Main 7b24095 fused its middle: 32 mm / 3.6 deg off
+    at worst."""
+    streams = mocap_streams(grasps, rng)
+    burst = slice(150, 162)
+    offset = make_transform(so3_exp(np.radians(8.0) * np.array([0.6, 0.8, 0.0])), [0.0, 0.01, 0.0])
+    streams["right"].T_world_frame[burst] = offset @ streams["right"].T_world_frame[burst]
+    result = track(touch_at(grasps), streams)
+    translation, rotation = errors(result)
+    assert translation.max() < 1e-3 and np.degrees(rotation.max()) < 0.5
+    assert result.jitter["right"].left_out == 12 and len(result.jitter["right"].dropouts_s) == 1  # 108 ms
+
+
+def test_the_simulators_pose_streams_as_mocap_and_arms_deliver_them(grasps, rng):
+    """`TrajectoryConfig.pose_*` and `arm_error_*` (`simulate.trajectory._as_recorded`): bursts off by what they
+    say, a flip of half a turn, dropouts of one stream at a time, a smooth bounded arm error; nothing changed where
+    they are off."""
+    streams = mocap_streams(grasps, rng)
+    after, end = START + 0.2, START + 3.0
+
+    def recorded(**changes):
+        return _as_recorded(streams, TrajectoryConfig(**changes), np.random.default_rng(0), after, end)
+
+    def turn_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.degrees(np.linalg.norm(so3_log(np.einsum("nji,njk->nik", a[:, :3, :3], b[:, :3, :3])), axis=1))
+
+    for side, stream in recorded().items():
+        assert np.array_equal(stream.T_world_frame, streams[side].T_world_frame)
+    faulty = recorded(pose_outlier_share=0.02)["left"].T_world_frame
+    off = np.linalg.norm(faulty[:, :3, 3] - streams["left"].T_world_frame[:, :3, 3], axis=1) > 0
+    assert 0.005 < off.mean() < 0.04
+    turned = turn_deg(faulty[off], streams["left"].T_world_frame[off])
+    assert np.all((turned > 4.99) & (turned < 30.01))
+    flipped = recorded(pose_flips=1)["right"]
+    turned = turn_deg(flipped.T_world_frame, streams["right"].T_world_frame)
+    assert np.sum(turned > 179.99) == 120 and np.all((turned < 1e-6) | (turned > 179.99))  # 1 s at 120 Hz
+    gaps = []
+    for stream in recorded(pose_dropouts=2, pose_dropout_s=(0.2, 0.4)).values():
+        steps = np.diff(stream.timestamps_s)
+        long = steps > 0.1
+        assert np.sum(long) == 2 and np.all((steps[long] > 0.2) & (steps[long] < 0.4 + 2 / 120))
+        starts = stream.timestamps_s[:-1][long]
+        assert np.all(starts >= after)
+        gaps += [(a, a + b) for a, b in zip(starts, steps[long], strict=True)]
+    gaps.sort()
+    assert all(first[1] < second[0] for first, second in zip(gaps, gaps[1:], strict=False))  # one at a time
+    arm = recorded(arm_error_m=3e-4, arm_error_rad=float(np.radians(0.1)))["left"].T_world_frame
+    error = np.linalg.norm(arm[:, :3, 3] - streams["left"].T_world_frame[:, :3, 3], axis=1)
+    assert error.max() < 3e-4 * np.sqrt(3) and np.abs(np.diff(error)).max() < 5e-6  # smooth: no step at 120 Hz
+    assert np.ptp(error) > 1e-5  # it changes with where the arm is
+    assert turn_deg(arm, streams["left"].T_world_frame).max() < 0.1 * np.sqrt(3)
 
 
 def test_dropouts_use_the_other_sensor(grasps):

@@ -15,6 +15,7 @@ SIMULATE_EPILOG = """examples:
   yoto simulate scan meshes/drill.ply --out drill_scan.ply --seed 0
   yoto simulate trajectory --object fruit -n 5 --out trajectories/fruit
   yoto simulate trajectory --object fruit -n 5 --tactile-fps 15 --tactile-phase-ms 33 --pose-hz 30 --whole-pad
+  yoto simulate trajectory --object fruit -n 5 --pose-outliers 1 --pose-flips 1 --pose-dropouts 2
   yoto simulate recording --object fruit --gelsight gelsight.npz --out session/
 """
 
@@ -91,6 +92,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="clouds of every pad pixel, untouched gel at z = 0",
     )
+    trajectory.add_argument(
+        "--pose-outliers",
+        type=float,
+        metavar="PERCENT",
+        help="percent of each pose stream's samples mis-fitted (bursts of 1-5 samples off by 5-30 mm / 5-30 deg)",
+    )
+    trajectory.add_argument("--pose-flips", type=int, help="per pose stream: 1 s stretches fitted turned half a turn")
+    trajectory.add_argument("--pose-dropouts", type=int, help="per pose stream: 0.2-1 s stretches without samples")
+    trajectory.add_argument("--arm-error-mm", type=float, help="an arm's smooth pose-dependent kinematic error")
+    trajectory.add_argument("--arm-error-deg", type=float, help="... and its rotation (amplitudes per component)")
     trajectory.add_argument("--sensor-noise-mm", type=float, default=0.0, help="sensor calibration error, position")
     trajectory.add_argument("--sensor-noise-deg", type=float, default=0.0, help="sensor calibration error, rotation")
     trajectory.add_argument(
@@ -213,7 +224,19 @@ def trajectory_config(args: argparse.Namespace) -> TrajectoryConfig:
     from yoto.simulate.scenarios import ScenarioConfig
     from yoto.simulate.trajectory import TrajectoryConfig
 
-    for name in ("path_mm", "slip_mm", "slip_deg", "jitter_mm", "sensor_noise_mm", "sensor_noise_deg"):
+    for name in (
+        "path_mm",
+        "slip_mm",
+        "slip_deg",
+        "jitter_mm",
+        "sensor_noise_mm",
+        "sensor_noise_deg",
+        "pose_outliers",
+        "pose_flips",
+        "pose_dropouts",
+        "arm_error_mm",
+        "arm_error_deg",
+    ):
         value = getattr(args, name)
         if value is not None and value < 0:
             raise InputError(f"--{name.replace('_', '-')} must not be negative, got {value}")
@@ -245,6 +268,16 @@ def trajectory_config(args: argparse.Namespace) -> TrajectoryConfig:
         config = dataclasses.replace(config, tactile_phase_s=args.tactile_phase_ms * 1e-3)
     if args.pixel_stride is not None:
         config = dataclasses.replace(config, tactile_pixel_stride=args.pixel_stride)
+    if args.pose_outliers is not None:
+        config = dataclasses.replace(config, pose_outlier_share=args.pose_outliers / 100.0)
+    if args.pose_flips is not None:
+        config = dataclasses.replace(config, pose_flips=args.pose_flips)
+    if args.pose_dropouts is not None:
+        config = dataclasses.replace(config, pose_dropouts=args.pose_dropouts)
+    if args.arm_error_mm is not None:
+        config = dataclasses.replace(config, arm_error_m=args.arm_error_mm * 1e-3)
+    if args.arm_error_deg is not None:
+        config = dataclasses.replace(config, arm_error_rad=float(np.radians(args.arm_error_deg)))
     return dataclasses.replace(config, tactile_whole_pad=bool(args.whole_pad))
 
 

@@ -105,6 +105,24 @@ class TrajectoryConfig:
     # reconstruction's errors), as a reconstruction of the whole image writes them; False: the contact's pixels only
     tactile_stamp_jitter_s: float = 0.0  # 1-sigma error of each frame's recorded time (a recorder stamping frames on
     # arrival); the frame shows the gel at its true time
+    # Pose streams as mocap and robot arms deliver them (stop 20; all off by default). Drawn from their own random
+    # stream: switching them on leaves every other draw as it was.
+    pose_outlier_share: float = 0.0  # share of each pose stream's samples that are mis-fitted rigid bodies (a marker
+    # swapped or occluded): bursts of `pose_outlier_frames` samples, each burst one offset of `pose_outlier_m` (a
+    # random direction) and `pose_outlier_rad` (a random axis), then back
+    pose_outlier_frames: tuple[int, int] = (1, 5)  # burst length in samples, uniform in this range
+    pose_outlier_m: tuple[float, float] = (0.005, 0.03)  # burst offset, uniform in this range ...
+    pose_outlier_rad: tuple[float, float] = (float(np.radians(5.0)), float(np.radians(30.0)))  # ... and its rotation
+    pose_flips: int = 0  # per stream: stretches of `pose_flip_s` where the body is fitted turned half a turn about an
+    # axis of its marker set's symmetry (through the markers' centre, `FLIP_CENTRE_M` from the sensor's origin)
+    pose_flip_s: float = 1.0
+    pose_dropouts: int = 0  # per stream: stretches without samples (the body occluded by the arm), each
+    # `pose_dropout_s` long (uniform), after the touch, never within 0.1 s of another (either stream's; as many as
+    # fit in 100 draws each)
+    pose_dropout_s: tuple[float, float] = (0.2, 1.0)
+    arm_error_m: float = 0.0  # a robot arm's forward kinematics: each arm's reported pose errs by a smooth function
+    arm_error_rad: float = 0.0  # of where it is (per component, this amplitude times a sine of the sensor's position
+    # along a random direction, wavelength `ARM_ERROR_WAVELENGTH_M`), its own for each arm
 
 
 @dataclass
@@ -268,6 +286,72 @@ def _jitter(rng: np.random.Generator, count: int, translation_m: float, rotation
     )
 
 
+FLIP_CENTRE_M = 0.04  # a flipped rigid body turns about its markers' centre, this far from the sensor's origin
+ARM_ERROR_WAVELENGTH_M = 0.5  # an arm's kinematic error changes over this much travel (a smooth function of pose)
+
+
+def _as_recorded(
+    streams: dict[str, PoseStream], config: TrajectoryConfig, rng: np.random.Generator, after_s: float, end_s: float
+) -> dict[str, PoseStream]:
+    """The reported pose streams as a mocap system or a robot arm delivers them (`TrajectoryConfig.pose_*`,
+    `arm_error_*`): mis-fitted bursts, flipped stretches, dropouts after `after_s` (ending before `end_s`), a smooth
+    pose-dependent kinematic error. Unchanged where those are off. Each fault of each stream draws from its own
+    generator: switching one on leaves the others' draws alone."""
+    out = {}
+    taken: list[tuple[float, float]] = []  # dropouts of both streams: one stream occluded at a time
+    seeds = rng.integers(2**62, size=(len(SIDES), 4))
+    for side, (arm, bursts, flips, dropouts) in zip(SIDES, seeds, strict=True):
+        rng = np.random.default_rng(arm)
+        stream = streams[side]
+        times, poses = stream.timestamps_s, stream.T_world_frame.copy()
+        count = len(times)
+        # a smooth kinematic error: per component, amplitude x sin(2 pi (direction . position) / wavelength + phase)
+        directions = normalize(rng.normal(size=(6, 3)))
+        phases = rng.uniform(0.0, 2.0 * np.pi, size=6)
+        origin = poses[0, :3, 3]
+        if config.arm_error_m > 0 or config.arm_error_rad > 0:
+            angle = 2.0 * np.pi * (poses[:, :3, 3] - origin) @ directions.T / ARM_ERROR_WAVELENGTH_M + phases
+            error = np.sin(angle) * np.repeat([config.arm_error_rad, config.arm_error_m], 3)
+            poses[:, :3, :3] = so3_exp(error[:, :3]) @ poses[:, :3, :3]
+            poses[:, :3, 3] += error[:, 3:]
+        # mis-fitted bursts
+        rng = np.random.default_rng(bursts)
+        mean_length = 0.5 * sum(config.pose_outlier_frames)
+        starts = rng.random(count) < config.pose_outlier_share / mean_length
+        for first in np.flatnonzero(starts):
+            length = int(rng.integers(config.pose_outlier_frames[0], config.pose_outlier_frames[1] + 1))
+            twist = np.concatenate(
+                [
+                    normalize(rng.normal(size=3)) * rng.uniform(*config.pose_outlier_rad),
+                    normalize(rng.normal(size=3)) * rng.uniform(*config.pose_outlier_m),
+                ]
+            )
+            poses[first : first + length] = pose_from_twist(twist[None])[0] @ poses[first : first + length]
+        # flipped stretches: half a turn about a symmetry axis through the markers' centre (sensor frame)
+        rng = np.random.default_rng(flips)
+        for _ in range(config.pose_flips):
+            begin = rng.uniform(times[0], max(times[-1] - config.pose_flip_s, times[0]))
+            flip = np.eye(4)
+            flip[:3, :3] = so3_exp(np.pi * normalize(rng.normal(size=3)))
+            centre = normalize(rng.normal(size=3)) * FLIP_CENTRE_M
+            flip[:3, 3] = centre - flip[:3, :3] @ centre
+            inside = (times >= begin) & (times < begin + config.pose_flip_s)
+            poses[inside] = poses[inside] @ flip
+        # dropouts, one stream at a time
+        rng = np.random.default_rng(dropouts)
+        keep = np.ones(count, bool)
+        for _ in range(config.pose_dropouts):
+            for _attempt in range(100):
+                gap = rng.uniform(*config.pose_dropout_s)
+                begin = rng.uniform(after_s, max(end_s - 0.25 - gap, after_s))
+                if all(begin > b + 0.1 or begin + gap < a - 0.1 for a, b in taken):
+                    taken.append((begin, begin + gap))
+                    keep &= (times < begin) | (times > begin + gap)
+                    break
+        out[side] = PoseStream(times[keep], poses[keep], stream.name, stream.source)
+    return out
+
+
 def _keep_pixel_stride(points_sensor: np.ndarray, stride: int, pixel_size_m: float, width: int, height: int):
     """The points on every `stride`-th pixel row and column (points from a height map, sensor frame)."""
     if stride <= 1 or len(points_sensor) == 0:
@@ -300,8 +384,8 @@ class TrajectorySimulator:
     def streams(self, seed: int, index: int) -> dict[str, np.random.Generator]:
         """The trajectory's own random streams (the touch draws from the pair simulator's): by purpose, so that
         changing one setting (jitter, say) leaves the others' draws alone."""
-        children = np.random.SeedSequence([seed, index, TRAJECTORY_STREAM]).spawn(5)
-        names = ("path", "slip", "timing", "jitter", "tactile")
+        children = np.random.SeedSequence([seed, index, TRAJECTORY_STREAM]).spawn(6)  # the first 5 as spawn(5)'s
+        names = ("path", "slip", "timing", "jitter", "tactile", "recorder")
         return {name: np.random.default_rng(child) for name, child in zip(names, children, strict=True)}
 
     def trajectory(self, seed: int, index: int) -> SimulatedTrajectory:
@@ -411,6 +495,7 @@ class TrajectorySimulator:
             sensors_true[side] = PoseStream(times[side], true, f"{side} sensor (true)")
             streams[side] = PoseStream(times[side], true @ calibration @ jitter, f"{side} sensor")
 
+        streams = _as_recorded(streams, config, rng["recorder"], touch_time + 0.5 * config.hold_s, end)
         if config.tactile_stamp_jitter_s > 0:  # the recorded times err; the frames stay in their order
             for side in SIDES:
                 errors = rng["timing"].normal(0.0, config.tactile_stamp_jitter_s, len(frames[side]))
@@ -418,7 +503,7 @@ class TrajectorySimulator:
                 stamps = np.maximum.accumulate(stamps)
                 recorded = zip(frames[side], stamps, strict=True)
                 frames[side] = [dataclasses.replace(frame, timestamp_s=float(t)) for frame, t in recorded]
-        union = np.union1d(times["left"], times["right"])
+        union = np.union1d(streams["left"].timestamps_s, streams["right"].timestamps_s)
         truth = PoseStream(union, object_true(union), "object (true)")
         touch.pair.extra["timestamp"] = touch_time
         final_slip = pose_from_twist(slip_twists(np.array([end])))[0]
@@ -517,8 +602,22 @@ class TrajectorySimulator:
 
 
 # ------------------------------------------------------------------------------------------------ files
-# TrajectoryConfig fields added in stop 19 (stored only where they differ from the dataclass's defaults)
-LATER_OPTIONS = ("tactile_phase_s", "tactile_whole_pad", "tactile_stamp_jitter_s")
+# TrajectoryConfig fields added in stops 19 and 20 (stored only where they differ from the dataclass's defaults)
+LATER_OPTIONS = (
+    "tactile_phase_s",
+    "tactile_whole_pad",
+    "tactile_stamp_jitter_s",
+    "pose_outlier_share",  # stop 20
+    "pose_outlier_frames",
+    "pose_outlier_m",
+    "pose_outlier_rad",
+    "pose_flips",
+    "pose_flip_s",
+    "pose_dropouts",
+    "pose_dropout_s",
+    "arm_error_m",
+    "arm_error_rad",
+)
 
 
 def trajectory_settings(model: ObjectModel, seed: int, config: TrajectoryConfig) -> dict[str, Any]:

@@ -31,6 +31,7 @@ from yoto.contacts import SIDES
 from yoto.geometry import so3_exp, so3_log
 from yoto.trajectory import PoseStream
 
+ANCHORS = 5  # the longest stretches of a stream between glitches tried as its motion (`implausible_samples`)
 GLITCH_WEIGHT = 1e-6  # relative weight of a sensor near a glitch sample (not 0: with one sensor it still counts)
 
 
@@ -50,6 +51,9 @@ class FusionConfig:
     smoothed_translation_m: float = 1.2e-4  # a window is widened only while the smoothed stream's predicted error
     smoothed_rotation_rad: float = float(np.radians(0.06))  # exceeds these (per axis; 0.2 mm / 0.1 deg of jitter
     # at 100-120 Hz, smoothed over +- 50 ms, is 0.09 mm / 0.045 deg: left as it is)
+    jump_translation_m: float = 0.002  # a stretch of samples between glitches that its neighbours' motion, carried
+    jump_rotation_rad: float = float(np.radians(2.0))  # across the glitches, misses by more than this and by more
+    # than glitch_sigmas of the carried fit's noise is a mis-fitted rigid body (a flipped one): left out of the stream
 
 
 @dataclass
@@ -62,6 +66,9 @@ class StreamJitter:
     smoothing_gain: float = 1.0  # variance of a smoothed position's noise over a raw sample's (1: not smoothed)
     rotation_smoothing_gain: float = 1.0  # the same for the rotations
     smoothing_s: tuple[float, float] = (0.0, 0.0)  # the half-windows chosen for positions and rotations
+    left_out: int = 0  # samples left out of the stream: stretches between glitches its motion could not reach
+    dropouts_s: tuple[float, ...] = ()  # gaps longer than `max_gap_s` in the stream (left out samples included):
+    # the other sensor alone carries the object there
 
     @property
     def smoothed_translation_m(self) -> float:
@@ -76,9 +83,14 @@ class StreamJitter:
             f", smoothed to {self.smoothed_translation_m * 1e3:.3f} mm / {np.degrees(self.smoothed_rotation_rad):.3f}"
             f" deg (+- {self.smoothing_s[0] * 1e3:.0f} / {self.smoothing_s[1] * 1e3:.0f} ms)"
         )
+        faults = f", {self.left_out} samples off its motion left out" if self.left_out else ""
+        if self.dropouts_s:
+            faults += (
+                f", {len(self.dropouts_s)} dropouts (longest {max(self.dropouts_s):.2f} s): the other sensor alone"
+            )
         return (
             f"jitter {self.translation_m * 1e3:.3f} mm / {np.degrees(self.rotation_rad):.3f} deg, "
-            f"{int(self.glitch.sum())} glitches" + (smoothed if max(self.smoothing_s) > 0 else "")
+            f"{int(self.glitch.sum())} glitches" + faults + (smoothed if max(self.smoothing_s) > 0 else "")
         )
 
 
@@ -135,6 +147,88 @@ def stream_jitter(stream: PoseStream, config: FusionConfig = FusionConfig()) -> 
     return StreamJitter(sigma_t, sigma_r, glitch)
 
 
+def _carried(times: np.ndarray, poses: np.ndarray, to_time: float, to_pose: np.ndarray) -> tuple[float, float, float]:
+    """How far `to_pose` at `to_time` is from the motion of a stretch of samples (`times` in periods, `poses`)
+    carried there by a polynomial (a quadratic where the stretch has 3 samples or more): the translation (m) and
+    rotation (rad) missed, and the carried fit's noise over a sample's (1-sigma ratio)."""
+    centre = float(np.mean(times))  # times about the stretch's middle: a well-conditioned fit
+    degree = min(len(times), 3)
+    design = np.vander(times - centre, degree, increasing=True)
+    reference = poses[-1, :3, :3]
+    rotations = so3_log(np.einsum("ji,njk->nik", reference, poses[:, :3, :3]))  # R_ref^T R_n
+    inverse = np.linalg.inv(design.T @ design)
+    at_target = np.vander(np.array([to_time - centre]), degree, increasing=True)[0]
+    fit = at_target @ inverse @ design.T @ np.concatenate([poses[:, :3, 3], rotations], axis=1)
+    missed_t = float(np.linalg.norm(to_pose[:3, 3] - fit[:3]))
+    missed_r = float(np.linalg.norm(so3_log((so3_exp(fit[None, 3:])[0].T @ reference.T @ to_pose[:3, :3])[None])))
+    return missed_t, missed_r, float(np.sqrt(1.0 + at_target @ inverse @ at_target))
+
+
+def implausible_samples(stream: PoseStream, jitter: StreamJitter, config: FusionConfig = FusionConfig()) -> np.ndarray:
+    """(N,) bool: samples the stream's motion cannot have reached: a rigid body mis-fitted for longer than the
+    glitch test sees (a flipped body; a burst whose glitches mark only its ends).
+
+    The glitches cut the stream into stretches of consecutive samples. Two stretches agree when the motion of each
+    (a quadratic through its samples next to the other), carried across whatever lies between them, meets the
+    other's nearest sample within `glitch_sigmas` of the carried fit's noise or within the jump floors
+    (`jump_translation_m`, `jump_rotation_rad`), in translation and in rotation. From each of the longest stretches
+    a chain goes out both ways, joining each stretch that agrees with the last one joined; the chain holding the
+    most samples is the stream's motion, and the stretches outside it are left out; so is each glitch that the motion
+    of the samples kept nearest it misses by as much (a glitch within it stays, left out of the smoothing)."""
+    count = len(stream)
+    implausible = np.zeros(count, bool)
+    good = np.flatnonzero(~jitter.glitch)
+    if len(good) == 0 or len(good) == count:
+        return implausible
+    stretches = np.split(good, np.flatnonzero(np.diff(good) > 1) + 1)
+    if len(stretches) < 2:
+        return implausible
+    fit_samples = 2 * config.jitter_neighbours + 1
+    period = max(float(np.median(np.diff(stream.timestamps_s))), 1e-9)
+    times, poses = stream.timestamps_s / period, stream.T_world_frame
+    agreed: dict[tuple[int, int], bool] = {}
+
+    def within(missed: tuple[float, float, float]) -> bool:
+        limit = config.glitch_sigmas * missed[2]
+        return missed[0] <= max(limit * jitter.translation_m, config.jump_translation_m) and missed[1] <= max(
+            limit * jitter.rotation_rad, config.jump_rotation_rad
+        )
+
+    def agree(before: int, after: int) -> bool:
+        if (before, after) not in agreed:
+            tail, head = stretches[before][-fit_samples:], stretches[after][:fit_samples][::-1]
+            agreed[before, after] = within(_carried(times[tail], poses[tail], times[head[-1]], poses[head[-1]]))
+            agreed[before, after] &= within(_carried(times[head], poses[head], times[tail[-1]], poses[tail[-1]]))
+        return agreed[before, after]
+
+    sizes = [len(stretch) for stretch in stretches]
+    best: tuple[int, list[int]] = (-1, [])
+    for anchor in [int(i) for i in np.argsort(sizes)[::-1][:ANCHORS]]:
+        chain, last, first = [anchor], anchor, anchor
+        for other in range(anchor + 1, len(stretches)):
+            if agree(last, other):
+                chain.append(other)
+                last = other
+        for other in range(anchor - 1, -1, -1):
+            if agree(other, first):
+                chain.append(other)
+                first = other
+        size = sum(sizes[i] for i in chain)
+        if size > best[0]:
+            best = (size, chain)
+    for index in set(range(len(stretches))) - set(best[1]):
+        implausible[stretches[index]] = True
+    # Each glitch against the motion of the stream's samples kept nearest it in time (a flipped body's first and last
+    # samples are glitches, the samples beside them too): one that motion cannot reach is left out as well.
+    kept = np.flatnonzero(~implausible & ~jitter.glitch)
+    for glitch in np.flatnonzero(jitter.glitch):
+        before, after = kept[kept < glitch][-fit_samples:], kept[kept > glitch][:fit_samples][::-1]
+        nearest = [side for side in (before, after) if len(side)]
+        side = min(nearest, key=lambda samples: abs(times[samples[-1]] - times[glitch]))
+        implausible[glitch] = not within(_carried(times[side], poses[side], times[glitch], poses[glitch]))
+    return implausible
+
+
 def _smoothed(
     stream: PoseStream, jitter: StreamJitter, half_window: int, shortest: int, config: FusionConfig
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -168,7 +262,20 @@ def smooth_stream(stream: PoseStream, jitter: StreamJitter, config: FusionConfig
     (the stream's jitter times the window's noise gain) plus its squared bias, measured on the stream as how far the
     window's fits move from the shortest window's beyond what the two fits' noise explains (mean over the samples
     a full window away from the ends). `jitter.smoothing_gain`, `rotation_smoothing_gain` and `smoothing_s` are set
-    to the chosen windows' median noise reduction (variance ratio) and half-widths (s)."""
+    to the chosen windows' median noise reduction (variance ratio) and half-widths (s).
+
+    First the samples its motion cannot have reached (`implausible_samples`) are left out of the stream (a stretch
+    longer than `max_gap_s` is then a dropout: the other sensor alone there); `jitter.glitch` follows, and
+    `jitter.left_out` and `jitter.dropouts_s` say what was left out and which gaps remain."""
+    implausible = implausible_samples(stream, jitter, config)
+    if implausible.any():
+        keep = ~implausible
+        stream = PoseStream(stream.timestamps_s[keep], stream.T_world_frame[keep], stream.name, stream.source)
+        jitter.glitch = jitter.glitch[keep]
+        jitter.left_out = int(implausible.sum())
+    if len(stream) > 1:
+        gaps = np.diff(stream.timestamps_s)
+        jitter.dropouts_s = tuple(float(g) for g in gaps[gaps > stream.dropout_gap_s(config.max_gap_s)])
     if config.smoothing_s <= 0 or len(stream) < 3:
         return stream
     period = float(np.median(np.diff(stream.timestamps_s)))

@@ -434,6 +434,8 @@ def report_payload(job: TrackJob, model: ObjectModel, outcome: TrackOutcome) -> 
                 "translation_mm": 1e3 * jitter.translation_m,
                 "rotation_deg": float(np.degrees(jitter.rotation_rad)),
                 "glitches": int(jitter.glitch.sum()),
+                "left_out": jitter.left_out,  # samples off the stream's motion (a mis-fitted or flipped body)
+                "dropouts_s": list(jitter.dropouts_s),  # gaps longer than max_gap_s: the other sensor alone there
             }
             for side, jitter in result.jitter.items()
         },
