@@ -95,6 +95,11 @@ class CorrectionConfig:
     regrasp_frames: int = 3  # after a release, both gels touching in this many instants in a row make a new touch
     # (its pose estimated from the latest pair: the press has settled), when `track` is given a `NewTouchEstimator`
     regrasp_attempts: int = 3  # new touches whose estimate was refused before the track stops looking until the end
+    image_contact_tilt_rad: float = 0.001  # frames the tracker reconstructs from GelSight images: each contact may
+    # turn about its own centre in its pad plane by about this much (1-sigma, two angles a contact, estimated in the
+    # registration beside the correction and left out of its information: `frame_registration.register_contacts`);
+    # the reconstruction reads a contact's plane a few mrad off, changing as it slides over the pad. Clouds given
+    # as clouds keep their tilt (0: off for images too)
 
 
 @dataclass(frozen=True)
