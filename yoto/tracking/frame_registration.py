@@ -2,7 +2,8 @@
 how deep it reads its press and how deep the object should press (`frame_indentation_m`, `predicted_indentation_m`),
 the Gauss-Newton settings (`registration_solver`, `pad_rest_solver`, `registration_prior`), and the information a
 registered contact carries, checked against the surface (`contact_information`, `secant_scaling`; `observable_unit`
-is where rotation and translation meet).
+is where rotation and translation meet); the registration itself (`register_contacts`), where a contact read from
+an image may tilt about its centre (`tilt_jacobian`, `without_tilt`).
 
 Frames: a frame's points in its sensor's frame (the gel's rest surface z = 0, pressed points below it); registered
 points and twists in the canonical `object` frame (rotation about the centroid first).
