@@ -99,7 +99,9 @@ class CorrectionConfig:
     # turn about its own centre in its pad plane by about this much (1-sigma, two angles a contact, estimated in the
     # registration beside the correction and left out of its information: `frame_registration.register_contacts`);
     # the reconstruction reads a contact's plane a few mrad off, changing as it slides over the pad. Clouds given
-    # as clouds keep their tilt (0: off for images too)
+    # as clouds keep their tilt (0: off for images too) ...
+    cloud_contact_tilt_rad: float = 0.0  # ... or this, for clouds given as clouds (off: on seed 11's PLY frames 1 mrad
+    # met 46 of 52 instead of 42 but lost the figurine #2s, journal stop 20)
 
 
 @dataclass(frozen=True)

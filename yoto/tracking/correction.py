@@ -346,8 +346,9 @@ class _Corrector:
         unusable: dict[str, str] = {}
         clouds: dict[str, tuple[float, np.ndarray]] = {}
         for side, (stream, index) in frames.items():
-            if stream.from_images and c.image_contact_tilt_rad > 0.0:  # a reconstruction's tilt error (config)
-                self.tilt_rad[side] = c.image_contact_tilt_rad
+            tilt_rad = c.image_contact_tilt_rad if stream.from_images else c.cloud_contact_tilt_rad
+            if tilt_rad > 0.0:  # a reconstruction's tilt error (config)
+                self.tilt_rad[side] = tilt_rad
             stamp = float(stream.timestamps_s[index])
             try:
                 points = np.asarray(stream.load(index), dtype=np.float64).reshape(-1, 3)
