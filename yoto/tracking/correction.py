@@ -151,7 +151,7 @@ class _Corrector:
         self.lifted: set[str] = set()  # ... and those without contact whose sensor left the object (`lifted_apart_m`):
         # while the other touches, it alone predicts the pose (a side letting go, its sensor withdrawing)
         self.touched_again: list[tuple[str, float]] = []  # (side, its frame's time) of each let-go side touching again
-        self.tilt_rad: dict[str, float] = {}  # per side whose frames come from images: its contacts' tilt sigma
+        self.tilt_rad: dict[str, float] = {}  # per side whose contacts tilt (`image_contact_tilt_rad`...): sigma
 
     def _initial_covariance(self) -> np.ndarray:
         """The filter's covariance at the touch: its pose's uncertainty and the slip rate's prior (the bias's is set
