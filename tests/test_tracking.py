@@ -489,6 +489,75 @@ def test_the_pinning_names_the_directions_two_contacts_leave_free_and_splits_a_d
     assert "pinned to" in pinning.describe(0)
 
 
+def _cylinder_sensors(radius_m: float) -> dict[str, np.ndarray]:
+    """T_object_sensor of the two opposite contacts of `_two_contacts`: each sensor's z into the cylinder, its x
+    along the cylinder's axis."""
+    sensors = {}
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        T = np.eye(4)
+        T[:3, 0], T[:3, 1], T[:3, 2] = [0.0, 0.0, 1.0], [0.0, sign, 0.0], [-sign, 0.0, 0.0]
+        T[:3, 3] = [sign * radius_m, 0.0, 0.0]
+        sensors[side] = T
+    return sensors
+
+
+def test_a_contacts_own_tilt_left_out_leaves_a_turn_only_the_tilts_pin_to_the_tilts_prior(rng):
+    """Two opposite contacts on a cylinder pin a turn about an axis in both pads (y here) only through each
+    contact's tilt: with each contact's tilt a nuisance of sigma, that turn keeps about 2 / sigma^2 of information
+    (each contact's own share C / (C + (pixel / sigma)^2) of it), the push along their normal all of its own, and the
+    turn about the line through them (pinned by the curvature, no tilt) most of its own."""
+    from yoto.tracking.frame_registration import contact_information
+    from yoto.tracking.track import CorrectionConfig
+
+    radius, sigma = 0.03, 0.003
+    points = _two_contacts(radius)
+    surface = _cylinder(radius, 0.0, rng)
+    sides = {"left": points[: len(points) // 2], "right": points[len(points) // 2 :]}
+    tilts = {side: (T[:3, :2].T, sigma) for side, T in _cylinder_sensors(radius).items()}
+    config = CorrectionConfig()
+    plain = sum(f for f, _ in contact_information(surface, sides, config, False).values())
+    without = sum(f for f, _ in contact_information(surface, sides, config, False, tilts).values())
+    turn_x, turn_y, push_x = np.eye(6)[0], np.eye(6)[1], np.eye(6)[3]
+    tilt_points = (sides["left"][:, 2] - sides["left"][:, 2].mean()) ** 2  # each contact's C about its pad's x
+    ratio = (config.pixel_noise_m / sigma) ** 2
+    expected = 2.0 / sigma**2 * tilt_points.sum() / (tilt_points.sum() + ratio)
+    assert turn_y @ without @ turn_y == pytest.approx(expected, rel=0.02)
+    assert turn_y @ plain @ turn_y > 4.0 * expected  # the tilts alone, believed, pin it far more
+    assert push_x @ without @ push_x == pytest.approx(push_x @ plain @ push_x, rel=1e-6)
+    assert turn_x @ without @ turn_x > 0.8 * (turn_x @ plain @ turn_x)
+    # sigma 0: the normal matrices as they were
+    off = {side: (axes, 0.0) for side, (axes, _) in tilts.items()}
+    np.testing.assert_array_equal(
+        sum(f for f, _ in contact_information(surface, sides, config, False, off).values()), plain
+    )
+
+
+def test_a_contact_read_tilted_turns_the_registration_by_what_its_tilts_prior_leaves(rng):
+    """One contact on a cylinder read turned by 5 mrad about its pad's y axis (through its centre): registered
+    alone, the correction turns the object back by all of it; with its tilt a nuisance of sigma equal to the
+    registration's rotation prior, by half (the two priors share it), the estimate of the joint Gauss-Newton."""
+    from yoto.geometry import pose_from_twist, twist_of_pose
+    from yoto.tracking.frame_registration import register_contacts, registration_solver
+    from yoto.tracking.track import CorrectionConfig
+
+    radius, tilt = 0.03, 0.005
+    points = _two_contacts(radius)[:256]
+    centre = points.mean(axis=0)
+    sensors = _cylinder_sensors(radius)
+    turn = pose_from_twist(np.array([0.0, tilt, 0.0, 0.0, 0.0, 0.0]))
+    read = (points - centre) @ turn[:3, :3].T + centre  # a turn about y moves the contact along its normal
+    surface = _cylinder(radius, 0.0, rng)
+    config = CorrectionConfig()
+    solver = registration_solver(config)
+    sides, facing = {"left": read}, {"left": sensors["left"]}
+    believed = twist_of_pose(register_contacts(surface, sides, facing, solver))
+    assert believed[1] == pytest.approx(-tilt, rel=0.03)
+    prior = config.registration_prior_rotation_rad
+    nuisance = twist_of_pose(register_contacts(surface, sides, facing, solver, {"left": prior}))
+    assert nuisance[1] == pytest.approx(-tilt / 2.0, rel=0.05)
+    np.testing.assert_allclose(nuisance[[0, 2]], 0.0, atol=2e-4)
+
+
 def test_a_retouch_is_found_where_the_surface_moves_along_its_normal_and_none_where_it_slides_along_itself(rng):
     """Two opposite contacts at +-x on a cylinder about z: a turn about x (the line through them) moves the surface
     along its normal most at +-y and the cylinder's ends (|z| 15 mm: 0.52 mm per unit of 2 deg), barely at the

@@ -942,6 +942,9 @@ def test_frames_through_gelsight_images_are_tracked_from_a_folder_of_pngs(
         assert np.array_equal(tactile[side].timestamps_s, [f.timestamp_s for f in trajectory.tactile[side]])
     assert np.array_equal(tactile["left"].load(3), cloud)
     assert np.array_equal(tactile_streams(trajectory)["left"].load(3), cloud)
+    # frames from images are known as such (their contacts' tilt is estimated), clouds given as clouds are not
+    assert tactile["left"].from_images and tactile_streams(trajectory)["left"].from_images
+    assert not tactile_streams(fruit_trajectory)["left"].from_images
     if importlib.util.find_spec("rosbags") is not None:  # the same frames as a bag's image topic (the rig extra)
         from yoto.rig.bags import BagWriter
 

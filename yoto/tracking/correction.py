@@ -47,7 +47,7 @@ from yoto.contacts import MIN_TACTILE_POINTS, SIDES
 from yoto.errors import InputError
 from yoto.geometry import invert_transform, pose_from_twist, rotation_angle_rad, skew, transform_points, twist_of_pose
 from yoto.objects.model import ObjectModel
-from yoto.registration import plane_distances, point_to_plane_gauss_newton, point_to_plane_jacobian, truncated_plane_fit
+from yoto.registration import plane_distances, point_to_plane_jacobian, truncated_plane_fit
 from yoto.tracking.config import TrackConfig
 from yoto.tracking.frame_registration import (
     contact_information,
@@ -56,6 +56,7 @@ from yoto.tracking.frame_registration import (
     observable_unit,
     pad_rest_solver,
     predicted_indentation_m,
+    register_contacts,
     registration_prior,
     registration_solver,
 )
@@ -151,6 +152,7 @@ class ClosedLoop:
         # while the other touches, it alone predicts the pose (a side letting go, its sensor withdrawing)
         self.touched_again: list[tuple[str, float]] = []  # (side, its frame's time) of each let-go side touching again
         self.open_changes: list[OpenLoopChange] = []  # the open loop's grasps since the touch, as they changed
+        self.tilt_rad: dict[str, float] = {}  # per side whose contacts tilt (`image_contact_tilt_rad`...): sigma
 
     def _initial_covariance(self) -> np.ndarray:
         """The filter's covariance at the touch: its pose's uncertainty and the slip rate's prior (the bias's is set
@@ -322,11 +324,13 @@ class ClosedLoop:
         self.covariance = transition @ self.covariance @ transition.T + noise
         self.last_time, self.last_sensors = now_s, sensors
 
-    def _information(self, points_object: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    def _information(
+        self, points_object: dict[str, np.ndarray], tilts: dict[str, tuple[np.ndarray, float]] | None = None
+    ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """Each contact's information (`contact_information`), the surface check where more than
-        `observable_max_contacts` contacts register together."""
+        `observable_max_contacts` contacts register together; the `tilts` given (pad axes, sigma) left out."""
         check = len(points_object) > self.config.correction.observable_max_contacts
-        return contact_information(self.model, points_object, self.config.correction, check)
+        return contact_information(self.model, points_object, self.config.correction, check, tilts)
 
     def _register(
         self, points: dict[str, np.ndarray], sensors: dict[str, np.ndarray]
@@ -335,12 +339,7 @@ class ClosedLoop:
         and each side's inlier fraction after it. `sensors`: each side's T_predicted_sensor; its points match only
         surface facing that sensor (the other face of a thin wall, 1 mm behind the contact on a mug, is not theirs)."""
         c = self.config.correction
-        stacked = np.vstack(list(points.values()))
-        # The surface's outward normal at a contact is against the sensor's z (which points into the object).
-        facing = np.vstack([np.broadcast_to(-sensors[side][:3, 2], (len(p), 3)) for side, p in points.items()])
-        correction = point_to_plane_gauss_newton(
-            self.model, stacked, np.eye(4)[None], self.solver, facing_source=facing
-        )[0]
+        correction = register_contacts(self.model, points, sensors, self.solver, self.tilt_rad)
         fractions = {}
         for side, side_points in points.items():
             fit = truncated_plane_fit(
@@ -359,6 +358,9 @@ class ClosedLoop:
         unusable: dict[str, str] = {}
         clouds: dict[str, tuple[float, np.ndarray]] = {}
         for side, (stream, index) in frames.items():
+            tilt_rad = c.image_contact_tilt_rad if stream.from_images else c.cloud_contact_tilt_rad
+            if tilt_rad > 0.0:  # a reconstruction's tilt error (config)
+                self.tilt_rad[side] = tilt_rad
             stamp = float(stream.timestamps_s[index])
             try:
                 points = np.asarray(stream.load(index), dtype=np.float64).reshape(-1, 3)
@@ -430,7 +432,7 @@ class ClosedLoop:
                 for side in points_predicted:
                     unusable[side] = f"bad fit ({fractions[side]:.0%} of points on the surface)"
             else:
-                refused = self._update(points_predicted, pose_noise, correction)
+                refused = self._update(points_predicted, pose_noise, correction, T_predicted_sensors)
                 for side in points_predicted if refused else ():
                     unusable[side] = refused
                 if not refused:
@@ -558,7 +560,11 @@ class ClosedLoop:
         return free * np.outer(self.unit, 1.0 / self.unit)
 
     def _update(
-        self, points_predicted: dict[str, np.ndarray], pose_noise: dict[str, np.ndarray], correction: np.ndarray
+        self,
+        points_predicted: dict[str, np.ndarray],
+        pose_noise: dict[str, np.ndarray],
+        correction: np.ndarray,
+        T_predicted_sensors: dict[str, np.ndarray],
     ) -> str:
         """Kalman update with the registration's twist z = error + bias + noise (information form), then the new
         grasps, slip rate and bias. Each contact's information is discounted by its sensor's pose jitter,
@@ -568,7 +574,12 @@ class ClosedLoop:
         twist = twist_of_pose(correction)
         white, shared = np.zeros((6, 6)), np.zeros((6, 6))
         registered = {side: transform_points(correction, side_points) for side, side_points in points_predicted.items()}
-        for side, (per_frame, bias) in self._information(registered).items():
+        tilts = {  # each image frame's pad axes (registered frame) and its tilt's sigma
+            side: ((correction[:3, :3] @ T_predicted_sensors[side][:3, :2]).T, self.tilt_rad[side])
+            for side in registered
+            if side in self.tilt_rad
+        }
+        for side, (per_frame, bias) in self._information(registered, tilts).items():
             white += per_frame @ np.linalg.inv(np.eye(6) + pose_noise[side] @ per_frame)
             shared += bias
         lone = len(points_predicted) <= c.observable_max_contacts

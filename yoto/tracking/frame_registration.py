@@ -2,7 +2,8 @@
 how deep it reads its press and how deep the object should press (`frame_indentation_m`, `predicted_indentation_m`),
 the Gauss-Newton settings (`registration_solver`, `pad_rest_solver`, `registration_prior`), and the information a
 registered contact carries, checked against the surface (`contact_information`, `secant_scaling`; `observable_unit`
-is where rotation and translation meet).
+is where rotation and translation meet); the registration itself (`register_contacts`), where a contact read from
+an image may tilt about its centre (`tilt_jacobian`, `without_tilt`).
 
 Frames: a frame's points in its sensor's frame (the gel's rest surface z = 0, pressed points below it); registered
 points and twists in the canonical `object` frame (rotation about the centroid first).
@@ -16,9 +17,16 @@ import numpy as np
 from scipy import ndimage
 
 from yoto.contacts import MIN_TACTILE_POINTS, MINI_PAD_M
-from yoto.geometry import invert_transform, pose_from_twist, transform_points
+from yoto.geometry import invert_transform, pose_from_twist, so3_exp, so3_log, transform_points
 from yoto.objects.model import ObjectModel
-from yoto.registration import GaussNewtonConfig, SurfaceCloud, plane_distances, point_to_plane_jacobian
+from yoto.registration import (
+    GaussNewtonConfig,
+    SurfaceCloud,
+    masked_row_medians,
+    plane_distances,
+    point_to_plane_gauss_newton,
+    point_to_plane_jacobian,
+)
 from yoto.tracking.config import CorrectionConfig
 
 
@@ -136,18 +144,45 @@ def secant_scaling(
     return (1.0 / unit)[:, None] * shrink * unit[None, :]
 
 
+def tilt_jacobian(points: np.ndarray, normals: np.ndarray, pad_axes: np.ndarray) -> np.ndarray:
+    """(M, 2) d r / d (tilt about the pad's x, about its y) of one contact's point-to-plane residuals: the contact
+    turned about its own centre (its points' mean) about the two axes of its pad plane, `pad_axes` (2, 3), the
+    sensor's x and y in the points' frame."""
+    return point_to_plane_jacobian(points - points.mean(axis=0), normals)[:, :3] @ pad_axes.T
+
+
+def without_tilt(normal: np.ndarray, cross: np.ndarray, tilt: np.ndarray, ratio: float) -> np.ndarray:
+    """A contact's normal matrix (6, 6) with its tilt (`tilt_jacobian`) marginalised: the Schur complement
+    N - B (C + ratio I)^-1 B^T of the joint normal matrix [[N, B], [B^T, C]] of (object twist, tilt), `ratio` the
+    points' noise over the tilt's prior sigma, squared (0: the tilt free; large: the tilt known to be none)."""
+    return normal - cross @ np.linalg.solve(tilt + ratio * np.eye(2), cross.T)
+
+
 def contact_information(
-    model: ObjectModel, points_object: dict[str, np.ndarray], config: CorrectionConfig, check_surface: bool = True
+    model: ObjectModel,
+    points_object: dict[str, np.ndarray],
+    config: CorrectionConfig,
+    check_surface: bool = True,
+    tilts: dict[str, tuple[np.ndarray, float]] | None = None,
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Per side, the Gauss-Newton normal matrices (6, 6) of its contact's registered points (object frame, rotation
     about the origin): for the noise new in every frame (all points, `pixel_noise_m`) and for the error the contact's
     points share (`bias_points` points of `bias_noise_m`: a reconstruction's smooth error), checked against the
-    surface (`secant_scaling`, over all sides together) when `check_surface`."""
+    surface (`secant_scaling`, over all sides together) when `check_surface`. With `tilts` (per side, its pad's x
+    and y in the object frame (2, 3), and a sigma > 0), that contact's own tilt about its centre in its pad plane is
+    marginalised out of both (`without_tilt`): what the contact tells only through the tilt its reconstruction reads
+    is discounted to what a tilt error of that size leaves."""
     normals, counts = {}, {}
+    tilted: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # side -> (B, C) of the joint normal matrix
     for side, side_points in points_object.items():
         _, matched, _, surface_normals = plane_distances(model, side_points, config.max_distance_m)
         jacobian = point_to_plane_jacobian(side_points, surface_normals)[matched]
         normals[side], counts[side] = jacobian.T @ jacobian, len(jacobian)
+        pad_axes, sigma = (tilts or {}).get(side, (None, 0.0))
+        if pad_axes is not None and sigma > 0.0 and matched.any():
+            tilt = tilt_jacobian(side_points[matched], surface_normals[matched], pad_axes)
+            tilted[side] = (jacobian.T @ tilt, tilt.T @ tilt)
+            normals[side] = without_tilt(normals[side], *tilted[side], (config.pixel_noise_m / sigma) ** 2)
     unit = observable_unit(config)
     scaling = (
         secant_scaling(model, sum(normals.values()), np.vstack(list(points_object.values())), unit, config)
@@ -165,3 +200,64 @@ def contact_information(
 def observable_unit(config: CorrectionConfig) -> np.ndarray:
     """(6,) one observable unit of each twist component (rad, m): where rotation and translation meet."""
     return np.array([config.observable_rotation_rad] * 3 + [config.observable_translation_m] * 3)
+
+
+def register_contacts(
+    surface: SurfaceCloud,
+    points: dict[str, np.ndarray],
+    T_predicted_sensor: dict[str, np.ndarray],
+    solver: GaussNewtonConfig,
+    tilt_rad: dict[str, float] | None = None,
+) -> np.ndarray:
+    """(4, 4) the correction T_object_predicted bringing the sides' points (predicted object frame) onto the
+    surface: point-to-plane Gauss-Newton from the prediction (`yoto.registration`; rotation about the origin, the
+    prediction its prior). Each side's points match only surface facing its sensor (`T_predicted_sensor`'s -z).
+
+    With `tilt_rad` (per side, a sigma > 0) that side's contact may also turn about its own centre in its pad plane
+    (two angles, about its sensor's x and y, a Gaussian prior of that sigma), estimated jointly and so marginalised out
+    of the correction: a reconstruction reads a contact's plane a few mrad off, and that error changes as the contact
+    slides over the pad (journal, stop 17); along a direction the pair pins only through their tilts it would move the
+    pose by degrees. Huber weights at a robust scale as `point_to_plane_gauss_newton`'s."""
+    sides = list(points)
+    stacked = np.vstack([points[side] for side in sides])
+    # The surface's outward normal at a contact is against the sensor's z (which points into the object).
+    facing = np.vstack([np.broadcast_to(-T_predicted_sensor[side][:3, 2], (len(points[side]), 3)) for side in sides])
+    sigmas = {side: sigma for side, sigma in (tilt_rad or {}).items() if side in points and sigma > 0.0}
+    if not sigmas:
+        return point_to_plane_gauss_newton(surface, stacked, np.eye(4)[None], solver, facing_source=facing)[0]
+    tilting = list(sigmas)  # the sides whose tilts are estimated, their points' rows in `stacked`
+    starts = dict(zip(sides, np.cumsum([0] + [len(points[side]) for side in sides]), strict=False))
+    bounds = [(starts[side], starts[side] + len(points[side])) for side in tilting]
+    axes = [T_predicted_sensor[side][:3, :2].T for side in tilting]  # (2, 3) each pad's x and y, predicted frame
+    prior = np.zeros((6 + 2 * len(tilting),) * 2)
+    prior[:6, :6] = np.diag(solver.prior_information())
+    prior[6:, 6:] = np.diag(np.repeat([sigmas[side] ** -2.0 for side in tilting], 2))
+    pose, tilts = np.eye(4), np.zeros(2 * len(tilting))
+    tilted = stacked.copy()  # each side's points turned by its tilt so far (predicted frame)
+    for _ in range(solver.iterations):
+        rotation = pose[:3, :3]
+        current = tilted @ rotation.T + pose[:3, 3]
+        r, use, _, n = plane_distances(surface, current, solver.max_distance_m, facing @ rotation.T)
+        scale = max(solver.surface_noise_m, 1.4826 * float(masked_row_medians(np.abs(r)[None], use[None])[0]))
+        weights = np.where(use, np.minimum(1.0, scale / np.maximum(np.abs(r), 1e-12)), 0.0) / solver.surface_noise_m**2
+        jacobian = np.zeros((len(current), len(prior)))
+        jacobian[:, :6] = point_to_plane_jacobian(current, n)
+        for k, (start, end) in enumerate(bounds):
+            pad_axes = axes[k] @ rotation.T  # carried into the current frame
+            jacobian[start:end, 6 + 2 * k : 8 + 2 * k] = tilt_jacobian(current[start:end], n[start:end], pad_axes)
+        weighted = jacobian * weights[:, None]
+        deviation = np.concatenate([so3_log(rotation), pose[:3, 3], tilts])
+        hessian = weighted.T @ jacobian + prior
+        step = -np.linalg.solve(hessian, weighted.T @ r + prior @ deviation)
+        # a side's tilt turns its points about their centre (pad axes carried into the predicted frame) ...
+        for k, (start, end) in enumerate(bounds):
+            turn = so3_exp((step[6 + 2 * k : 8 + 2 * k] @ axes[k])[None])[0]
+            centre = tilted[start:end].mean(axis=0)
+            tilted[start:end] = (tilted[start:end] - centre) @ turn.T + centre
+        tilts += step[6:]
+        # ... and the object's correction turns about the origin and shifts
+        delta = so3_exp(step[:3][None])[0]
+        pose[:3, :3], pose[:3, 3] = delta @ rotation, delta @ pose[:3, 3] + step[3:6]
+        if np.sum(step[3:6] ** 2) < solver.step_tolerance_m**2 and np.sum(step[:3] ** 2) < solver.step_tolerance_rad**2:
+            break
+    return pose

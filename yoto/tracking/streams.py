@@ -78,6 +78,7 @@ class TactileStream:
     load: Callable[[int], np.ndarray]  # frame index -> (M, 3) points; raises InputError for an unreadable frame
     name: str = ""
     source: Path | None = None
+    from_images: bool = False  # each frame reconstructed from a GelSight image when loaded (`image_frames`)
 
     def __len__(self) -> int:
         return len(self.timestamps_s)
@@ -232,4 +233,4 @@ def image_frames(
             swapped.append(named)
         return reconstruct(rgb, sensor, source=named).points_sensor
 
-    return TactileStream(np.asarray(timestamps_s, dtype=np.float64), load, name, source)
+    return TactileStream(np.asarray(timestamps_s, dtype=np.float64), load, name, source, from_images=True)
