@@ -87,6 +87,13 @@ class CorrectionConfig:
     # frames read that shallow (median) is left out of the motion too: it misreads this contact's shape (0.5 also
     # drops the cracker box's left pad through `shading:3`, 0.42 of its press, whose track met the target)
     shallow_gap_m: float = 0.001  # (the reported sensor poses put the sensors' distance a few tenths off)
+    image_contact_tilt_rad: float = 0.001  # frames the tracker reconstructs from GelSight images: each contact may
+    # turn about its own centre in its pad plane by about this much (1-sigma, two angles a contact, estimated in the
+    # registration beside the correction and left out of its information: `frame_registration.register_contacts`);
+    # the reconstruction reads a contact's plane a few mrad off, changing as it slides over the pad. Clouds given
+    # as clouds keep their tilt (0: off for images too) ...
+    cloud_contact_tilt_rad: float = 0.0  # ... or this, for clouds given as clouds (off: on seed 11's PLY frames 1 mrad
+    # met 46 of 52 instead of 42 but lost the figurine #2s, journal stop 20)
 
 
 @dataclass(frozen=True)
@@ -107,13 +114,6 @@ class ReleaseConfig:
     regrasp_frames: int = 2  # ... and in at least this many instants make a new touch (its pose estimated from the
     # latest pair: the press has settled), when `track` is given a `NewTouchEstimator` (0.08 s: 3 instants at 25 fps)
     regrasp_attempts: int = 3  # new touches whose estimate was refused before the track stops looking until the end
-    image_contact_tilt_rad: float = 0.001  # frames the tracker reconstructs from GelSight images: each contact may
-    # turn about its own centre in its pad plane by about this much (1-sigma, two angles a contact, estimated in the
-    # registration beside the correction and left out of its information: `frame_registration.register_contacts`);
-    # the reconstruction reads a contact's plane a few mrad off, changing as it slides over the pad. Clouds given
-    # as clouds keep their tilt (0: off for images too) ...
-    cloud_contact_tilt_rad: float = 0.0  # ... or this, for clouds given as clouds (off: on seed 11's PLY frames 1 mrad
-    # met 46 of 52 instead of 42 but lost the figurine #2s, journal stop 20)
 
 
 @dataclass(frozen=True)
