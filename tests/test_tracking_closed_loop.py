@@ -114,10 +114,10 @@ def test_closed_loop_corrects_the_slip_the_open_loop_keeps(builtin_models, fruit
     assert speed["frames_used"] >= 0.9 * speed["frames"]
     assert result.corrections[-1].slip_m * 1e3 == pytest.approx(2.0, abs=0.6)  # the slip it detected
     # what the track says of its own certainty: the filter's spread has shrunk from the touch's (2 deg / 1 mm), the
-    # translation's most, and the contacts' pinning spans all six directions, weakest first, the strongest pinned to
-    # a few hundredths
+    # translation's most (0.52 mm: each contact's own tilt, `cloud_contact_tilt_rad`, tells nothing of the pose), and
+    # the contacts' pinning spans all six directions, weakest first, the strongest pinned to a few hundredths
     last = result.corrections[-1]
-    assert last.sigma_rad < np.radians(2.0) and last.sigma_m < 0.0005
+    assert last.sigma_rad < np.radians(2.0) and last.sigma_m < 0.0006
     assert result.pinning is not None and np.all(np.diff(result.pinning.spread) <= 0.0)
     assert result.pinning.spread[-1] < 0.05 < result.pinning.spread[0]
 
@@ -851,7 +851,7 @@ def test_a_real_pivot_the_frames_see_is_kept_by_the_divergence_guard(builtin_mod
     assert np.array_equal(guarded.T_world_object, plain.T_world_object)
     closed = settled(trajectory, guarded, guarded.T_world_object)["settled"]["deg"]
     open_loop = settled(trajectory, guarded, guarded.T_world_object_open_loop)["settled"]["deg"]
-    assert open_loop > pivot_deg - 1.0 and closed < 4.0
+    assert open_loop > pivot_deg - 1.0 and closed < 4.5  # 30 deg: 4.02 with each contact's tilt a nuisance
 
 
 def test_the_registrations_bias_follows_what_a_pad_map_changes_under_the_rest_contact(builtin_models, fruit_trajectory):

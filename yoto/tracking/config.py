@@ -90,10 +90,10 @@ class CorrectionConfig:
     image_contact_tilt_rad: float = 0.001  # frames the tracker reconstructs from GelSight images: each contact may
     # turn about its own centre in its pad plane by about this much (1-sigma, two angles a contact, estimated in the
     # registration beside the correction and left out of its information: `frame_registration.register_contacts`);
-    # the reconstruction reads a contact's plane a few mrad off, changing as it slides over the pad. Clouds given
-    # as clouds keep their tilt (0: off for images too) ...
-    cloud_contact_tilt_rad: float = 0.0  # ... or this, for clouds given as clouds (off: on seed 11's PLY frames 1 mrad
-    # met 46 of 52 instead of 42 but lost the figurine #2s, journal stop 20)
+    # the reconstruction reads a contact's plane a few mrad off, changing as it slides over the pad (0: off) ...
+    cloud_contact_tilt_rad: float = 0.001  # ... and clouds given as clouds, which a lab's reconstruction made too
+    # (seeds 11 / 23 / 37's PLY frames: 111 -> 115 of 130 meet, growth +0.090 -> +0.063 deg per 100 mm; the
+    # figurine #2s and the mug seed 23 #0 worse, journal stop 20)
 
 
 @dataclass(frozen=True)
