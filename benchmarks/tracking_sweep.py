@@ -53,6 +53,13 @@ from yoto.tracking.bench import TrackBenchConfig, drift_meets_target  # noqa: E4
 SET = [(11, ("fruit", "figurine", "tool")), (23, ("banana", "lemon", "mug", "avocado"))]  # 100 mm, cached indices
 _BASE = TrackBenchConfig().trajectory
 # variant -> TrajectoryConfig fields (NAME=VALUE, as `tracking_meets.py --trajectory` takes them)
+# Two robot arms' forward kinematics: fast, nearly noiseless pose streams (the arms' variants below)
+ARMS = [
+    "left_rate_hz=1000.0",
+    "right_rate_hz=500.0",
+    "jitter_translation_m=1e-05",
+    f"jitter_rotation_rad={float(np.radians(0.005))!r}",
+]
 VARIANTS: dict[str, list[str]] = {
     "default": [],
     "tactile 15 fps": ["tactile_rate_hz=15.0"],
@@ -86,19 +93,11 @@ VARIANTS: dict[str, list[str]] = {
     "mocap outliers 2%, a flip": ["pose_outlier_share=0.02", "pose_flips=1"],
     "pose dropouts 2 per stream": ["pose_dropouts=2"],
     "arms 1000 / 500 Hz, kinematic error": [
-        "left_rate_hz=1000.0",
-        "right_rate_hz=500.0",
-        "jitter_translation_m=1e-05",
-        f"jitter_rotation_rad={float(np.radians(0.005))!r}",
+        *ARMS,
         "arm_error_m=0.0003",
         f"arm_error_rad={float(np.radians(0.1))!r}",
     ],
-    "arms 1000 / 500 Hz, no kinematic error": [
-        "left_rate_hz=1000.0",
-        "right_rate_hz=500.0",
-        "jitter_translation_m=1e-05",
-        f"jitter_rotation_rad={float(np.radians(0.005))!r}",
-    ],
+    "arms 1000 / 500 Hz, no kinematic error": ARMS,
 }
 
 
