@@ -21,9 +21,6 @@ height error left after nested bases in (u, v): an offset, + a tilt, + u^2 + v^2
 and after the pose stage's own freedoms (offset, tilt, depth scale: true heights z), + the lean (z u, z v), + the
 anisotropic quadratic, + the cubics. `--flat-change-off` renders through the table renderer (`table:FOLDER`) with its
 pressed gel's colour change at zero slope switched off (faded in at no depth: what stops 17-18 compared with).
-`--curl` adds the `image` reconstruction re-solved with a depth-faded change estimated from its own residual taken
-off (`yoto.sensor.depth_faded_change`, stop 21, not used by reconstruction), with the estimate's |c| (slope per mm of
-depth, before its guards) and the share of the residual it explains.
 
     python benchmarks/image_contact_shape.py --renderer CAL_GAIN.npz -n 20 --seed 7 \\
         --objects figurine ../shared/data/meshes/avocado/avocado.ply ../shared/data/meshes/mug/mug.ply
@@ -139,9 +136,7 @@ def gradient_figures(read, true, felt) -> dict[str, float]:
     return out
 
 
-def contact_rows(
-    route, height_m, x, y, calibration, bases: bool = False, curl: bool = False
-) -> dict[str, dict[str, float]] | None:
+def contact_rows(route, height_m, x, y, calibration, bases: bool = False) -> dict[str, dict[str, float]] | None:
     """Figures of one contact's three reconstructions (module docstring), or None where it gives no contact."""
     from yoto.errors import InputError
     from yoto.sensor.optical import height_gradients, render_image
@@ -155,7 +150,7 @@ def contact_rows(
     try:
         noisy_image = route.image(height_m)
         clean_image = route.render(height_m, None) if route.render is not None else render_image(height_m, calibration)
-        noisy = reconstruct(noisy_image, calibration, keep_gradients=curl)
+        noisy = reconstruct(noisy_image, calibration)
         clean = reconstruct(clean_image, calibration, keep_gradients=True)
     except InputError:
         return None
@@ -178,15 +173,6 @@ def contact_rows(
     rows["clean"].update(gradient_figures(clean.gradients, true_gradients, felt))
     if bases:
         rows["bases"] = basis_residuals(noisy.height_map_m, height_m, felt, x, y)
-    if curl and noisy.gradients is not None and noisy.box is not None:
-        from yoto.sensor.depth_faded_change import estimate_change, remove_change
-
-        gx, gy = noisy.gradients
-        blocks = block_change(noisy_image, calibration.background_i16)
-        c, explained = estimate_change(gx, gy, noisy.height_map_m, noisy.box)
-        corrected, _ = remove_change(gx, gy, noisy.height_map_m, noisy.box, blocks, spec.pixel_size_m)
-        rows["curl"] = shape_figures(corrected, height_m, felt, deep, x, y)
-        rows["curl"].update({"c": float(np.hypot(c[0], c[1])), "explained": explained})
     rows["where"] = {"x": float(x[felt].mean() * 1e3), "y": float(y[felt].mean() * 1e3), "area": float(felt.mean())}
     return rows
 
@@ -198,7 +184,7 @@ def summary(label: str, contacts: list[dict]) -> None:
         return f"{p50:.{digits}f} ({p10:.{digits}f}-{p90:.{digits}f})"
 
     print(f"{label} ({len(contacts)} contacts)")
-    for stage in STAGES + (("curl",) if "curl" in contacts[0] else ()):
+    for stage in STAGES:
         print(
             f"  {stage:>5}: depth {spread(stage, 'depth')}, curvature {spread(stage, 'curvature')}, anisotropy "
             f"{spread(stage, 'anisotropy')}, rms after plane+scale {spread(stage, 'rms_mm', 4)} mm, + lean "
@@ -208,8 +194,6 @@ def summary(label: str, contacts: list[dict]) -> None:
         f"  gradients (clean image): gain x {spread('clean', 'gain_x')}, y {spread('clean', 'gain_y')}, "
         f"rms {spread('clean', 'gradient_rms', 4)} at slope rms {spread('clean', 'slope_rms', 3)}"
     )
-    if "curl" in contacts[0]:
-        print(f"  curl estimate: |c| {spread('curl', 'c')} per mm, residual explained {spread('curl', 'explained')}")
     if "bases" in contacts[0]:
         for sets in (NESTED_BASES, POSE_STAGE_BASES):
             print(
@@ -231,7 +215,6 @@ def main() -> None:
     )
     parser.add_argument("--verbose", action="store_true", help="one line per contact")
     parser.add_argument("--bases", action="store_true", help="the height error left after nested bases")
-    parser.add_argument("--curl", action="store_true", help="also the image re-solved without a depth-faded change")
     parser.add_argument(
         "--flat-change-off", action="store_true", help="table:FOLDER without its pressed gel's zero-slope change"
     )
@@ -263,7 +246,7 @@ def main() -> None:
         for index in range(args.n):
             simulated = simulator.pair(args.seed, index)
             for side in ("left", "right"):
-                rows = contact_rows(route, simulated.height_maps[side], x, y, calibration, args.bases, args.curl)
+                rows = contact_rows(route, simulated.height_maps[side], x, y, calibration, args.bases)
                 if rows is None:
                     continue
                 contacts.append(rows)
