@@ -15,7 +15,8 @@ it (the same seed: the same touch, path and slip axes; the cached touch estimate
 kept, so the variants differ only in what the tracker reads after the touch; the default is simulated again as well,
 by the same simulator). The set: seed 11's fruit, figurine and tool (tuned on) and seed 23's banana, lemon, mug and
 avocado (held out), 100 mm paths, the cached trajectories 0-2 (seed 11) and 0-1 (seed 23): 17 tracks a variant, a
-few CPU s each to simulate again and 2-5 to track (all 17 variants: ~18 min on two loaded cores).
+few CPU s each to simulate again and 2-5 to track (the first 17 variants: ~18 min on two loaded cores; the still
+one tracks 11 s a track instead of 4.5).
 
 Printed, one row per variant: the tracks; how many of those with a right touch meet the drift target on the final
 drift (0.5 mm and 0.5 deg, `evaluate.summarize_errors`' `final_drift`: the settled tail's mean error against the
