@@ -228,3 +228,36 @@ def test_label_cli_writes_labels_report_and_refined_calibration(session, gelsigh
     assert len(list((out / "pairs").glob("*.json"))) == 1
     refined = load_object_calibration(tmp_path / "r.json")
     assert refined.sources["refined_with_contacts"]["contacts"] == 6
+
+
+def test_a_near_miss_backs_off_as_an_arm_moves():
+    """The miss's extra back-off (press depth + 3 mm) ramps in and out with the moves from and to the parking sphere:
+    no mocap step or change of speed of the miss is larger than an ordinary trial's own (a step of the whole 3.5 mm in
+    one frame was read as a mis-fitted body)."""
+    from yoto.rig.recording import RecordingConfig, Trial, _backoff
+
+    config = RecordingConfig()
+
+    def backoff(tau, extra_m):  # the press itself does not enter the back-off
+        return _backoff(Trial("left", "miss", None, np.eye(4), extra_backoff_m=extra_m), config, tau, 0.15)  # type: ignore[arg-type]
+
+    _, _, _, d = Trial("left", "miss", None, np.eye(4)).timings(config)  # type: ignore[arg-type]
+    tau = np.arange(0.0, d + config.move_s, 1.0 / config.mocap_rate_hz)
+    plain, miss = backoff(tau, 0.0), backoff(tau, 0.0035)
+    assert np.all(miss >= plain) and miss.max() - plain.max() < 1e-12  # parks where it did, stays 3.5 mm short
+    assert np.all(miss[(tau >= config.move_s) & (tau < d)] - plain[(tau >= config.move_s) & (tau < d)] > 0.0035 - 1e-12)
+    step = np.abs(np.diff(miss)).max()
+    assert step <= np.abs(np.diff(plain)).max()  # 3.6 mm a frame at most (0.15 m parking): the move's own peak
+    change = np.abs(np.diff(miss, 2)).max()  # 0.19 mm a frame per frame (2.7 m/s^2 at 120 Hz)
+    assert change <= 1.05 * np.abs(np.diff(plain, 2)).max()
+
+
+def test_the_near_miss_keeps_every_rig_sample(session):
+    """The tracker's mocap check (`implausible_samples`) keeps all of each rig's trial stream, the near miss's too."""
+    from yoto.tracking.fusion import implausible_samples, stream_jitter
+    from yoto.tracking.streams import read_sensor_stream
+
+    _, files, _, _ = session["calibrations"]["ros1"]
+    for body in ("RigLeft", "RigRight"):
+        stream = read_sensor_stream(files["trials"], body, body)
+        assert implausible_samples(stream, stream_jitter(stream)).sum() == 0, body

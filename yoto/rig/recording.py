@@ -581,7 +581,12 @@ def _backoff(trial: Trial, config: RecordingConfig, tau: np.ndarray, park: float
     out = np.where((tau >= a) & (tau < b), near * (1 - minimum_jerk((tau - a) / (b - a))), out)
     out = np.where((tau >= c) & (tau < d), near * minimum_jerk((tau - c) / (d - c)), out)
     out = np.where(tau >= d, near + (park - near) * minimum_jerk((tau - d) / config.move_s), out)
-    return out + trial.extra_backoff_m * ((tau >= a) & (tau < d + config.move_s))
+    # A miss's arm moves from the parking sphere to its shorter approach (and back) in the same moves: the extra
+    # back-off ramps in and out with them, as an arm does (a step would be metres per second in one mocap frame).
+    extra = np.where(
+        tau < a, minimum_jerk(tau / a), np.where(tau < d, 1.0, 1 - minimum_jerk((tau - d) / config.move_s))
+    )
+    return out + trial.extra_backoff_m * extra
 
 
 def _slide(trial: Trial, config: RecordingConfig, tau: np.ndarray) -> np.ndarray:
