@@ -558,6 +558,80 @@ def test_a_contact_read_tilted_turns_the_registration_by_what_its_tilts_prior_le
     np.testing.assert_allclose(nuisance[[0, 2]], 0.0, atol=2e-4)
 
 
+def _wedge(half_gap_m: float, slant_rad: float) -> tuple[_Surface, dict[str, np.ndarray]]:
+    """Two flat 30 x 30 mm faces at +-x leaning toward +z by `slant_rad` (a wedge), sampled every 0.3 mm, and the
+    points of an 8 x 8 mm contact on each (left at +x, right at -x; the sensors of `_cylinder_sensors(half_gap_m)`).
+    A spin about x (the line through the contacts) tilts each face by the spin times sin(slant): the pair pins it
+    only through their planes, a tilt of theirs by 1 / tan(slant) times as much."""
+    u, v = (
+        grid.ravel()[:, None]
+        for grid in np.meshgrid(np.arange(-0.015, 0.015, 0.0003), np.arange(-0.015, 0.015, 0.0003))
+    )
+    a, b = (
+        grid.ravel()[:, None] for grid in np.meshgrid(np.linspace(-0.004, 0.004, 16), np.linspace(-0.004, 0.004, 16))
+    )
+    points, normals, contacts = [], [], {}
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        normal = np.array([sign * np.cos(slant_rad), 0.0, np.sin(slant_rad)])
+        up = np.array([-sign * np.sin(slant_rad), 0.0, np.cos(slant_rad)])  # along the face, y the other way
+        centre, across = np.array([sign * half_gap_m, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
+        points.append(centre + u * across + v * up)
+        normals.append(np.broadcast_to(normal, points[-1].shape))
+        contacts[side] = centre + a * across + b * up
+    return _Surface(np.vstack(points), np.vstack(normals)), contacts
+
+
+def _turned(points: np.ndarray, axis: list[float], angle_rad: float) -> np.ndarray:
+    """A contact's points turned about their centre."""
+    from yoto.geometry import so3_exp
+
+    centre = points.mean(axis=0)
+    return (points - centre) @ so3_exp((np.array(axis) * angle_rad)[None])[0].T + centre
+
+
+def test_a_tilt_that_would_move_the_landing_far_is_not_estimated_and_one_that_would_not_is():
+    """A wedge 1 deg off square: its two contacts read tilted by 1 mrad each about their pads' x (world z), in the
+    pattern a spin about the line through them makes (left and right opposite). The registration without tilts
+    spins the object by the lever 1 / tan(1 deg) (1.2 units); with every tilt estimated (stop 20) the tilts take
+    0.37 units of it; with the move limit that combination (0.3 units per 1 mrad, above the 0.15 limit) is not
+    estimated and the landing is the untilted one's. On a cylinder (its contacts pinned by the curvature) a contact
+    read tilted 3 mrad about the cylinder's axis is still taken up as with every tilt estimated."""
+    from yoto.geometry import twist_of_pose
+    from yoto.tracking.frame_registration import observable_unit, register_contacts, registration_solver
+    from yoto.tracking.track import CorrectionConfig
+
+    config = CorrectionConfig()
+    solver, unit = registration_solver(config), observable_unit(config)
+    limit = 0.15 * unit  # stop 21's measured limit (`contact_tilt_move_units`, off by default)
+    sigma = {"left": 0.001, "right": 0.001}
+
+    def landing(surface, sides, sensors, tilts=None, move_limit=None) -> np.ndarray:
+        return twist_of_pose(register_contacts(surface, sides, sensors, solver, tilts, move_limit)) / unit
+
+    half_gap = 0.015
+    surface, sides = _wedge(half_gap, np.radians(1.0))
+    sensors = _cylinder_sensors(half_gap)
+    read = {
+        "left": _turned(sides["left"], [0.0, 0.0, 1.0], 0.001),
+        "right": _turned(sides["right"], [0.0, 0.0, 1.0], -0.001),
+    }
+    untilted = landing(surface, read, sensors)
+    assert untilted[0] > 1.0  # 1 mrad read as more than 2 deg (1.64 units by the lever, less the prior's pull)
+    every = landing(surface, read, sensors, sigma)
+    assert untilted[0] - every[0] > 0.3
+    limited = landing(surface, read, sensors, sigma, limit)
+    np.testing.assert_allclose(limited, untilted, atol=0.005)
+    np.testing.assert_allclose(landing(surface, sides, sensors, sigma, limit), 0.0, atol=1e-3)  # read exact
+
+    radius = 0.03
+    surface, points = _cylinder(radius, 0.0, np.random.default_rng(0)), _two_contacts(radius)
+    sensors = _cylinder_sensors(radius)
+    read = {"left": _turned(points[:256], [0.0, 0.0, 1.0], 0.003), "right": points[256:]}
+    untilted, every = landing(surface, read, sensors), landing(surface, read, sensors, sigma)
+    assert untilted[2] < -0.15 and every[2] > -0.1  # about the axis the spin it would mean, half taken up
+    np.testing.assert_allclose(landing(surface, read, sensors, sigma, limit), every, atol=1e-3)
+
+
 def test_a_retouch_is_found_where_the_surface_moves_along_its_normal_and_none_where_it_slides_along_itself(rng):
     """Two opposite contacts at +-x on a cylinder about z: a turn about x (the line through them) moves the surface
     along its normal most at +-y and the cylinder's ends (|z| 15 mm: 0.52 mm per unit of 2 deg), barely at the

@@ -339,7 +339,8 @@ class ClosedLoop:
         and each side's inlier fraction after it. `sensors`: each side's T_predicted_sensor; its points match only
         surface facing that sensor (the other face of a thin wall, 1 mm behind the contact on a mug, is not theirs)."""
         c = self.config.correction
-        correction = register_contacts(self.model, points, sensors, self.solver, self.tilt_rad)
+        move_limit = self.unit * c.contact_tilt_move_units if c.contact_tilt_move_units > 0.0 else None
+        correction = register_contacts(self.model, points, sensors, self.solver, self.tilt_rad, move_limit)
         fractions = {}
         for side, side_points in points.items():
             fit = truncated_plane_fit(

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import scipy.linalg
 from scipy import ndimage
 
 from yoto.contacts import MIN_TACTILE_POINTS, MINI_PAD_M
@@ -202,12 +203,28 @@ def observable_unit(config: CorrectionConfig) -> np.ndarray:
     return np.array([config.observable_rotation_rad] * 3 + [config.observable_translation_m] * 3)
 
 
+def tilts_leaving_the_landing(normal: np.ndarray, tilt_sigma: np.ndarray, move_limit: np.ndarray) -> np.ndarray:
+    """(T, K) the tilt combinations (columns, in the T tilt angles) the registration may estimate: those of which a
+    tilt of its prior's sigma moves the object's correction by at most `move_limit` (6,) (rad, m) along any twist
+    direction. From the joint normal matrix [[N, B], [B^T, C]] ((6 + T) square, the twist first, N with the
+    registration's prior on it): a tilt q held fixed moves the correction by -N^-1 B q; the singular directions of
+    that map, each tilt scaled by its sigma and each twist component by its limit, whose singular value is at most 1.
+    Along a turn the pair pins only through their planes (a spin about the line through two flat contacts whose
+    planes stand a few degrees off square to it) a tilt of 1 mrad is the object turning by tens."""
+    twist, cross = normal[:6, :6], normal[:6, 6:]
+    response = np.linalg.solve(twist, cross) * tilt_sigma[None, :] / move_limit[:, None]
+    _, values, directions = np.linalg.svd(response)
+    values = np.r_[values, np.zeros(len(tilt_sigma) - len(values))]
+    return tilt_sigma[:, None] * directions.T[:, values <= 1.0]
+
+
 def register_contacts(
     surface: SurfaceCloud,
     points: dict[str, np.ndarray],
     T_predicted_sensor: dict[str, np.ndarray],
     solver: GaussNewtonConfig,
     tilt_rad: dict[str, float] | None = None,
+    move_limit: np.ndarray | None = None,
 ) -> np.ndarray:
     """(4, 4) the correction T_object_predicted bringing the sides' points (predicted object frame) onto the
     surface: point-to-plane Gauss-Newton from the prediction (`yoto.registration`; rotation about the origin, the
@@ -217,7 +234,11 @@ def register_contacts(
     (two angles, about its sensor's x and y, a Gaussian prior of that sigma), estimated jointly and so marginalised out
     of the correction: a reconstruction reads a contact's plane a few mrad off, and that error changes as the contact
     slides over the pad (journal, stop 17); along a direction the pair pins only through their tilts it would move the
-    pose by degrees. Huber weights at a robust scale as `point_to_plane_gauss_newton`'s."""
+    pose by degrees. Huber weights at a robust scale as `point_to_plane_gauss_newton`'s.
+
+    With `move_limit` (6,) (rad, m) only the tilt combinations of which a tilt of its sigma moves the correction by
+    at most that (`tilts_leaving_the_landing`, chosen once at the prediction's matches) are estimated: along a turn
+    two flat contacts pin only through their planes, their tilts would move the landing by degrees (stop 21)."""
     sides = list(points)
     stacked = np.vstack([points[side] for side in sides])
     # The surface's outward normal at a contact is against the sensor's z (which points into the object).
@@ -234,6 +255,7 @@ def register_contacts(
     prior[6:, 6:] = np.diag(np.repeat([sigmas[side] ** -2.0 for side in tilting], 2))
     pose, tilts = np.eye(4), np.zeros(2 * len(tilting))
     tilted = stacked.copy()  # each side's points turned by its tilt so far (predicted frame)
+    free = None  # (6 + tilts, 6 + kept) the coordinates solved for: the twist and the tilt combinations kept
     for _ in range(solver.iterations):
         rotation = pose[:3, :3]
         current = tilted @ rotation.T + pose[:3, 3]
@@ -247,8 +269,15 @@ def register_contacts(
             jacobian[start:end, 6 + 2 * k : 8 + 2 * k] = tilt_jacobian(current[start:end], n[start:end], pad_axes)
         weighted = jacobian * weights[:, None]
         deviation = np.concatenate([so3_log(rotation), pose[:3, 3], tilts])
-        hessian = weighted.T @ jacobian + prior
-        step = -np.linalg.solve(hessian, weighted.T @ r + prior @ deviation)
+        data = weighted.T @ jacobian
+        if free is None:  # chosen once, at the prediction's matches
+            free = np.eye(len(prior))
+            if move_limit is not None:
+                with_twist_prior = data + np.diag(np.r_[np.diag(prior)[:6], np.zeros(len(tilts))])
+                kept = tilts_leaving_the_landing(with_twist_prior, np.diag(prior)[6:] ** -0.5, move_limit)
+                free = scipy.linalg.block_diag(np.eye(6), kept)
+        hessian = free.T @ (data + prior) @ free
+        step = free @ -np.linalg.solve(hessian, free.T @ (weighted.T @ r + prior @ deviation))
         # a side's tilt turns its points about their centre (pad axes carried into the predicted frame) ...
         for k, (start, end) in enumerate(bounds):
             turn = so3_exp((step[6 + 2 * k : 8 + 2 * k] @ axes[k])[None])[0]
