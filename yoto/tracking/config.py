@@ -94,6 +94,15 @@ class CorrectionConfig:
     cloud_contact_tilt_rad: float = 0.001  # ... and clouds given as clouds, which a lab's reconstruction made too
     # (seeds 11 / 23 / 37's PLY frames: 111 -> 115 of 130 meet, growth +0.090 -> +0.063 deg per 100 mm; the
     # figurine #2s and the mug seed 23 #0 worse, journal stop 20)
+    # the divergence guard, continued (stop 21):
+    guard_block_bound: float = 17.73  # ... it checks as well when the slip's turn or its shift alone leaves the
+    # model (3 degrees of freedom each, 99.95%: both at 99.9% together): a spin beyond it is not diluted by a quiet
+    # shift (0: off) ...
+    guard_rate: bool = True  # ... or the filter's slip rate's turn or shift leaves its prior by as much (seed 23's
+    # mug: a spin the scanned mesh's planes claim to pin, rate 6 sigma out, its slip only 3.7)
+    guard_weak_spread: float = 1.0  # along the directions the two-contact instants pin more weakly than this (their
+    # mean shared error moves the fit by more, observable units; `weak_pinning_warning`) the closed loop keeps the
+    # open loop's pose: no departure, no slip rate there (0: off; seed 37's cracker box, a face's slide)
 
 
 @dataclass(frozen=True)

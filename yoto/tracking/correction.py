@@ -62,6 +62,7 @@ from yoto.tracking.frame_registration import (
 )
 from yoto.tracking.fusion import SensorPoses, StreamJitter, fuse_holding, sensor_poses
 from yoto.tracking.pad_error import PadError
+from yoto.tracking.pinning import Pinning
 from yoto.tracking.streams import TactileStream, felt_contact
 from yoto.tracking.touch import Touch, pose_distance_m
 from yoto.trajectory import PoseStream
@@ -173,20 +174,49 @@ class ClosedLoop:
         """(4, 4) the tracked slip since the touch: the closed loop's object pose in the open loop's (object frame)."""
         return invert_transform(self.open_grasps["left"]) @ self.grasps["left"]
 
-    def _slip_beyond_model(self) -> bool:
-        """Whether the tracked slip since the touch (closed loop against open loop, object frame) lies beyond what
-        the slip model allows over the travel so far: a rate drawn from its prior and wandering as it may, the
-        elastic wander, and the touch's own uncertainty."""
+    def _slip_variance(self) -> np.ndarray:
+        """(6,) the slip model's variance of the slip since the touch (rad^2, m^2; object frame) over the travel so
+        far: a rate drawn from its prior and wandering as it may, the elastic wander, and the touch's own
+        uncertainty."""
         c = self.config.correction
-        slip = twist_of_pose(self._slip())
         travel, share = self.travel_m, self.travel_m / c.slip_travel_m
         spread = travel**2 + travel**3 / (3.0 * c.slip_travel_m)  # a constant rate and its random walk
-        variance = np.array(
+        return np.array(
             [c.slip_rate_rotation**2 * spread + c.slip_wander_rotation_rad**2 * share + c.touch_rotation_rad**2] * 3
             + [c.slip_rate_translation**2 * spread + c.slip_wander_translation_m**2 * share + c.touch_translation_m**2]
             * 3
         )
-        return float(np.sum(slip**2 / variance)) > c.guard_bound
+
+    def _slip_beyond_model(self) -> bool:
+        """Whether the tracked slip since the touch (closed loop against open loop, object frame) lies beyond what
+        the slip model allows over the travel so far (`_slip_variance`): all six together, or its turn or its shift
+        alone (`guard_block_bound`: a departure in one of them, a spin, is not diluted by the other's quiet)."""
+        c = self.config.correction
+        squared = twist_of_pose(self._slip()) ** 2 / self._slip_variance()
+        rate = self.rate**2 / np.repeat([c.slip_rate_rotation**2, c.slip_rate_translation**2], 3)
+        blocks = [squared[:3].sum(), squared[3:].sum()] + ([rate[:3].sum(), rate[3:].sum()] if c.guard_rate else [])
+        block = c.guard_block_bound > 0.0 and max(blocks) > c.guard_block_bound
+        return float(squared.sum()) > c.guard_bound or block
+
+    def _hold_weak(self) -> None:
+        """Keep the open loop's pose along the directions the two-contact instants so far pin weakly: where their
+        mean shared error moves the fit by more than `guard_weak_spread` observable units (`Pinning`; a face's
+        slide, a spin about a body's long axis), the frames cannot tell slip from their own error, and a departure
+        there (the slip rate's estimate carrying the pose along) is theirs, not the object's. The tracked slip and
+        the slip rate along those directions are set to zero (observable units)."""
+        c = self.config.correction
+        if c.guard_weak_spread <= 0.0 or not self.pair_instants:
+            return
+        pinning = Pinning.of(self.pair_shared / self.pair_instants, self.unit)
+        weak = pinning.directions[pinning.spread > c.guard_weak_spread]  # (K, 6), orthonormal, observable units
+        if not len(weak):
+            return
+        slip = twist_of_pose(self._slip()) / self.unit
+        kept = slip - weak.T @ (weak @ slip)
+        change = invert_transform(pose_from_twist(slip * self.unit)) @ pose_from_twist(kept * self.unit)
+        self.grasps = {side: grasp @ change for side, grasp in self.grasps.items()}
+        rate = self.rate / self.unit
+        self.rate = (rate - weak.T @ (weak @ rate)) * self.unit
 
     def _guard_due(self, instant_s: float) -> bool:
         """Whether the divergence guard checks at this applied instant (at `instant_s`): the tracked slip beyond the
@@ -215,6 +245,7 @@ class ClosedLoop:
         prior. A real pivot the frames see fits worse from open loop, or leads that fit away from it, and is kept.
         Returns "" (no check, `_guard_due`), "kept" or "re-anchored"."""
         c = self.config.correction
+        self._hold_weak()
         if not self._guard_due(instant_s):
             return ""
         predicted = self.fuse(sensors)  # after this instant's update
