@@ -25,7 +25,10 @@ over the pad, that error would otherwise move the registrations as slip does.
 A divergence guard watches the result: where the tracked slip leaves what the slip model allows over the travel so
 far, the instant's frames are registered from the open-loop pose too; if they fit there as well, they never asked
 for the departure (a direction the contacts barely pin, followed by the slip rate: a mug spun about its axis), so
-the loop re-anchors on that fit and from then on lets the prediction stand along the departure's direction.
+the loop re-anchors on that fit and from then on lets the prediction stand along the departure's direction. It
+checks as well when the slip's turn, its shift or the filter's slip rate alone leaves the model (a spin the scanned
+mesh's planes claim to pin), and along the directions the two contacts pin weakly it holds the tracked slip within the
+slip model's sigma: the frames cannot tell slip there, and the slip rate would carry the pose along (a face's slide).
 Both grasps then take the corrected pose. A frame is unusable, and the prediction (open loop) stands, when it has
 too few points (contact lost), when too few of its points lie on the surface after registration (a bad fit),
 or when it asks for a jump larger than slip can make; when one sensor's frame is unusable, the other's is used
@@ -199,11 +202,12 @@ class ClosedLoop:
         return float(squared.sum()) > c.guard_bound or block
 
     def _hold_weak(self) -> None:
-        """Keep the open loop's pose along the directions the two-contact instants so far pin weakly: where their
-        mean shared error moves the fit by more than `guard_weak_spread` observable units (`Pinning`; a face's
-        slide, a spin about a body's long axis), the frames cannot tell slip from their own error, and a departure
-        there (the slip rate's estimate carrying the pose along) is theirs, not the object's. The tracked slip and
-        the slip rate along those directions are set to zero (observable units)."""
+        """Hold the tracked slip along the directions the two-contact instants so far pin weakly (their mean shared
+        error moves the fit by more than `guard_weak_spread` observable units there, `Pinning`: a face's slide, a
+        spin about a body's long axis) within `guard_weak_sigmas` of the slip model (`_slip_variance`): the frames
+        cannot tell slip there from their own error, and a departure beyond what slip itself does is the slip rate's
+        estimate carrying the pose along. Beyond it, the slip there is brought back to that bound and the slip rate
+        along those directions set to zero (observable units)."""
         c = self.config.correction
         if c.guard_weak_spread <= 0.0 or not self.pair_instants:
             return
@@ -212,7 +216,12 @@ class ClosedLoop:
         if not len(weak):
             return
         slip = twist_of_pose(self._slip()) / self.unit
-        kept = slip - weak.T @ (weak @ slip)
+        along = weak @ slip
+        covariance = weak @ np.diag(self._slip_variance() / self.unit**2) @ weak.T
+        distance = float(np.sqrt(along @ np.linalg.solve(covariance, along)))
+        if distance <= c.guard_weak_sigmas:
+            return
+        kept = slip - weak.T @ along * (1.0 - c.guard_weak_sigmas / distance)
         change = invert_transform(pose_from_twist(slip * self.unit)) @ pose_from_twist(kept * self.unit)
         self.grasps = {side: grasp @ change for side, grasp in self.grasps.items()}
         rate = self.rate / self.unit
