@@ -48,6 +48,11 @@ SHORT = TrajectoryConfig(
 )
 
 
+# the divergence guard off: no check (neither the slip as a whole nor its turn, shift or rate), no hold along weakly
+# pinned directions
+UNGUARDED = CorrectionConfig(guard_bound=float("inf"), guard_block_bound=0.0, guard_weak_spread=0.0)
+
+
 @pytest.fixture(scope="module")
 def fruit_trajectory(builtin_models):
     return TrajectorySimulator(builtin_models["fruit"], SHORT).trajectory(3, 1)
@@ -810,7 +815,7 @@ def test_a_closed_loop_led_astray_is_re_anchored_on_what_the_frames_say(builtin_
     onto the frames' fit from the open-loop pose; a consistent track is never touched."""
     trajectory, model = fruit_trajectory, builtin_models["fruit"]
     touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
-    unguarded = TrackConfig(correction=CorrectionConfig(guard_bound=float("inf")))
+    unguarded = TrackConfig(correction=UNGUARDED)
     plain = track(touch, trajectory.streams, model, tactile_streams(trajectory))
     assert plain.correction_summary()["reanchored"] == 0
     assert np.array_equal(
@@ -845,7 +850,7 @@ def test_a_real_pivot_the_frames_see_is_kept_by_the_divergence_guard(builtin_mod
     trajectory = TrajectorySimulator(model, pivoting).trajectory(3, 1)
     touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
     guarded = track(touch, trajectory.streams, model, tactile_streams(trajectory))
-    unguarded = TrackConfig(correction=CorrectionConfig(guard_bound=float("inf")))
+    unguarded = TrackConfig(correction=UNGUARDED)
     plain = track(touch, trajectory.streams, model, tactile_streams(trajectory), unguarded)
     assert guarded.correction_summary()["guard_checks"] >= 1 and guarded.correction_summary()["reanchored"] == 0
     assert np.array_equal(guarded.T_world_object, plain.T_world_object)

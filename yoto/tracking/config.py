@@ -74,6 +74,16 @@ class CorrectionConfig:
     guard_every_s: float = 0.24  # while the slip stays beyond the bound, such checks at least this long apart ...
     guard_every: int = 1  # ... and at least this many applied instants between them (0.24 s: 6 instants at 25 fps,
     # what 5 instants between checks gave there; at other frame rates the same time between checks, not a frame count)
+    guard_block_bound: float = 17.73  # ... it checks as well when the slip's turn or its shift alone leaves the
+    # model (3 degrees of freedom each, 99.95%: both at 99.9% together): a spin beyond it is not diluted by a quiet
+    # shift (0: off) ...
+    guard_rate: bool = True  # ... or the filter's slip rate's turn or shift leaves its prior by as much (seed 23's
+    # mug: a spin the scanned mesh's planes claim to pin, rate 6 sigma out, its slip only 3.7)
+    guard_weak_spread: float = 1.0  # along the directions the two-contact instants pin more weakly than this (their
+    # mean shared error moves the fit by more, observable units; `weak_pinning_warning`; 0: off) ...
+    guard_weak_sigmas: float = 1.0  # ... the tracked slip is held within this many sigma of the slip model: the frames
+    # cannot tell slip there (seed 37's cracker box: a face's slide carried 6.6 mm by the slip rate, the slip 4.0;
+    # held at 0 sigma seed 11's fruit, figurine, tool lose what the loop corrects there: 47 -> 32 of 53 meet)
     secant_directions: int = 3  # an instant's information (both contacts; a lone contact's own rule is above) is
     # checked along its this many weakest directions (observable units): its points re-matched to the surface at
     # +-`secant_step` there, the cost's actual rise against the planes' prediction; where the surface rises less (a

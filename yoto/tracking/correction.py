@@ -25,7 +25,10 @@ over the pad, that error would otherwise move the registrations as slip does.
 A divergence guard watches the result: where the tracked slip leaves what the slip model allows over the travel so
 far, the instant's frames are registered from the open-loop pose too; if they fit there as well, they never asked
 for the departure (a direction the contacts barely pin, followed by the slip rate: a mug spun about its axis), so
-the loop re-anchors on that fit and from then on lets the prediction stand along the departure's direction.
+the loop re-anchors on that fit and from then on lets the prediction stand along the departure's direction. It
+checks as well when the slip's turn, its shift or the filter's slip rate alone leaves the model (a spin the scanned
+mesh's planes claim to pin), and along the directions the two contacts pin weakly it holds the tracked slip within the
+slip model's sigma: the frames cannot tell slip there, and the slip rate would carry the pose along (a face's slide).
 Both grasps then take the corrected pose. A frame is unusable, and the prediction (open loop) stands, when it has
 too few points (contact lost), when too few of its points lie on the surface after registration (a bad fit),
 or when it asks for a jump larger than slip can make; when one sensor's frame is unusable, the other's is used
@@ -62,6 +65,7 @@ from yoto.tracking.frame_registration import (
 )
 from yoto.tracking.fusion import SensorPoses, StreamJitter, fuse_holding, sensor_poses
 from yoto.tracking.pad_error import PadError
+from yoto.tracking.pinning import Pinning
 from yoto.tracking.streams import TactileStream, felt_contact
 from yoto.tracking.touch import Touch, pose_distance_m
 from yoto.trajectory import PoseStream
@@ -173,20 +177,55 @@ class ClosedLoop:
         """(4, 4) the tracked slip since the touch: the closed loop's object pose in the open loop's (object frame)."""
         return invert_transform(self.open_grasps["left"]) @ self.grasps["left"]
 
-    def _slip_beyond_model(self) -> bool:
-        """Whether the tracked slip since the touch (closed loop against open loop, object frame) lies beyond what
-        the slip model allows over the travel so far: a rate drawn from its prior and wandering as it may, the
-        elastic wander, and the touch's own uncertainty."""
+    def _slip_variance(self) -> np.ndarray:
+        """(6,) the slip model's variance of the slip since the touch (rad^2, m^2; object frame) over the travel so
+        far: a rate drawn from its prior and wandering as it may, the elastic wander, and the touch's own
+        uncertainty."""
         c = self.config.correction
-        slip = twist_of_pose(self._slip())
         travel, share = self.travel_m, self.travel_m / c.slip_travel_m
         spread = travel**2 + travel**3 / (3.0 * c.slip_travel_m)  # a constant rate and its random walk
-        variance = np.array(
+        return np.array(
             [c.slip_rate_rotation**2 * spread + c.slip_wander_rotation_rad**2 * share + c.touch_rotation_rad**2] * 3
             + [c.slip_rate_translation**2 * spread + c.slip_wander_translation_m**2 * share + c.touch_translation_m**2]
             * 3
         )
-        return float(np.sum(slip**2 / variance)) > c.guard_bound
+
+    def _slip_beyond_model(self) -> bool:
+        """Whether the tracked slip since the touch (closed loop against open loop, object frame) lies beyond what
+        the slip model allows over the travel so far (`_slip_variance`): all six together, or its turn or its shift
+        alone (`guard_block_bound`: a departure in one of them, a spin, is not diluted by the other's quiet)."""
+        c = self.config.correction
+        squared = twist_of_pose(self._slip()) ** 2 / self._slip_variance()
+        rate = self.rate**2 / np.repeat([c.slip_rate_rotation**2, c.slip_rate_translation**2], 3)
+        blocks = [squared[:3].sum(), squared[3:].sum()] + ([rate[:3].sum(), rate[3:].sum()] if c.guard_rate else [])
+        block = c.guard_block_bound > 0.0 and max(blocks) > c.guard_block_bound
+        return float(squared.sum()) > c.guard_bound or block
+
+    def _hold_weak(self) -> None:
+        """Hold the tracked slip along the directions the two-contact instants so far pin weakly (their mean shared
+        error moves the fit by more than `guard_weak_spread` observable units there, `Pinning`: a face's slide, a
+        spin about a body's long axis) within `guard_weak_sigmas` of the slip model (`_slip_variance`): the frames
+        cannot tell slip there from their own error, and a departure beyond what slip itself does is the slip rate's
+        estimate carrying the pose along. Beyond it, the slip there is brought back to that bound and the slip rate
+        along those directions set to zero (observable units)."""
+        c = self.config.correction
+        if c.guard_weak_spread <= 0.0 or not self.pair_instants:
+            return
+        pinning = Pinning.of(self.pair_shared / self.pair_instants, self.unit)
+        weak = pinning.directions[pinning.spread > c.guard_weak_spread]  # (K, 6), orthonormal, observable units
+        if not len(weak):
+            return
+        slip = twist_of_pose(self._slip()) / self.unit
+        along = weak @ slip
+        covariance = weak @ np.diag(self._slip_variance() / self.unit**2) @ weak.T
+        distance = float(np.sqrt(along @ np.linalg.solve(covariance, along)))
+        if distance <= c.guard_weak_sigmas:
+            return
+        kept = slip - weak.T @ along * (1.0 - c.guard_weak_sigmas / distance)
+        change = invert_transform(pose_from_twist(slip * self.unit)) @ pose_from_twist(kept * self.unit)
+        self.grasps = {side: grasp @ change for side, grasp in self.grasps.items()}
+        rate = self.rate / self.unit
+        self.rate = (rate - weak.T @ (weak @ rate)) * self.unit
 
     def _guard_due(self, instant_s: float) -> bool:
         """Whether the divergence guard checks at this applied instant (at `instant_s`): the tracked slip beyond the
@@ -215,6 +254,7 @@ class ClosedLoop:
         prior. A real pivot the frames see fits worse from open loop, or leads that fit away from it, and is kept.
         Returns "" (no check, `_guard_due`), "kept" or "re-anchored"."""
         c = self.config.correction
+        self._hold_weak()
         if not self._guard_due(instant_s):
             return ""
         predicted = self.fuse(sensors)  # after this instant's update
