@@ -97,8 +97,10 @@ def test_the_closed_loop_holds_a_slide_the_contacts_leave_free_within_the_slip_m
     monkeypatch.setattr(ClosedLoop, "_predict", astray)
     led = track(touch, trajectory.streams, model, tactile_streams(trajectory))
     unheld_config = TrackConfig(correction=CorrectionConfig(guard_weak_spread=0.0))
-    unheld = departure(track(touch, trajectory.streams, model, tactile_streams(trajectory), unheld_config))
-    held = departure(led)
+    unheld_result = track(touch, trajectory.streams, model, tactile_streams(trajectory), unheld_config)
+    unheld, held = departure(unheld_result), departure(led)
+    # the report says where it held: on the led track, not where the hold is off
+    assert led.correction_summary()["held"] > 0 and unheld_result.correction_summary()["held"] == 0
     unit_mm = 2.0
     assert np.linalg.norm(unheld[0]) * unit_mm > 6.0
     assert np.linalg.norm(held[0]) * unit_mm < 2.6

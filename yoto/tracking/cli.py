@@ -164,7 +164,8 @@ def run(args: argparse.Namespace) -> int:
         unusable = ", ".join(f"{reason} {count}" for reason, count in speed["unusable"].items()) or "none"
         print(
             f"closed loop: {speed['frames_used']} of {speed['frames']} tactile frames used (unusable: {unusable}); "
-            f"divergence guard: {speed['guard_checks']} checks, {speed['reanchored']} re-anchored; "
+            f"divergence guard: {speed['guard_checks']} checks, {speed['reanchored']} re-anchored, "
+            f"{speed['held']} instants held along weakly pinned directions; "
             f"{speed['latency_median_ms']:.1f} ms per instant (median), {speed['instants_per_s']:.0f} instants/s"
         )
         for side in ("left", "right"):  # why frames could not be read: the first reason of each side

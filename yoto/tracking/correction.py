@@ -86,6 +86,7 @@ class Correction:
     latency_ms: float = 0.0  # loading, registering and updating, this instant
     guard: str = ""  # the divergence guard's check this instant: "" (none), "kept" (the frames see the departure),
     # "re-anchored" (they fit as well from open loop: the loop moved back onto that fit)
+    held: bool = False  # the tracked slip along weakly pinned directions brought back to the slip model's bound
     sigma_rad: float = 0.0  # the filter's 1-sigma of the object's pose after the instant, along its least certain
     sigma_m: float = 0.0  # turn and shift (what it believes; the weakly pinned directions of `TrackResult.pinning`)
     indentation_m: dict[str, float] = field(default_factory=dict)  # side -> how deep its frame read the press
@@ -201,31 +202,32 @@ class ClosedLoop:
         block = c.guard_block_bound > 0.0 and max(blocks) > c.guard_block_bound
         return float(squared.sum()) > c.guard_bound or block
 
-    def _hold_weak(self) -> None:
+    def _hold_weak(self) -> bool:
         """Hold the tracked slip along the directions the two-contact instants so far pin weakly (their mean shared
         error moves the fit by more than `guard_weak_spread` observable units there, `Pinning`: a face's slide, a
         spin about a body's long axis) within `guard_weak_sigmas` of the slip model (`_slip_variance`): the frames
         cannot tell slip there from their own error, and a departure beyond what slip itself does is the slip rate's
         estimate carrying the pose along. Beyond it, the slip there is brought back to that bound and the slip rate
-        along those directions set to zero (observable units)."""
+        along those directions set to zero (observable units). Returns whether it held."""
         c = self.config.correction
         if c.guard_weak_spread <= 0.0 or not self.pair_instants:
-            return
+            return False
         pinning = Pinning.of(self.pair_shared / self.pair_instants, self.unit)
         weak = pinning.directions[pinning.spread > c.guard_weak_spread]  # (K, 6), orthonormal, observable units
         if not len(weak):
-            return
+            return False
         slip = twist_of_pose(self._slip()) / self.unit
         along = weak @ slip
         covariance = weak @ np.diag(self._slip_variance() / self.unit**2) @ weak.T
         distance = float(np.sqrt(along @ np.linalg.solve(covariance, along)))
         if distance <= c.guard_weak_sigmas:
-            return
+            return False
         kept = slip - weak.T @ along * (1.0 - c.guard_weak_sigmas / distance)
         change = invert_transform(pose_from_twist(slip * self.unit)) @ pose_from_twist(kept * self.unit)
         self.grasps = {side: grasp @ change for side, grasp in self.grasps.items()}
         rate = self.rate / self.unit
         self.rate = (rate - weak.T @ (weak @ rate)) * self.unit
+        return True
 
     def _guard_due(self, instant_s: float) -> bool:
         """Whether the divergence guard checks at this applied instant (at `instant_s`): the tracked slip beyond the
@@ -254,7 +256,6 @@ class ClosedLoop:
         prior. A real pivot the frames see fits worse from open loop, or leads that fit away from it, and is kept.
         Returns "" (no check, `_guard_due`), "kept" or "re-anchored"."""
         c = self.config.correction
-        self._hold_weak()
         if not self._guard_due(instant_s):
             return ""
         predicted = self.fuse(sensors)  # after this instant's update
@@ -483,6 +484,7 @@ class ClosedLoop:
                     error = self.covariance[:6, :6]
                     record.sigma_rad = float(np.sqrt(np.linalg.eigvalsh(error[:3, :3])[-1]))
                     record.sigma_m = float(np.sqrt(np.linalg.eigvalsh(error[3:, 3:])[-1]))
+                    record.held = self._hold_weak()
                     record.guard = self._guard(
                         instant_s, sensors, rows, {side: points_sensor[side] for side in record.used}, fractions
                     )

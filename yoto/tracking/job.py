@@ -450,6 +450,7 @@ def report_payload(job: TrackJob, model: ObjectModel, outcome: TrackOutcome) -> 
                 "slip_mm": 1e3 * c.slip_m,
                 "slip_deg": float(np.degrees(c.slip_rad)),
                 "guard": c.guard,
+                "held": c.held,
                 "sigma_deg": float(np.degrees(c.sigma_rad)),
                 "sigma_mm": 1e3 * c.sigma_m,
                 "latency_ms": c.latency_ms,

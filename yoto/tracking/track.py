@@ -114,6 +114,7 @@ class TrackResult:
             "frames_used": sum(len(c.used) for c in self.corrections),
             "guard_checks": sum(bool(c.guard) for c in self.corrections),
             "reanchored": sum(c.guard == "re-anchored" for c in self.corrections),
+            "held": sum(c.held for c in self.corrections),
             "unusable": reasons,
             "latency_median_ms": median,
             "latency_p90_ms": float(np.percentile(latency, 90)),
