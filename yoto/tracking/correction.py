@@ -155,7 +155,6 @@ class ClosedLoop:
         self.gone: set[str] = set()  # the sides that let go (`ReleaseWatch.let_go`): their grasps carry nothing ...
         self.lifted: set[str] = set()  # ... and those without contact whose sensor left the object (`lifted_apart_m`):
         # while the other touches, it alone predicts the pose (a side letting go, its sensor withdrawing)
-        self.touched_again: list[tuple[str, float]] = []  # (side, its frame's time) of each let-go side touching again
         self.open_changes: list[OpenLoopChange] = []  # the open loop's grasps since the touch, as they changed
         self.tilt_rad: dict[str, float] = {}  # per side whose contacts tilt (`image_contact_tilt_rad`...): sigma
 
@@ -210,9 +209,9 @@ class ClosedLoop:
         estimate carrying the pose along. Beyond it, the slip there is brought back to that bound and the slip rate
         along those directions set to zero (observable units). Returns whether it held."""
         c = self.config.correction
-        if c.guard_weak_spread <= 0.0 or not self.pair_instants:
+        pinning = self.pair_pinning()
+        if c.guard_weak_spread <= 0.0 or pinning is None:
             return False
-        pinning = Pinning.of(self.pair_shared / self.pair_instants, self.unit)
         weak = pinning.directions[pinning.spread > c.guard_weak_spread]  # (K, 6), orthonormal, observable units
         if not len(weak):
             return False
@@ -228,6 +227,11 @@ class ClosedLoop:
         rate = self.rate / self.unit
         self.rate = (rate - weak.T @ (weak @ rate)) * self.unit
         return True
+
+    def pair_pinning(self) -> Pinning | None:
+        """How the applied two-contact instants so far pin each direction (their mean shared-error information),
+        or None before the first."""
+        return Pinning.of(self.pair_shared / self.pair_instants, self.unit) if self.pair_instants else None
 
     def _guard_due(self, instant_s: float) -> bool:
         """Whether the divergence guard checks at this applied instant (at `instant_s`): the tracked slip beyond the
@@ -331,7 +335,6 @@ class ClosedLoop:
         self.gone.discard(side)
         self.touch_press[side] = predicted_indentation_m(self.model, invert_transform(self.grasps[side]))
         self.rest_read.pop(side, None)
-        self.touched_again.append((side, stamp))
 
     def _apply(self, twist: np.ndarray) -> None:
         """Move the object by `twist` (object frame) in both grasps: T_world_object <- T_world_object @ exp^-1."""

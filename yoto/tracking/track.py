@@ -210,12 +210,13 @@ def track(
             if start > begin:  # the outputs before this instant follow the grasps as they were
                 closed[begin:start] = corrector.fuse(sensors, slice(begin, start))
                 begin = start
+            changes_before = len(corrector.open_changes)
             record = corrector.correct(instant_time, instant_frames)
             result.corrections.append(record)
-            for side, stamp in corrector.touched_again:  # a side that let go touches again
-                event = next(e for e in reversed(grasp_let_go[-1]) if e.side == side)
-                event.touched_again_s = stamp
-            corrector.touched_again.clear()
+            for change in corrector.open_changes[changes_before:]:  # a side that let go touching again
+                if change.T_sensor_object is not None:
+                    event = next(e for e in reversed(grasp_let_go[-1]) if e.side == change.side)
+                    event.touched_again_s = change.time_s
             stamps = {side: float(tactile[side].timestamps_s[i]) for side, i in frames}
             released_s = release.saw(record, stamps)
             for event in release.let_go(stamps):  # the outputs since its first frame without contact: the other
@@ -257,8 +258,7 @@ def track(
     result.T_world_object = closed
     result.T_world_object_open_loop, result.sensor_weights = open_loop, weights
     result.pad_errors = corrector.pads
-    if correctors[0].pair_instants:
-        result.pinning = Pinning.of(correctors[0].pair_shared / correctors[0].pair_instants, correctors[0].unit)
+    result.pinning = correctors[0].pair_pinning()
     return result
 
 
