@@ -85,6 +85,16 @@ def test_calibrations_match_the_simulator(session):
         assert np.degrees(rotation_angle_rad(object_calibration.T_objectbody_mesh, T_true)) < 1.0
 
 
+def test_the_simulators_own_object_calibration_loads_as_a_truth_calibration(session):
+    from yoto.rig.beads import load_object_calibration
+
+    true = load_object_calibration(session["out"] / "true.object.json")
+    assert (true.object_name, true.object_body) == ("fruit", "Object")
+    np.testing.assert_allclose(true.T_objectbody_mesh, session["truth"]["T_objectbody_mesh"], atol=1e-12)
+    _, _, _, bead_fit = session["calibrations"]["ros1"]
+    assert np.linalg.norm(true.T_objectbody_mesh[:3, 3] - bead_fit.T_objectbody_mesh[:3, 3]) > 1e-6  # not the fit's
+
+
 def test_labels_against_the_truth_and_refused_trials(session, gelsight):
     from yoto.rig.bench import label_errors
 

@@ -16,7 +16,9 @@ Written as ROS1 bags (`ros1/*.bag`: PoseStamped, PointStamped, Image rgb8 / bgr8
 PoseStamped and Image; `ros2_mcap/`, rigid bodies on TF and CompressedImage PNG) and Motive CSV takes
 (`motive/*.csv` in millimetres, GelSight PNGs named by take time in `motive/trials_left/`, `trials_right/`). Beside
 them: `beads.json` (the picks), `cad_left.json`, `cad_right.json` (the CAD rotations), `session.json` (names and
-topics) and `truth.json` (everything the simulator knows, for benchmarks).
+topics), `truth.json` (everything the simulator knows, for benchmarks) and `true.object.json` (the simulator's own
+object calibration in `yoto rig calibrate-object`'s format, for `yoto track --truth-calibration`: the truth without
+the bead fit's error).
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ from yoto.geometry import (
 from yoto.io import png_bytes, write_bytes_atomic, write_json_atomic
 from yoto.objects.model import ObjectModel
 from yoto.rig.bags import BagWriter
-from yoto.rig.beads import pick_vertices_mesh
+from yoto.rig.beads import ObjectCalibration, pick_vertices_mesh
 from yoto.rig.motive import write_motive_csv
 from yoto.rig.timeline import slerp
 from yoto.sensor.calibration import SensorCalibration
@@ -462,6 +464,10 @@ def simulate_recording(
     }
     write_json_atomic(out_dir / "session.json", session)
     write_json_atomic(out_dir / "truth.json", truth)
+    # the bead fit turns the mesh frame by the picks' error (degrees): tracks judged against it carry that error
+    ObjectCalibration(
+        model.name, session["object_body"], scene.T_objectbody_mesh, sources={"simulator": "truth.json"}
+    ).save(out_dir / "true.object.json")
     return truth
 
 
