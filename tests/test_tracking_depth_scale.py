@@ -84,3 +84,38 @@ def test_the_share_is_shrunk_where_the_patch_s_shape_tells_it_as_a_smooth_error_
         ]
     assert shares[0.015] == pytest.approx(-0.131, abs=0.005)
     assert shares[0.06] == pytest.approx(-0.067, abs=0.005)
+
+
+def test_the_closed_loop_reshapes_the_frames_it_reads_from_images_and_leaves_clouds_as_given(
+    builtin_models, monkeypatch
+):
+    """The same simulated frames tracked as clouds given as clouds (`from_images` False: untouched, the poses as
+    with the step off) and as frames from images (each registered frame reshaped, the poses move by up to 0.11 mm)."""
+    pytest.importorskip("open3d")
+    from test_tracking_closed_loop import SHORT
+
+    import yoto.tracking.correction as correction
+    from yoto.simulate.trajectory import TrajectorySimulator
+    from yoto.tracking.bench import tactile_streams
+    from yoto.tracking.touch import touch_from_pair
+    from yoto.tracking.track import TrackConfig, track
+
+    model = builtin_models["fruit"]
+    trajectory = TrajectorySimulator(model, SHORT).trajectory(3, 1)
+    touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
+    calls = []
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return without_depth_scale(*args, **kwargs)
+
+    monkeypatch.setattr(correction, "without_depth_scale", counted)
+    clouds = tactile_streams(trajectory)
+    off = TrackConfig(correction=dataclasses.replace(CorrectionConfig(), image_depth_scale=0.0))
+    as_clouds = track(touch, trajectory.streams, model, clouds).T_world_object
+    assert not calls
+    np.testing.assert_array_equal(as_clouds, track(touch, trajectory.streams, model, clouds, off).T_world_object)
+    images = {side: dataclasses.replace(stream, from_images=True) for side, stream in clouds.items()}
+    result = track(touch, trajectory.streams, model, images)
+    assert len(calls) >= result.correction_summary()["frames_used"] > 0
+    assert np.abs(result.T_world_object[:, :3, 3] - as_clouds[:, :3, 3]).max() > 5e-5
