@@ -3,7 +3,8 @@ how deep it reads its press and how deep the object should press (`frame_indenta
 the Gauss-Newton settings (`registration_solver`, `pad_rest_solver`, `registration_prior`), and the information a
 registered contact carries, checked against the surface (`contact_information`, `secant_scaling`; `observable_unit`
 is where rotation and translation meet); the registration itself (`register_contacts`), where a contact read from
-an image may tilt about its centre (`tilt_jacobian`, `without_tilt`).
+an image may tilt about its centre (`tilt_jacobian`, `without_tilt`); a frame read from an image with its depth
+scale error taken out of its shape (`without_depth_scale`).
 
 Frames: a frame's points in its sensor's frame (the gel's rest surface z = 0, pressed points below it); registered
 points and twists in the canonical `object` frame (rotation about the centroid first).
@@ -310,6 +311,8 @@ def without_depth_scale(
     prior of `sigma` (against the points' shape counted as `bias_points` points); only the scale's shape (each
     point's depth about the samples' mean depth, times the share) is removed: the mean depth is the press, which the
     pair's registration reads as a push."""
+    if sigma <= 0.0:
+        raise ValueError(f"the depth scale's prior sigma must be positive, got {sigma}")
     depth = points_sensor[:, 2] - points_sensor[:, 2].mean()
     solver = registration_solver(config)
     # the points' errors are not independent in their shape: weighed against its prior, the share is told only as
