@@ -30,7 +30,12 @@ from yoto.registration import plane_distances, point_to_plane_gauss_newton
 from yoto.simulate.trajectory import SimulatedTrajectory, TactileFrame, TrajectoryConfig, TrajectorySimulator
 from yoto.tracking.config import CorrectionConfig, TrackConfig
 from yoto.tracking.evaluate import ErrorCurve, motion_interval, plot_tracking, summarize_errors, tracking_errors
-from yoto.tracking.frame_registration import contact_samples, pad_rest_solver, registration_solver
+from yoto.tracking.frame_registration import (
+    contact_samples,
+    pad_rest_solver,
+    registration_solver,
+    without_depth_scale,
+)
 from yoto.tracking.pad_error import PadError
 from yoto.tracking.streams import TactileStream, image_frames
 from yoto.tracking.touch import touch_from_pair
@@ -165,7 +170,9 @@ def truth_registrations(
     What they hold is the measurement's own error (the reconstruction's smooth depth errors, the rim), which no
     filter can tell from slip. `pad_corrected`: each sensor's pad error is learnt as the closed loop learns it
     (`PadError`: the rest map from the frames before the `motion`, the sliding map from every instant after it, or
-    from all instants without a rest map), here from the true poses, and removed from every frame."""
+    from all instants without a rest map), here from the true poses, and removed from every frame. Frames through
+    images have their depth scale error taken out of their shape as the closed loop does
+    (`CorrectionConfig.image_depth_scale`), here at the true pose."""
     tactile = tactile_streams(trajectory)
     pads: dict[str, PadError] = {}
     if pad_corrected and motion is not None:
@@ -194,6 +201,11 @@ def truth_registrations(
             side: _pad_corrected(pads, side, contact_samples(f.points_sensor, config))
             for (side, _), f in zip(frames, chosen, strict=True)
         }
+        if config.image_depth_scale > 0.0 and trajectory.calibration is not None:  # as the closed loop reads images
+            for (side, _), f in zip(frames, chosen, strict=True):
+                corrected[side] = without_depth_scale(
+                    model, corrected[side], f.T_object_sensor_true, config.image_depth_scale, config
+                )[0]
         points = np.vstack(
             [
                 transform_points(f.T_object_sensor_true, corrected[side])

@@ -62,6 +62,7 @@ from yoto.tracking.frame_registration import (
     register_contacts,
     registration_prior,
     registration_solver,
+    without_depth_scale,
 )
 from yoto.tracking.fusion import SensorPoses, StreamJitter, fuse_holding, sensor_poses
 from yoto.tracking.pad_error import PadError
@@ -459,6 +460,8 @@ class ClosedLoop:
                 if not self.moving and c.pad_error.rest_map:
                     pad.add_rest_frame(self.model, sampled, T_predicted_sensor, self.rest_solver)
                 sampled = pad.correct(sampled)
+            if c.image_depth_scale > 0.0 and frames[side][0].from_images:  # the reconstruction's depth scale error
+                sampled, _ = without_depth_scale(self.model, sampled, T_predicted_sensor, c.image_depth_scale, c)
             points_predicted[side] = transform_points(T_predicted_sensor, sampled)
             points_sensor[side], T_predicted_sensors[side] = sampled, T_predicted_sensor
             pose_noise[side] = self._pose_noise(side, T_predicted_sensor)

@@ -3,7 +3,8 @@ how deep it reads its press and how deep the object should press (`frame_indenta
 the Gauss-Newton settings (`registration_solver`, `pad_rest_solver`, `registration_prior`), and the information a
 registered contact carries, checked against the surface (`contact_information`, `secant_scaling`; `observable_unit`
 is where rotation and translation meet); the registration itself (`register_contacts`), where a contact read from
-an image may tilt about its centre (`tilt_jacobian`, `without_tilt`).
+an image may tilt about its centre (`tilt_jacobian`, `without_tilt`); a frame read from an image with its depth
+scale error taken out of its shape (`without_depth_scale`).
 
 Frames: a frame's points in its sensor's frame (the gel's rest surface z = 0, pressed points below it); registered
 points and twists in the canonical `object` frame (rotation about the centroid first).
@@ -290,3 +291,48 @@ def register_contacts(
         if np.sum(step[3:6] ** 2) < solver.step_tolerance_m**2 and np.sum(step[:3] ** 2) < solver.step_tolerance_rad**2:
             break
     return pose
+
+
+def without_depth_scale(
+    surface: SurfaceCloud,
+    points_sensor: np.ndarray,
+    T_object_sensor: np.ndarray,
+    sigma: float,
+    config: CorrectionConfig,
+) -> tuple[np.ndarray, float]:
+    """A contact's samples (sensor frame) with the reconstruction's depth scale error taken out of their shape, and
+    that error (the share by which the frame reads its depths about their mean too deep; negative: too shallow).
+
+    A reconstruction from an image reads a press some 5-15% shallow, by a share that changes as the contact slides
+    over the pad (journal, stop 22); registered, the flattened or steepened patch turns the object along a direction
+    the pair pins weakly by degrees. The share is estimated jointly with a rigid motion of the contact (so neither
+    the prediction's error nor the slip enters it) by Huber-weighted Gauss-Newton from `T_object_sensor` (the
+    predicted pose of the sensor in the object frame), the twist under the registration's prior, the share under a
+    prior of `sigma` (against the points' shape counted as `bias_points` points); only the scale's shape (each
+    point's depth about the samples' mean depth, times the share) is removed: the mean depth is the press, which the
+    pair's registration reads as a push."""
+    if sigma <= 0.0:
+        raise ValueError(f"the depth scale's prior sigma must be positive, got {sigma}")
+    depth = points_sensor[:, 2] - points_sensor[:, 2].mean()
+    solver = registration_solver(config)
+    # the points' errors are not independent in their shape: weighed against its prior, the share is told only as
+    # well as `bias_points` points of `bias_noise_m` tell it (a smooth error over a shallow patch mimics a scale)
+    sigma *= np.sqrt(config.bias_points / len(points_sensor)) * config.surface_noise_m / config.bias_noise_m
+    prior = np.diag(np.r_[solver.prior_information(), sigma**-2.0])
+    estimate = np.zeros(7)  # (the object's twist, the share of the depths about their mean added)
+    for _ in range(3):
+        T_moved = pose_from_twist(estimate[:6]) @ T_object_sensor
+        shaped = points_sensor + np.outer(estimate[6] * depth, [0.0, 0.0, 1.0])
+        points_object = transform_points(T_moved, shaped)
+        r, use, _, normals = plane_distances(surface, points_object, config.max_distance_m)
+        if np.count_nonzero(use) < 7:
+            return points_sensor, 0.0
+        robust = max(config.surface_noise_m, 1.4826 * float(np.median(np.abs(r[use]))))
+        weights = np.where(use, np.minimum(1.0, robust / np.maximum(np.abs(r), 1e-12)), 0.0) / config.surface_noise_m**2
+        jacobian = np.column_stack(
+            [point_to_plane_jacobian(points_object, normals), (normals @ T_moved[:3, 2]) * depth]
+        )
+        weighted = jacobian * weights[:, None]
+        estimate -= np.linalg.solve(weighted.T @ jacobian + prior, weighted.T @ r + prior @ estimate)
+    shape = estimate[6]
+    return points_sensor + np.outer(shape * depth, [0.0, 0.0, 1.0]), float(-shape / (1.0 + shape))
