@@ -338,29 +338,3 @@ def test_the_gels_skirt_beside_a_ridge_is_forgiven_and_a_hovering_cloud_is_not(m
     for config in (skirt_config, plain_config):
         assert rms(on_top, 0.00015, config) == pytest.approx(0.00015, abs=3e-6)  # hovering: in full
         assert rms(points_sensor, 0.002, config) == pytest.approx(config.fit_tau_m)  # floating: nothing touches
-
-
-def test_an_image_contacts_quadratic_shape_error_is_taken_off_its_fit(ellipsoid, rng):
-    """A reconstructed contact read as a bowl (a quadratic 40 um RMS over its points, as the table renderer reads
-    pressed faces): at the true pose its residual is what the depth scale and the pose leave of the bowl; with
-    `shape_sigma_m` the quadratic is fitted off and its prior joins the correction cost; contacts
-    taken as exact (sigma 0) keep their fit and cost bitwise, and 0 leaves everything as it was."""
-    from yoto.pose.refine import _quadratic_basis
-
-    field = surface_field(ellipsoid)
-    T_world_object = make_transform(random_rotations(rng, 1)[0], [0.2, 0.1, 0.3])
-    scaled = _pressed_contacts(ellipsoid, T_world_object, 0.0012, [1.0, 1.0], 0.05)
-    bowl = 4e-5 * _quadratic_basis(scaled[0].points_sensor)[:, 0]  # u^2 about the contact's centre, 40 um RMS
-    scaled[0] = replace(scaled[0], points_sensor=scaled[0].points_sensor + np.c_[0 * bowl, 0 * bowl, bowl])
-    prior, config = CalibrationPrior(), RefineConfig()
-    as_read = refine_hypotheses(field, scaled, T_world_object[None], prior, config)
-    taken = refine_hypotheses(field, scaled, T_world_object[None], prior, replace(config, shape_sigma_m=2e-5))
-    # the refinement takes part of the bowl up (the depth scale reads 0.93) and leaves 17 um; the quadratic 4 um
-    assert as_read.fit_rms_m[0, 0] > 1.5e-5 and taken.fit_rms_m[0, 0] < 0.3 * as_read.fit_rms_m[0, 0]
-    # its prior joins the cost: what is left of the bowl, under its full (40 / 20)^2 = 4
-    assert 0.3 < taken.correction_cost[0] - as_read.correction_cost[0] < 4.0
-    exact = _pressed_contacts(ellipsoid, T_world_object, 0.0012, [1.0, 1.0], 0.0)
-    plain = refine_hypotheses(field, exact, T_world_object[None], prior, config)
-    asked = refine_hypotheses(field, exact, T_world_object[None], prior, replace(config, shape_sigma_m=2e-5))
-    assert np.array_equal(plain.fit_rms_m, asked.fit_rms_m)
-    assert np.array_equal(plain.correction_cost, asked.correction_cost)

@@ -85,11 +85,6 @@ class RefineConfig:
     free_tau_m: float = 0.001  # a free-space point inside the object counts at most this deep
     step_tolerance: float = 1e-5  # stop when every update is below this (radians and metres)
     seed: int = 0  # which tactile points are used
-    shape_sigma_m: float = 0.0  # a contact reconstructed from an image (`depth_scale_sigma` > 0) may carry a smooth
-    # shape error that no pose, correction or depth scale takes up: when > 0, each such contact's residuals under a
-    # refined pose are read after a quadratic over the contact (u^2, v^2, u v), each term's RMS height ~ N(0, this),
-    # fitted as the refinement weighs its points, its prior joining the correction cost (`_quadratic_taken_up`;
-    # 0: none, the fit as read)
 
 
 # The seeds' cheap score with floating clouds truncated, a seed's own offset allowed and free space checked
@@ -472,60 +467,7 @@ def refine_hypotheses(
     correction_cost = np.einsum("ksi,i,ksi->k", correction_twists, calibration, correction_twists)
     if scaled:
         correction_cost = correction_cost + log_scale[:, scaled] ** 2 @ scale_information
-    if scaled and config.shape_sigma_m > 0.0:
-        rms, cost = _quadratic_taken_up(field, contacts, scaled, poses, correction_twists, depth_scale, config)
-        fit = (np.where(np.isnan(rms), fit[0], rms), *fit[1:])
-        correction_cost = correction_cost + cost
     return Refined(poses, correction_twists, *fit, correction_cost, start_offset, depth_scale)
-
-
-def _quadratic_basis(points_sensor: np.ndarray) -> np.ndarray:
-    """(M, 3) a contact's quadratic shape terms u^2, v^2, u v over its points (u, v: sensor x, y about their mean per
-    their RMS radius), each centred (an offset is the corrections') and scaled to unit RMS: a term's coefficient is
-    its RMS height over the points."""
-    centred = points_sensor[:, :2] - points_sensor[:, :2].mean(axis=0)
-    u, v = (centred / max(float(np.sqrt(np.mean(np.sum(centred**2, axis=1)))), 1e-9)).T
-    basis = np.column_stack([u * u, v * v, u * v])
-    basis -= basis.mean(axis=0)
-    return basis / np.maximum(np.sqrt(np.mean(basis**2, axis=0)), 1e-12)
-
-
-def _quadratic_taken_up(
-    field: SurfaceField,
-    contacts: list[ContactPoints],
-    scaled: list[int],
-    poses: np.ndarray,
-    correction_twists: np.ndarray,
-    depth_scale: np.ndarray,
-    config: RefineConfig,
-) -> tuple[np.ndarray, np.ndarray]:
-    """((K, C) fit RMS, (K,) prior cost) of K refined poses with each `scaled` contact's quadratic shape error
-    (`RefineConfig.shape_sigma_m`) taken off its residuals: the points' signed distances, truncated as `evaluate_fit`
-    truncates them (`fit_tau_m`, the skirt's `skirt_tau_m`), minus the quadratic that minimises their squares
-    weighted as the refinement weighs a point (1 / `surface_noise_m`^2) plus the terms' prior; the prior cost is
-    that quadratic's Mahalanobis square. The other contacts' RMS is NaN (the caller keeps its own)."""
-    rms = np.full((len(poses), len(contacts)), np.nan)
-    cost = np.zeros(len(poses))
-    T_object_world = invert_transform(poses)
-    for c in scaled:
-        contact = contacts[c]
-        T = T_object_world @ contact.T_world_sensor @ se3_exp(correction_twists[:, contact.sensor])
-        points = _scaled_heights(contact.points_sensor, depth_scale[:, c])
-        distance, _ = field.distance(transform_batch(T, points), with_gradient=False)
-        limit = np.full(distance.shape, config.fit_tau_m)
-        if config.skirt_tau_m is not None:
-            skirt = _on_skirt(
-                field, T, contact.points_sensor, distance, points[..., 2], config.inlier_distance_m, config.skirt_tau_m
-            )
-            limit[skirt] = config.skirt_tau_m
-        residual = np.sign(distance) * np.minimum(np.abs(distance), limit)
-        basis = _quadratic_basis(contact.points_sensor)
-        weight = 1.0 / config.surface_noise_m**2
-        system = weight * basis.T @ basis + np.eye(basis.shape[1]) / config.shape_sigma_m**2
-        terms = residual @ np.linalg.solve(system, weight * basis.T).T  # (K, 3)
-        rms[:, c] = np.sqrt(np.mean((residual - terms @ basis.T) ** 2, axis=1))
-        cost += np.sum(terms**2, axis=1) / config.shape_sigma_m**2
-    return rms, cost
 
 
 def _prior_information(contacts: list[ContactPoints], prior: CalibrationPrior, config: RefineConfig) -> np.ndarray:
