@@ -518,24 +518,3 @@ def test_refinement_starts_its_corrections_where_asked(box, rng):
     assert np.allclose(refined.corrections, start, atol=1e-12)
     assert np.allclose(refined.correction_cost, np.einsum("ksi,i,ksi->k", start, prior.information(), start))
     assert np.allclose(refine_hypotheses(field, contacts, T[None], prior, RefineConfig(iterations=0)).corrections, 0)
-
-
-def test_the_image_budgets_curvature_floor_admits_a_face_read_as_a_shallow_bowl(box):
-    """A box face pressed flat but reconstructed as a bowl (curvatures -2 and -8 1/m, a quadric fitting it to 4 um,
-    as the table renderer reads the cracker box's faces): the clean floor (12 1/m) admits none of the box's flat
-    face samples, the image budget's (22 1/m, `PoseConfig.for_pair`) admits them all."""
-    from dataclasses import replace
-
-    from yoto.pose.pipeline import ImageBudget
-    from yoto.pose.search import LocalShape, contact_locations, surface_samples
-
-    config = SearchConfig()
-    samples = surface_samples(box, config.samples)
-    flat = np.flatnonzero(np.abs(samples.curvature_columns[0]) + np.abs(samples.curvature_columns[1]) < 0.5)
-    assert len(flat) > 0.5 * len(samples.points_object)  # a box is mostly flat faces
-    bowl = LocalShape(np.array([[-2.0, -8.0]]), np.array([4e-6]))
-    image = replace(config, curvature_floor=ImageBudget().curvature_floor)
-    for search, admitted in ((config, 0), (image, len(flat))):
-        locations = contact_locations(samples, bowl, [], search)
-        found = {tuple(p) for p in np.round(locations.p_object, 9)}
-        assert sum(tuple(p) in found for p in np.round(samples.points_object[flat], 9)) == admitted

@@ -91,12 +91,6 @@ class ImageBudget:
     # clouds (a reconstructed contact's tilt, level and depth scale are off, and the corrections absorb them): in
     # most image pairs lost by ranking the truth fits the clouds better than the chosen pose and loses on its
     # corrections (docs/journal/sensor.md, stop 14). A setting already smaller is kept.
-    curvature_floor: float = 22.0  # SearchConfig.curvature_floor (clean: 12 1/m), which sets how far a surface
-    # sample's curvatures may lie from the contact's: a reconstructed contact's curvatures are off by up to about
-    # 10 1/m more (the reconstruction's 23 um profile error on the real presses, read as a bowl over the 4 mm shape
-    # radius: 6.9 x 23 um / (4 mm)^2). Through the table renderer the cracker box's pressed faces read 5-8 1/m
-    # concave and the true face's flat samples failed the match (docs/journal/sensor.md, stop 22). A setting
-    # already larger is kept.
 
 
 @dataclass(frozen=True)
@@ -169,11 +163,7 @@ class PoseConfig:
         search, refine, hypotheses = self.search_config, self.refine_config, self.hypotheses
         return replace(
             self,
-            search_config=replace(
-                search,
-                pair_budget=max(search.pair_budget, budget.pair_budget),
-                curvature_floor=max(search.curvature_floor, budget.curvature_floor),
-            ),
+            search_config=replace(search, pair_budget=max(search.pair_budget, budget.pair_budget)),
             screened=max(self.screened, budget.screened),
             refine_config=replace(
                 refine,
