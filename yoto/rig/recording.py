@@ -68,6 +68,7 @@ BODY_TOPIC = "/vrpn_client_node/{}/pose"
 MARKER_TOPIC = "/mocap/marker/{}"
 IMAGE_TOPIC = "/gelsight_{}/image_raw"
 RIG_BODIES = {"left": "RigLeft", "right": "RigRight"}
+OBJECT_BODY = "Object"  # the object's rigid body (its mocap name and topic)
 
 
 @dataclass(frozen=True)
@@ -438,7 +439,7 @@ def simulate_recording(
         write_json_atomic(out_dir / f"cad_{side}.json", {"T_rig_sensor": scene.cad[side]})
     session = {
         "object": model.name,
-        "object_body": "Object",
+        "object_body": OBJECT_BODY,
         "rig_bodies": RIG_BODIES,
         "gel_ball": "GelBall",
         "reference_ball": "RefBall",
@@ -465,9 +466,9 @@ def simulate_recording(
     write_json_atomic(out_dir / "session.json", session)
     write_json_atomic(out_dir / "truth.json", truth)
     # the bead fit turns the mesh frame by the picks' error (degrees): tracks judged against it carry that error
-    ObjectCalibration(
-        model.name, session["object_body"], scene.T_objectbody_mesh, sources={"simulator": "truth.json"}
-    ).save(out_dir / "true.object.json")
+    ObjectCalibration(model.name, OBJECT_BODY, scene.T_objectbody_mesh, sources={"simulator": "truth.json"}).save(
+        out_dir / "true.object.json"
+    )
     return truth
 
 
@@ -539,7 +540,7 @@ def _bead_capture(scene: Scene, out_dir: Path, formats: tuple[str, ...], rng: np
     T_body = np.tile(scene.T_world_objectbody, (len(times), 1, 1))
     centres_world = transform_points(scene.T_world_mesh, scene.bead_centre_mesh)
     markers = {name: np.tile(p, (len(times), 1)) for name, p in zip(scene.bead_names, centres_world)}
-    _write_stream_set(scene, out_dir, "beads", formats, times, {"Object": T_body}, markers, rng)
+    _write_stream_set(scene, out_dir, "beads", formats, times, {OBJECT_BODY: T_body}, markers, rng)
 
 
 def _draw_trials(scene: Scene, rng: np.random.Generator) -> list[list[Trial]]:
@@ -681,7 +682,7 @@ def _trials(
     noise = config.noise
     outputs = Outputs(out_dir, "trials", formats, config.start_epoch_s)
     object_poses = noisy_poses(rng, np.tile(scene.T_world_objectbody, (len(times), 1, 1)), noise)
-    outputs.body("Object", times, object_poses, dropout_mask(rng, len(times), noise))
+    outputs.body(OBJECT_BODY, times, object_poses, dropout_mask(rng, len(times), noise))
     for side in SIDES:
         T_world_rig = T_world_sensor[side] @ invert_transform(scene.T_rig_sensor[side])
         delivered = dropout_mask(rng, len(times), noise) & ~occluded[side]
