@@ -3,6 +3,8 @@ open loop's pose along the directions the contacts pin weakly (`ClosedLoop._slip
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import trimesh
@@ -14,18 +16,6 @@ from yoto.tracking.bench import tactile_streams
 from yoto.tracking.config import CorrectionConfig, TrackConfig
 from yoto.tracking.correction import ClosedLoop
 from yoto.tracking.track import touch_from_pair, track
-
-SHORT = TrajectoryConfig(
-    path_length_m=0.05,
-    rotation_range_rad=(float(np.radians(5.0)), float(np.radians(7.0))),
-    before_touch_s=0.1,
-    hold_s=0.2,
-    motion_s=1.0,
-    settle_s=0.4,
-    left_rate_hz=60.0,
-    right_rate_hz=50.0,
-    tactile_rate_hz=12.5,
-)
 
 
 def loop_with_slip(slip_sigmas: np.ndarray, rate_sigmas: np.ndarray, travel_m: float) -> ClosedLoop:
@@ -62,8 +52,17 @@ def test_the_guard_checks_a_spin_beyond_the_model_that_the_six_together_dilute()
 def slab():
     """A box whose two large faces (160 x 200 mm, 60 mm apart) are grasped: both contacts flat, each face's slide and
     the spin about their normal left free."""
+    from test_tracking_closed_loop import SHORT
+
+    # the closed-loop tests' short scenario with the simulator's default slip (2 mm / 1.5 deg per 100 mm)
+    default_slip = TrajectoryConfig()
+    scenario = dataclasses.replace(
+        SHORT,
+        slip_translation_per_m=default_slip.slip_translation_per_m,
+        slip_rotation_per_m=default_slip.slip_rotation_per_m,
+    )
     model = build_object_model(trimesh.creation.box((0.06, 0.16, 0.2)), "slab", ObjectModelConfig(num_points=40_000))
-    trajectory = TrajectorySimulator(model, SHORT).trajectory(3, 1)
+    trajectory = TrajectorySimulator(model, scenario).trajectory(3, 1)
     touch = touch_from_pair(trajectory.touch.pair, trajectory.touch.T_world_object, trajectory.touch_time_s)
     return model, trajectory, touch
 
