@@ -213,9 +213,7 @@ def point_to_plane_gauss_newton(
             p, r, use, n = p[best], r[best], use[best], n[best]
         anchor_now = np.einsum("kij,kj->ki", rotation, anchor_source[active]) + translation
         centres = np.zeros((count, 3)) if pivot_source is None else anchor_now
-        magnitude = np.abs(r)
-        scale = np.maximum(config.surface_noise_m, 1.4826 * masked_row_medians(magnitude, use))
-        weights = np.where(use, np.minimum(1.0, scale[:, None] / np.maximum(magnitude, 1e-12)), 0.0)
+        weights = huber_weights(np.abs(r), use, config.surface_noise_m)
         weights /= config.surface_noise_m**2
         jacobian = point_to_plane_jacobian(p - centres[:, None, :], n)
         # The prior's deviation from the start (none before the first step).
@@ -252,6 +250,14 @@ def point_to_plane_jacobian(lever: np.ndarray, normals: np.ndarray) -> np.ndarra
     cross_into(lever, normals, jacobian[..., :3])
     jacobian[..., 3:] = normals
     return jacobian
+
+
+def huber_weights(magnitude: np.ndarray, use: np.ndarray, noise_m: float) -> np.ndarray:
+    """(K, M) Huber weights of K rows of residual magnitudes |r| (M each): 1 within a row's robust scale, scale / |r|
+    beyond it, 0 where `use` is False. The scale is 1.4826 times the row's median |r| over its used points (the
+    residuals' MAD about zero), at least `noise_m`: a fit whose residuals are mostly noise keeps every point whole."""
+    scale = np.maximum(noise_m, 1.4826 * masked_row_medians(magnitude, use))
+    return np.where(use, np.minimum(1.0, scale[:, None] / np.maximum(magnitude, 1e-12)), 0.0)
 
 
 def masked_row_medians(values: np.ndarray, mask: np.ndarray) -> np.ndarray:

@@ -28,7 +28,7 @@ from yoto.geometry import cross_into, invert_transform, se3_exp, se3_log, skew
 from yoto.pointcloud import voxel_downsample
 from yoto.pose.field import SurfaceField
 from yoto.pose.kernels import KERNELS
-from yoto.registration import masked_row_medians, transform_batch
+from yoto.registration import huber_weights, transform_batch
 from yoto.sensor.spec import GELSIGHT_MINI
 from yoto.simulate.body import SensorBody
 
@@ -560,8 +560,7 @@ def _add_normal_equations(
         assert n is not None
         magnitude = np.abs(r)
         use = magnitude < config.max_distance_m
-        scale = np.maximum(config.surface_noise_m, 1.4826 * masked_row_medians(magnitude, use))
-        w = np.where(use, np.minimum(1.0, scale[:, None] / np.maximum(magnitude, 1e-12)), 0.0) * weight_scale
+        w = huber_weights(magnitude, use, config.surface_noise_m) * weight_scale
         # The residuals of one contact depend on the object pose and on its sensor's correction only. Their
         # rows for the object pose are a = (n x q, -n); for the correction (p x m, m), with m = R^T n the
         # normal in the sensor frame (A = [R | t]), which is M a, M = [[-R^T, R^T [t]x], [0, -R^T]] (the

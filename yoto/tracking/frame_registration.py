@@ -24,7 +24,7 @@ from yoto.objects.model import ObjectModel
 from yoto.registration import (
     GaussNewtonConfig,
     SurfaceCloud,
-    masked_row_medians,
+    huber_weights,
     plane_distances,
     point_to_plane_gauss_newton,
     point_to_plane_jacobian,
@@ -261,8 +261,7 @@ def register_contacts(
         rotation = pose[:3, :3]
         current = tilted @ rotation.T + pose[:3, 3]
         r, use, _, n = plane_distances(surface, current, solver.max_distance_m, facing @ rotation.T)
-        scale = max(solver.surface_noise_m, 1.4826 * float(masked_row_medians(np.abs(r)[None], use[None])[0]))
-        weights = np.where(use, np.minimum(1.0, scale / np.maximum(np.abs(r), 1e-12)), 0.0) / solver.surface_noise_m**2
+        weights = huber_weights(np.abs(r)[None], use[None], solver.surface_noise_m)[0] / solver.surface_noise_m**2
         jacobian = np.zeros((len(current), len(prior)))
         jacobian[:, :6] = point_to_plane_jacobian(current, n)
         for k, (start, end) in enumerate(bounds):
@@ -327,8 +326,7 @@ def without_depth_scale(
         r, use, _, normals = plane_distances(surface, points_object, config.max_distance_m)
         if np.count_nonzero(use) < 7:
             return points_sensor, 0.0
-        robust = max(config.surface_noise_m, 1.4826 * float(np.median(np.abs(r[use]))))
-        weights = np.where(use, np.minimum(1.0, robust / np.maximum(np.abs(r), 1e-12)), 0.0) / config.surface_noise_m**2
+        weights = huber_weights(np.abs(r)[None], use[None], config.surface_noise_m)[0] / config.surface_noise_m**2
         jacobian = np.column_stack(
             [point_to_plane_jacobian(points_object, normals), (normals @ T_moved[:3, 2]) * depth]
         )
