@@ -505,6 +505,38 @@ def test_benchmark_image_rows_use_the_same_pairs(image_pair, builtin_models):
             assert len(points) > 100 and not np.array_equal(points, clean.pair.contact(side).points_sensor)
 
 
+def test_a_retouch_of_an_image_pair_comes_through_images_too(image_pair, builtin_models):
+    """`yoto bench --via-images` re-touches its image rows through images: the simulated re-touch's press is rendered
+    and reconstructed by the rows' `ImagePath` (its cloud the reconstruction's, with its depth-scale prior), the
+    moved sensor keeping its calibration error, as a clean row's re-touch does."""
+    from yoto.evaluation.retouch import simulate_retouch
+    from yoto.geometry import invert_transform
+    from yoto.pose.next_touch import NextTouch
+    from yoto.sensor.optical import image_route
+    from yoto.simulate.scenarios import PairSimulator
+
+    simulated = image_pair["simulated"]
+    simulator = PairSimulator(builtin_models["fruit"])
+    # the left sensor pressing again where it first touched (the press finds its own depth along the sensor's z)
+    suggestion = NextTouch(np.zeros(3), np.zeros(3), "left", simulated.T_world_sensor_true["left"], 0.0)
+    clean = simulate_retouch(simulator, simulated, suggestion)
+    imaged = simulate_retouch(simulator, simulated, suggestion, image_path=image_route(str(image_pair["calibration"])))
+    assert clean.touch is not None and imaged.touch is not None
+    assert clean.touch.depth_scale_sigma == 0.0 < imaged.touch.depth_scale_sigma
+    np.testing.assert_array_equal(imaged.touch.T_world_sensor, clean.touch.T_world_sensor)
+    # the first contact's calibration error stays with the sensor: reported as the pair reported it, but for the
+    # press's own depth along the sensor's z
+    reported = simulated.pair.contact("left").T_world_sensor
+    moved = invert_transform(reported) @ imaged.touch.T_world_sensor
+    np.testing.assert_allclose(moved[:3, :3], np.eye(3), atol=1e-9)
+    assert np.linalg.norm(moved[:2, 3]) < 1e-9 and abs(moved[2, 3]) < 0.0015
+    # the same press read through its image: another cloud, about as deep (a reconstruction reads 5-15% shallow)
+    depth_clean, depth_image = (np.percentile(-t.points_sensor[:, 2], 99) for t in (clean.touch, imaged.touch))
+    assert len(imaged.touch.points_sensor) > 100
+    assert not np.array_equal(imaged.touch.points_sensor, clean.touch.points_sensor)
+    assert 0.7 * depth_clean < depth_image < 1.1 * depth_clean
+
+
 def test_image_pairs_search_and_screen_with_the_image_budget(image_pair, builtin_models, monkeypatch):
     """A pair reconstructed from images gets the pose stage's image budget (`PoseConfig.for_pair`: a larger search
     budget and screening), in the pose stage itself and in `yoto bench --via-images`; clean pairs keep the defaults."""

@@ -23,7 +23,7 @@ import time
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tqdm import tqdm
@@ -53,6 +53,9 @@ from yoto.pose.pipeline import (
 from yoto.pose.refine import CalibrationPrior
 from yoto.provenance import git_commit, run_info
 from yoto.workspace import object_model_path
+
+if TYPE_CHECKING:
+    from yoto.sensor.optical import ImagePath
 
 RIGHT_MM, RIGHT_DEG = 5.0, 5.0  # a pose is right within 5 mm and 5 deg (SPEC)
 TRUSTED_PRECISION = 0.99  # the benchmark's confidence threshold: 99% of the poses reported confident are right
@@ -183,17 +186,26 @@ def symmetric_errors(model: ObjectModel, T_world_mesh_estimate: np.ndarray, T_wo
 
 
 def evaluate_method(
-    spec: MethodSpec, model: ObjectModel, simulated_pairs: list, simulator, config: BenchConfig, workspace
+    spec: MethodSpec,
+    model: ObjectModel,
+    simulated_pairs: list,
+    simulator,
+    config: BenchConfig,
+    workspace,
+    image_path: ImagePath | None = None,
 ) -> dict[str, MethodResult]:
     """Run one method over the simulated pairs of one object: localize once, then each pose stage (with
-    `config.both_cores`, in this process and a helper)."""
+    `config.both_cores`, in this process and a helper). `simulator` presses the suggested re-touches (None: none),
+    through `image_path`'s GelSight images where the pairs came through them."""
     localizer = _make_localizer(spec)
     localize_model = load_object_model(model.name + spec.model_suffix, workspace) if spec.model_suffix else model
     with LocalizerProcess(localizer) if config.both_cores else nullcontext() as helper:
         if helper is not None:  # the helper's per-model data and surface field, before the first pair
             helper.prepare_object(localize_model)
             prepare_pose_helper(helper, localize_model, config.pose_config("full").field_config).result()
-        return _evaluate_pairs(spec, model, localize_model, localizer, simulated_pairs, simulator, config, helper)
+        return _evaluate_pairs(
+            spec, model, localize_model, localizer, simulated_pairs, simulator, config, helper, image_path
+        )
 
 
 def _evaluate_pairs(
@@ -205,6 +217,7 @@ def _evaluate_pairs(
     simulator,
     config: BenchConfig,
     helper: LocalizerProcess | None,
+    image_path: ImagePath | None,
 ) -> dict[str, MethodResult]:
     """`evaluate_method`'s pairs, with its localizer and its helper (or none)."""
     results = {
@@ -260,7 +273,9 @@ def _evaluate_pairs(
                 result.missed_truth_better.append(truth > float(estimate.hypotheses.log_likelihood[0]))
             status, after = "-", [right, right]
             if estimate.next_touch is not None and simulator is not None:
-                status, after = _retouch(simulator, simulated, estimate, localize_model, model, pose_config, localizer)
+                status, after = _retouch(
+                    simulator, simulated, estimate, localize_model, model, pose_config, localizer, image_path
+                )
             result.retouch.append(status)
             result.right_after_retouch.append(bool(after[0]))
             result.right_after_two.append(bool(after[1]))
@@ -277,7 +292,7 @@ def _evaluate_pairs(
 
 
 def _retouch(
-    simulator, simulated, estimate, localize_model, model, pose_config, localizer, touches: int = 2
+    simulator, simulated, estimate, localize_model, model, pose_config, localizer, image_path, touches: int = 2
 ) -> tuple[str, list[bool]]:
     """Simulate the suggested re-touches (up to `touches`, the next one only while the fused pose is still
     ambiguous and suggests one), fuse each, and say whether the pose is right after each: the first touch's outcome
@@ -293,7 +308,7 @@ def _retouch(
     current, status, right = estimate, "-", []
     for number in range(touches):
         suggestion = current.next_touch
-        outcome = None if suggestion is None else simulate_retouch(simulator, simulated, suggestion, number)
+        outcome = None if suggestion is None else simulate_retouch(simulator, simulated, suggestion, number, image_path)
         if number == 0 and outcome is not None:
             status = "ok" if outcome.touch is not None else str(outcome.rejection)
         if outcome is not None and outcome.touch is not None:
@@ -332,17 +347,18 @@ def simulate_benchmark_pairs(model: ObjectModel, config: BenchConfig, simulator=
     ]
 
 
-def pairs_via_images(pairs: list, config: BenchConfig) -> list:
+def pairs_via_images(pairs: list, config: BenchConfig, to_cloud: ImagePath | None = None) -> list:
     """The same simulated pairs (same poses, same truth), each tactile cloud replaced by the reconstruction of the
-    GelSight image its noise-free gel height map renders to (`yoto.sensor.optical.image_route`), with the
-    reconstruction's depth-scale prior (`TactileContact.depth_scale_sigma`); a frame the reconstruction finds no
-    contact in gives an empty cloud, which the methods count as a failure."""
+    GelSight image its noise-free gel height map renders to (`to_cloud`, else the config's
+    `yoto.sensor.optical.image_route`), with the reconstruction's depth-scale prior
+    (`TactileContact.depth_scale_sigma`); a frame the reconstruction finds no contact in gives an empty cloud, which
+    the methods count as a failure."""
     from dataclasses import replace
 
     from yoto.sensor.optical import image_route
 
     assert config.image_calibration is not None
-    to_cloud = image_route(config.image_calibration, config.image_variation)
+    to_cloud = to_cloud or image_route(config.image_calibration, config.image_variation)
     out = []
     for simulated in tqdm(pairs, desc="rendering and reconstructing images", unit="pair", leave=False):
         sides = {}
@@ -376,6 +392,7 @@ def run_benchmark(
     code = {"yoto": __version__, "commit": git_commit()}
     started = time.perf_counter()
     results: dict[str, dict[str, MethodResult]] = {}
+    image_path: ImagePath | None = None  # the rows via images' renderer and reconstruction, made once
     for spec_string in objects:
         model = resolve_object(spec_string, workspace)
         results[model.name] = {}
@@ -393,12 +410,24 @@ def run_benchmark(
             if pairs is None:
                 simulator = benchmark_simulator(model, config)
                 pairs = simulate_benchmark_pairs(model, config, simulator)
+            if spec.via_images and image_path is None:
+                from yoto.sensor.optical import image_route
+
+                assert config.image_calibration is not None
+                image_path = image_route(config.image_calibration, config.image_variation)
             if spec.via_images and image_pairs is None:
-                image_pairs = pairs_via_images(pairs, config)
+                image_pairs = pairs_via_images(pairs, config, image_path)
             method_pairs = image_pairs if spec.via_images and image_pairs is not None else pairs
-            # The simulated re-touch presses a clean cloud: rows via images are not re-touched.
-            retouch_simulator = simulator if config.retouch and not spec.via_images else None
-            by_stage = evaluate_method(spec, model, method_pairs, retouch_simulator, config, workspace)
+            # Rows via images are re-touched through images too (the re-touch's press rendered and reconstructed)
+            by_stage = evaluate_method(
+                spec,
+                model,
+                method_pairs,
+                simulator if config.retouch else None,
+                config,
+                workspace,
+                image_path if spec.via_images else None,
+            )
             write_json_atomic(cache, {"fingerprint": fingerprint, "results": [asdict(r) for r in by_stage.values()]})
             for result in by_stage.values():
                 results[model.name][result.label] = result
