@@ -310,6 +310,7 @@ def without_depth_scale(
     if sigma <= 0.0:
         raise ValueError(f"the depth scale's prior sigma must be positive, got {sigma}")
     depth = points_sensor[:, 2] - points_sensor[:, 2].mean()
+    lift = np.outer(depth, [0.0, 0.0, 1.0])  # what a share of 1 adds to the points: their depths about the mean
     solver = registration_solver(config)
     # the points' errors are not independent in their shape: weighed against its prior, the share is told only as
     # well as `bias_points` points of `bias_noise_m` tell it (a smooth error over a shallow patch mimics a scale)
@@ -318,8 +319,7 @@ def without_depth_scale(
     estimate = np.zeros(7)  # (the object's twist, the share of the depths about their mean added)
     for _ in range(3):
         T_moved = pose_from_twist(estimate[:6]) @ T_object_sensor
-        shaped = points_sensor + np.outer(estimate[6] * depth, [0.0, 0.0, 1.0])
-        points_object = transform_points(T_moved, shaped)
+        points_object = transform_points(T_moved, points_sensor + estimate[6] * lift)
         r, use, _, normals = plane_distances(surface, points_object, config.max_distance_m)
         if np.count_nonzero(use) < 7:
             return points_sensor
@@ -328,4 +328,4 @@ def without_depth_scale(
         )
         data, gradient = weighted_normal_equations(jacobian, r, use, solver.surface_noise_m)
         estimate -= np.linalg.solve(data + prior, gradient + prior @ estimate)
-    return points_sensor + np.outer(estimate[6] * depth, [0.0, 0.0, 1.0])
+    return points_sensor + estimate[6] * lift
