@@ -235,7 +235,7 @@ def register_contacts(
     (two angles, about its sensor's x and y, a Gaussian prior of that sigma), estimated jointly and so marginalised out
     of the correction: a reconstruction reads a contact's plane a few mrad off, and that error changes as the contact
     slides over the pad (journal, stop 17); along a direction the pair pins only through their tilts it would move the
-    pose by degrees. Huber weights at a robust scale as `point_to_plane_gauss_newton`'s.
+    pose by degrees. Weighted as `point_to_plane_gauss_newton` weighs its points (`weighted_normal_equations`).
 
     With `move_limit` (6,) (rad, m) only the tilt combinations of which a tilt of its sigma moves the correction by
     at most that (`tilts_leaving_the_landing`, chosen once at the prediction's matches) are estimated: along a turn
@@ -256,7 +256,7 @@ def register_contacts(
     pose, tilts = np.eye(4), np.zeros(2 * len(tilting))
     tilted = stacked.copy()  # each side's points turned by its tilt so far (predicted frame)
     free = None  # with `move_limit`: (6 + tilts, 6 + kept) the coordinates solved for, the twist and the tilt
-    # combinations kept (without, all of them)
+    # combinations kept; without, every tilt is solved for
     for iteration in range(solver.iterations):
         rotation = pose[:3, :3]
         current = tilted @ rotation.T + pose[:3, 3]
