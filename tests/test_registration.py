@@ -10,7 +10,12 @@ from conftest import TOL
 from scipy.spatial import cKDTree
 
 from yoto.geometry import make_transform, normalize, rotation_about_axis, rotation_angle_rad, transform_points
-from yoto.registration import GaussNewtonConfig, point_to_plane_gauss_newton, truncated_plane_fit
+from yoto.registration import (
+    GaussNewtonConfig,
+    point_to_plane_gauss_newton,
+    truncated_plane_fit,
+    weighted_normal_equations,
+)
 
 
 @dataclass
@@ -148,3 +153,27 @@ def test_points_of_two_contacts_keep_to_their_own_side_of_a_thin_wall():
     assert fit[0, 3] == pytest.approx(-6e-4, abs=1e-6)
     blind = point_to_plane_gauss_newton(surface, points, np.eye(4)[None], config)[0]
     assert abs(blind[0, 3] + 6e-4) > 2e-4  # the left contact's points matched to its wall's inner face
+
+
+def test_the_normal_equations_weigh_each_set_of_residuals_on_its_own_robust_scale(rng):
+    """Five residuals with their Jacobians (7 columns: the twist's and one more), noise 0.1 mm: three within it
+    count whole, one at 1 mm (ten times the scale) a tenth, an unused one nothing; batched with a set whose
+    residuals all lie at 1 mm (its robust scale then 1.5 mm: every one whole), each set's equations are its own."""
+    noise = 1e-4
+    jacobian = rng.normal(size=(5, 7))
+    distance = np.array([1e-5, -2e-5, 3e-5, 1e-3, 0.5])
+    use = np.array([True, True, True, True, False])
+    weights = np.array([1.0, 1.0, 1.0, 0.1, 0.0]) / noise**2
+    normal, gradient = weighted_normal_equations(jacobian, distance, use, noise)
+    np.testing.assert_allclose(normal, jacobian.T @ (weights[:, None] * jacobian), rtol=1e-12)
+    np.testing.assert_allclose(gradient, jacobian.T @ (weights * distance), rtol=1e-12)
+
+    far = np.full(5, 1e-3)
+    normals, gradients = weighted_normal_equations(
+        np.stack([jacobian, jacobian]), np.stack([distance, far]), np.stack([use, use]), noise
+    )
+    np.testing.assert_allclose(normals[0], normal, rtol=1e-12)
+    np.testing.assert_allclose(gradients[0], gradient, rtol=1e-12)
+    whole = use / noise**2
+    np.testing.assert_allclose(normals[1], jacobian.T @ (whole[:, None] * jacobian), rtol=1e-12)
+    np.testing.assert_allclose(gradients[1], jacobian.T @ (whole * far), rtol=1e-12)

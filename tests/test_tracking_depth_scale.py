@@ -40,6 +40,14 @@ def _pressed(radius_m: float, press_m: float) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([x[keep], y[keep], z[keep]], axis=1), T_object_sensor
 
 
+def _share_read(read: np.ndarray, reshaped: np.ndarray) -> float:
+    """The share by which a frame read its depths about their mean too deep (negative: too shallow), as
+    `without_depth_scale` took it out: from the scale it put on them."""
+    depth = read[:, 2] - read[:, 2].mean()
+    scale = np.dot(reshaped[:, 2] - reshaped[:, 2].mean(), depth) / np.dot(depth, depth)
+    return float(1.0 / scale - 1.0)
+
+
 def test_a_contact_read_15_percent_shallow_is_reshaped_onto_the_surface_whatever_the_prediction_is_off_by():
     """A sphere (r 15 mm) pressed 1 mm, the frame reading its depths 15% shallow, its points' errors taken as
     independent (`bias_points` all of them): the share comes back as -0.15 and the points reshaped about their
@@ -60,13 +68,13 @@ def test_a_contact_read_15_percent_shallow_is_reshaped_onto_the_surface_whatever
     assert spread_on_surface(read) > 2e-5 > 1e-6 > spread_on_surface(true_points)
     for off in (np.zeros(6), np.array([0.0, np.radians(1.0), 0.0, 0.0002, 0.0, 0.0])):
         predicted = pose_from_twist(off) @ T_object_sensor
-        reshaped, share = without_depth_scale(sphere, read, predicted, config.image_depth_scale, config)
-        assert share == pytest.approx(-0.15, abs=0.01)
+        reshaped = without_depth_scale(sphere, read, predicted, config.image_depth_scale, config)
+        assert _share_read(read, reshaped) == pytest.approx(-0.15, abs=0.01)
         assert spread_on_surface(reshaped) < 3e-6
         np.testing.assert_allclose(reshaped[:, :2], read[:, :2])
         assert np.mean(reshaped[:, 2]) == pytest.approx(np.mean(read[:, 2]), abs=1e-9)
-    as_read, share = without_depth_scale(sphere, true_points, T_object_sensor, config.image_depth_scale, config)
-    assert share == pytest.approx(0.0, abs=0.003)
+    as_read = without_depth_scale(sphere, true_points, T_object_sensor, config.image_depth_scale, config)
+    assert _share_read(true_points, as_read) == pytest.approx(0.0, abs=0.003)
     np.testing.assert_allclose(as_read, true_points, atol=3e-6)
 
 
@@ -79,9 +87,8 @@ def test_the_share_is_shrunk_where_the_patch_s_shape_tells_it_as_a_smooth_error_
     for radius in (0.015, 0.06):
         points, T_object_sensor = _pressed(radius, 0.001)
         read = points * [1.0, 1.0, 0.85]
-        shares[radius] = without_depth_scale(_Sphere(radius), read, T_object_sensor, config.image_depth_scale, config)[
-            1
-        ]
+        reshaped = without_depth_scale(_Sphere(radius), read, T_object_sensor, config.image_depth_scale, config)
+        shares[radius] = _share_read(read, reshaped)
     assert shares[0.015] == pytest.approx(-0.131, abs=0.005)
     assert shares[0.06] == pytest.approx(-0.067, abs=0.005)
 

@@ -213,17 +213,15 @@ def point_to_plane_gauss_newton(
             p, r, use, n = p[best], r[best], use[best], n[best]
         anchor_now = np.einsum("kij,kj->ki", rotation, anchor_source[active]) + translation
         centres = np.zeros((count, 3)) if pivot_source is None else anchor_now
-        weights = huber_weights(np.abs(r), use, config.surface_noise_m)
-        weights /= config.surface_noise_m**2
         jacobian = point_to_plane_jacobian(p - centres[:, None, :], n)
         # The prior's deviation from the start (none before the first step).
         deviation = np.zeros((count, 6))
         if iteration > 0:
             deviation[:, :3] = so3_log(rotation @ np.transpose(start[active, :3, :3], (0, 2, 1)))
             deviation[:, 3:] = anchor_now - anchor_start[active]
-        weighted = jacobian * weights[:, :, None]
-        hessian = np.transpose(weighted, (0, 2, 1)) @ jacobian + prior
-        gradient = (np.transpose(weighted, (0, 2, 1)) @ r[:, :, None])[:, :, 0] + deviation @ prior
+        hessian, gradient = weighted_normal_equations(jacobian, r, use, config.surface_noise_m)
+        hessian += prior
+        gradient += deviation @ prior
         if iteration < config.translation_only_iterations:
             step = np.zeros((count, 6))
             step[:, 3:] = -np.linalg.solve(hessian[:, 3:, 3:], gradient[:, 3:, None])[:, :, 0]
@@ -250,6 +248,19 @@ def point_to_plane_jacobian(lever: np.ndarray, normals: np.ndarray) -> np.ndarra
     cross_into(lever, normals, jacobian[..., :3])
     jacobian[..., 3:] = normals
     return jacobian
+
+
+def weighted_normal_equations(
+    jacobian: np.ndarray, distance: np.ndarray, use: np.ndarray, noise_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The Gauss-Newton normal matrices J^T W J (..., P, P) and gradients J^T W r (..., P) of point-to-plane
+    residuals `distance` (..., M) (one set of M points, or a batch of sets) with their Jacobians `jacobian`
+    (..., M, P): the twist's 6 columns (`point_to_plane_jacobian`) and any a caller adds for its own unknowns. W: each
+    set's Huber weights (`huber_weights`, used where `use`) over `noise_m` squared, the residuals' noise."""
+    rows = distance.reshape(-1, distance.shape[-1])
+    weights = huber_weights(np.abs(rows), use.reshape(rows.shape), noise_m).reshape(distance.shape) / noise_m**2
+    weighted = np.swapaxes(jacobian * weights[..., None], -1, -2)
+    return weighted @ jacobian, (weighted @ distance[..., None])[..., 0]
 
 
 def huber_weights(magnitude: np.ndarray, use: np.ndarray, noise_m: float) -> np.ndarray:

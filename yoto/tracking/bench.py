@@ -205,7 +205,7 @@ def truth_registrations(
             for (side, _), f in zip(frames, chosen, strict=True):
                 corrected[side] = without_depth_scale(
                     model, corrected[side], f.T_object_sensor_true, config.image_depth_scale, config
-                )[0]
+                )
         points = np.vstack(
             [
                 transform_points(f.T_object_sensor_true, corrected[side])

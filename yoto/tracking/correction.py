@@ -461,7 +461,7 @@ class ClosedLoop:
                     pad.add_rest_frame(self.model, sampled, T_predicted_sensor, self.rest_solver)
                 sampled = pad.correct(sampled)
             if c.image_depth_scale > 0.0 and frames[side][0].from_images:  # the reconstruction's depth scale error
-                sampled, _ = without_depth_scale(self.model, sampled, T_predicted_sensor, c.image_depth_scale, c)
+                sampled = without_depth_scale(self.model, sampled, T_predicted_sensor, c.image_depth_scale, c)
             points_predicted[side] = transform_points(T_predicted_sensor, sampled)
             points_sensor[side], T_predicted_sensors[side] = sampled, T_predicted_sensor
             pose_noise[side] = self._pose_noise(side, T_predicted_sensor)

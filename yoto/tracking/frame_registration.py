@@ -24,10 +24,10 @@ from yoto.objects.model import ObjectModel
 from yoto.registration import (
     GaussNewtonConfig,
     SurfaceCloud,
-    huber_weights,
     plane_distances,
     point_to_plane_gauss_newton,
     point_to_plane_jacobian,
+    weighted_normal_equations,
 )
 from yoto.tracking.config import CorrectionConfig
 
@@ -235,7 +235,7 @@ def register_contacts(
     (two angles, about its sensor's x and y, a Gaussian prior of that sigma), estimated jointly and so marginalised out
     of the correction: a reconstruction reads a contact's plane a few mrad off, and that error changes as the contact
     slides over the pad (journal, stop 17); along a direction the pair pins only through their tilts it would move the
-    pose by degrees. Huber weights at a robust scale as `point_to_plane_gauss_newton`'s.
+    pose by degrees. Weighted as `point_to_plane_gauss_newton` weighs its points (`weighted_normal_equations`).
 
     With `move_limit` (6,) (rad, m) only the tilt combinations of which a tilt of its sigma moves the correction by
     at most that (`tilts_leaving_the_landing`, chosen once at the prediction's matches) are estimated: along a turn
@@ -251,33 +251,31 @@ def register_contacts(
     starts = dict(zip(sides, np.cumsum([0] + [len(points[side]) for side in sides]), strict=False))
     bounds = [(starts[side], starts[side] + len(points[side])) for side in tilting]
     axes = [T_predicted_sensor[side][:3, :2].T for side in tilting]  # (2, 3) each pad's x and y, predicted frame
-    prior = np.zeros((6 + 2 * len(tilting),) * 2)
-    prior[:6, :6] = np.diag(solver.prior_information())
-    prior[6:, 6:] = np.diag(np.repeat([sigmas[side] ** -2.0 for side in tilting], 2))
+    tilt_information = np.repeat([sigmas[side] ** -2.0 for side in tilting], 2)
+    prior = np.diag(np.r_[solver.prior_information(), tilt_information])
     pose, tilts = np.eye(4), np.zeros(2 * len(tilting))
     tilted = stacked.copy()  # each side's points turned by its tilt so far (predicted frame)
-    free = None  # (6 + tilts, 6 + kept) the coordinates solved for: the twist and the tilt combinations kept
-    for _ in range(solver.iterations):
+    free = None  # with `move_limit`: (6 + tilts, 6 + kept) the coordinates solved for, the twist and the tilt
+    # combinations kept; without, every tilt is solved for
+    for iteration in range(solver.iterations):
         rotation = pose[:3, :3]
         current = tilted @ rotation.T + pose[:3, 3]
         r, use, _, n = plane_distances(surface, current, solver.max_distance_m, facing @ rotation.T)
-        weights = huber_weights(np.abs(r)[None], use[None], solver.surface_noise_m)[0] / solver.surface_noise_m**2
         jacobian = np.zeros((len(current), len(prior)))
         jacobian[:, :6] = point_to_plane_jacobian(current, n)
         for k, (start, end) in enumerate(bounds):
             pad_axes = axes[k] @ rotation.T  # carried into the current frame
             jacobian[start:end, 6 + 2 * k : 8 + 2 * k] = tilt_jacobian(current[start:end], n[start:end], pad_axes)
-        weighted = jacobian * weights[:, None]
+        data, gradient = weighted_normal_equations(jacobian, r, use, solver.surface_noise_m)
         deviation = np.concatenate([so3_log(rotation), pose[:3, 3], tilts])
-        data = weighted.T @ jacobian
-        if free is None:  # chosen once, at the prediction's matches
-            free = np.eye(len(prior))
-            if move_limit is not None:
-                with_twist_prior = data + np.diag(np.r_[np.diag(prior)[:6], np.zeros(len(tilts))])
-                kept = tilts_leaving_the_landing(with_twist_prior, np.diag(prior)[6:] ** -0.5, move_limit)
-                free = scipy.linalg.block_diag(np.eye(6), kept)
-        hessian = free.T @ (data + prior) @ free
-        step = free @ -np.linalg.solve(hessian, free.T @ (weighted.T @ r + prior @ deviation))
+        hessian, gradient = data + prior, gradient + prior @ deviation
+        if move_limit is not None and iteration == 0:  # chosen once, at the prediction's matches
+            kept = tilts_leaving_the_landing(hessian, tilt_information**-0.5, move_limit)
+            free = scipy.linalg.block_diag(np.eye(6), kept)
+        if free is None:
+            step = -np.linalg.solve(hessian, gradient)
+        else:
+            step = free @ -np.linalg.solve(free.T @ hessian @ free, free.T @ gradient)
         # a side's tilt turns its points about their centre (pad axes carried into the predicted frame) ...
         for k, (start, end) in enumerate(bounds):
             turn = so3_exp((step[6 + 2 * k : 8 + 2 * k] @ axes[k])[None])[0]
@@ -298,21 +296,21 @@ def without_depth_scale(
     T_object_sensor: np.ndarray,
     sigma: float,
     config: CorrectionConfig,
-) -> tuple[np.ndarray, float]:
-    """A contact's samples (sensor frame) with the reconstruction's depth scale error taken out of their shape, and
-    that error (the share by which the frame reads its depths about their mean too deep; negative: too shallow).
+) -> np.ndarray:
+    """A contact's samples (sensor frame) with the reconstruction's depth scale error taken out of their shape: each
+    point's depth about the samples' mean depth scaled by the share estimated (the mean depth is the press, which
+    the pair's registration reads as a push).
 
     A reconstruction from an image reads a press some 5-15% shallow, by a share that changes as the contact slides
     over the pad (journal, stop 22); registered, the flattened or steepened patch turns the object along a direction
     the pair pins weakly by degrees. The share is estimated jointly with a rigid motion of the contact (so neither
     the prediction's error nor the slip enters it) by Huber-weighted Gauss-Newton from `T_object_sensor` (the
     predicted pose of the sensor in the object frame), the twist under the registration's prior, the share under a
-    prior of `sigma` (against the points' shape counted as `bias_points` points); only the scale's shape (each
-    point's depth about the samples' mean depth, times the share) is removed: the mean depth is the press, which the
-    pair's registration reads as a push."""
+    prior of `sigma` (against the points' shape counted as `bias_points` points)."""
     if sigma <= 0.0:
         raise ValueError(f"the depth scale's prior sigma must be positive, got {sigma}")
     depth = points_sensor[:, 2] - points_sensor[:, 2].mean()
+    lift = np.outer(depth, [0.0, 0.0, 1.0])  # what a share of 1 adds to the points: their depths about the mean
     solver = registration_solver(config)
     # the points' errors are not independent in their shape: weighed against its prior, the share is told only as
     # well as `bias_points` points of `bias_noise_m` tell it (a smooth error over a shallow patch mimics a scale)
@@ -321,16 +319,13 @@ def without_depth_scale(
     estimate = np.zeros(7)  # (the object's twist, the share of the depths about their mean added)
     for _ in range(3):
         T_moved = pose_from_twist(estimate[:6]) @ T_object_sensor
-        shaped = points_sensor + np.outer(estimate[6] * depth, [0.0, 0.0, 1.0])
-        points_object = transform_points(T_moved, shaped)
+        points_object = transform_points(T_moved, points_sensor + estimate[6] * lift)
         r, use, _, normals = plane_distances(surface, points_object, config.max_distance_m)
         if np.count_nonzero(use) < 7:
-            return points_sensor, 0.0
-        weights = huber_weights(np.abs(r)[None], use[None], config.surface_noise_m)[0] / config.surface_noise_m**2
+            return points_sensor
         jacobian = np.column_stack(
             [point_to_plane_jacobian(points_object, normals), (normals @ T_moved[:3, 2]) * depth]
         )
-        weighted = jacobian * weights[:, None]
-        estimate -= np.linalg.solve(weighted.T @ jacobian + prior, weighted.T @ r + prior @ estimate)
-    shape = estimate[6]
-    return points_sensor + np.outer(shape * depth, [0.0, 0.0, 1.0]), float(-shape / (1.0 + shape))
+        data, gradient = weighted_normal_equations(jacobian, r, use, solver.surface_noise_m)
+        estimate -= np.linalg.solve(data + prior, gradient + prior @ estimate)
+    return points_sensor + estimate[6] * lift
