@@ -47,6 +47,9 @@ about the least a loop that weighs its frames against its prediction can leave (
 how each contact's own shape error changed over the motion (`bench.contact_planes_at_truth`: the plane of its
 samples' distances to the surface at the true pose, its tilt and offset after the motion against before it, and how
 far the contact moved over its pad): the frames' change read per contact, before any registration mixes them.
+`--frames-at-truth-parts` also registers them again from the truth as read, with only the depth scale step
+(`CorrectionConfig.image_depth_scale`, frames from images), with only the pads' maps, and prints per track which of
+them moves the frames (~12 CPU s more a trajectory).
 
 `--frames-via SOURCE` tracks each cached trajectory simulated again with its tactile frames (and the touch's clouds,
 which only the pinning reads: the cached touch estimate is kept) rendered to GelSight images from the gel's height
@@ -127,6 +130,10 @@ SETS: dict[int, list[tuple[tuple[str, ...], int, tuple[int, ...]]]] = {
     37: [(NEW_SEEDS, 2, (100, 200))],
 }
 BUILT_IN = ("tool", "fruit", "figurine")
+# `--frames-at-truth-parts`: the frames' own change registered as read, with the depth scale step only, with the
+# pads' maps only (`frames_change` holds both, the closed loop's reading)
+PARTS = (("as read", 0.0, False), ("depth scale out", TrackBenchConfig().track.correction.image_depth_scale, False))
+PARTS += (("pads' maps", 0.0, True),)
 
 
 def object_spec(name: str, meshes: str) -> str:
@@ -336,15 +343,30 @@ def tracked(job: tuple[int, str, int, int], args: argparse.Namespace) -> dict[st
     if used:  # the filter's own 1-sigma after its last applied instant (its least certain turn and shift)
         record["sigma"] = {"deg": float(np.degrees(used[-1].sigma_rad)), "mm": 1e3 * used[-1].sigma_m}
     record["pinning"] = pinning_of(touch_trajectory, T_touch, model)
-    if args.frames_at_truth and motion is not None:
-        # the frames' own change over the motion: every second instant's registration started at the truth (the
-        # pads' maps learnt there too), its mean over the settled tail against its mean before the motion
-        stamps, twists = truth_registrations(trajectory, model, config.correction, 2, True, motion)
-        if (stamps < motion[0]).any() and (stamps > motion[1]).any():
-            change = twists[stamps > motion[1]].mean(axis=0) - twists[stamps < motion[0]].mean(axis=0)
-            record["frames_change"] = change.tolist()
+    if (args.frames_at_truth or args.frames_at_truth_parts) and motion is not None:
+        change = frames_change(trajectory, model, config.correction, True, motion)
+        if change is not None:
+            record["frames_change"] = change
         record["contact_planes"] = contact_planes_at_truth(trajectory, model, config.correction, motion)
+        if args.frames_at_truth_parts:  # the same without the pads' maps, without the depth scale step, or either
+            parts = {}
+            for part, depth_scale, pads in PARTS:
+                correction = dataclasses.replace(config.correction, image_depth_scale=depth_scale)
+                parts[part] = frames_change(trajectory, model, correction, pads, motion)
+            record["frames_change_parts"] = parts
     return record
+
+
+def frames_change(
+    trajectory: Any, model: Any, correction: Any, pads: bool, motion: tuple[float, float]
+) -> list[float] | None:
+    """The frames' own change over the motion: every second instant's registration started at the truth (with
+    `pads`: the pads' maps learnt there too), its mean over the settled tail against its mean before the motion;
+    None without instants on both sides of it."""
+    stamps, twists = truth_registrations(trajectory, model, correction, 2, pads, motion)
+    if not ((stamps < motion[0]).any() and (stamps > motion[1]).any()):
+        return None
+    return (twists[stamps > motion[1]].mean(axis=0) - twists[stamps < motion[0]].mean(axis=0)).tolist()
 
 
 def pinning_of(trajectory: Any, T_touch: np.ndarray, model: Any) -> dict[str, list]:
@@ -625,6 +647,30 @@ def frames_floor(records: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
+def parts_rows(records: list[dict[str, Any]]) -> list[str]:
+    """Per right touch (`--frames-at-truth-parts`): the closed loop's final drift beside the frames' own change
+    registered as read, with each frame's depth scale taken out of its shape (frames from images), with the pads'
+    maps learnt at the truth removed, and with both (the closed loop's reading, `frames_change`)."""
+    names = [part for part, _, _ in PARTS]
+    lines = [
+        "| track | final drift | " + " | ".join(names) + " | both (the closed loop's) |",
+        "|---|---|" + "---|" * (len(names) + 1),
+    ]
+
+    def size(twist: list[float] | None) -> str:
+        if twist is None:
+            return "-"
+        return f"{np.degrees(np.linalg.norm(twist[:3])):.2f} / {1e3 * np.linalg.norm(twist[3:]):.2f}"
+
+    for r in records:
+        if not (r["right_touch"] and "frames_change_parts" in r):
+            continue
+        drift = r["closed"]["final_drift"]
+        cells = [size(r["frames_change_parts"][name]) for name in names] + [size(r.get("frames_change"))]
+        lines.append(f"| {key_of(r)} | {drift['deg']:.2f} / {drift['mm']:.2f} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def frames_line(records: list[dict[str, Any]]) -> str:
     """The frames the closed loop used and refused (why), the time per tactile instant (wall, the frame's loading and
     reconstruction included: median and 90th percentile over every instant) and the open loop's final drift, over
@@ -689,6 +735,9 @@ def report(records: list[dict[str, Any]], label: str) -> str:
             "the final drift against the frames' own change at the truth, by how well each direction is pinned:",
         ]
         lines += frames_floor(records)
+    if any("frames_change_parts" in r for r in records):
+        lines += ["", "the frames' own change at the truth taken apart (deg / mm):"]
+        lines += parts_rows(records)
     if any("contact_planes" in r for r in records):
         lines += ["", planes_line(records)]
     lines += ["", frames_line(records)]
@@ -779,6 +828,12 @@ def main() -> None:
         "--frames-at-truth",
         action="store_true",
         help="also register the frames from the truth: the final drift against the frames' own change (~4 CPU s more)",
+    )
+    parser.add_argument(
+        "--frames-at-truth-parts",
+        action="store_true",
+        help="--frames-at-truth, and the frames' own change again without the pads' maps, without the depth scale "
+        "step, and without either: which of them moves the frames (~12 CPU s more)",
     )
     parser.add_argument("--out", help="JSON of every track's figures")
     parser.add_argument("--compare", help="an earlier --out to compare with")
