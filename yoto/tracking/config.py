@@ -117,12 +117,6 @@ class CorrectionConfig:
     # (`frame_registration.without_depth_scale`; 0: off). Such frames read a press 5-15% shallow, by a share that
     # changes as the contact slides (seed 11's figurine #0 at the truth: the frames' own turn 2.9 -> 0.9 deg); 0.1 /
     # 0.2 / 0.3 measured, 0.3 kept (image frames 16 -> 20 of 38 meet; clouds given as clouds: not measured, not used)
-    # (stop 23) which bins of a frame are registered:
-    predicted_selection: bool = False  # True: each frame's bins chosen by the press the object at the predicted pose
-    # makes there (its shape lowered to the frame's deepest read, `min_depth_fraction` of it), not by the frame's own
-    # depths, whose errors would move the chosen patch's rim (`frame_registration.predicted_press_m`); measured: seed
-    # 11's PLY frames tie (47 of 53 meet, 0.261 -> 0.275 deg, the figurine #2s worse), seeds 23 / 37 gain (70 -> 74 of
-    # 82), so off (journal stop 23: the pixel noise does not move the rim; the pads' smooth field moves the points)
 
 
 @dataclass(frozen=True)

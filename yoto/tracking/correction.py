@@ -453,7 +453,7 @@ class ClosedLoop:
                 unusable[side] = shallow[side]
                 continue
             T_predicted_sensor = invert_transform(predicted[row]) @ sensors.T_world_sensor[side][row]
-            sampled = contact_samples(points, c, self.model, T_predicted_sensor)
+            sampled = contact_samples(points, c)
             raw_samples[side] = sampled
             pad = self.pads.get(side)
             if pad is not None:  # the pad's error learnt so far is removed (with the rest map: learnt at rest)

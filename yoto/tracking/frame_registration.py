@@ -17,7 +17,6 @@ import dataclasses
 import numpy as np
 import scipy.linalg
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from yoto.contacts import MIN_TACTILE_POINTS, MINI_PAD_M
 from yoto.geometry import invert_transform, pose_from_twist, so3_exp, so3_log, transform_points
@@ -33,12 +32,7 @@ from yoto.registration import (
 from yoto.tracking.config import CorrectionConfig
 
 
-def contact_samples(
-    points_sensor: np.ndarray,
-    config: CorrectionConfig,
-    model: ObjectModel | None = None,
-    T_object_sensor: np.ndarray | None = None,
-) -> np.ndarray:
+def contact_samples(points_sensor: np.ndarray, config: CorrectionConfig) -> np.ndarray:
     """A fixed, spatially even subset of a tactile cloud's firmly pressed points: the means of square bins over the
     pad (`voxel_m`, x and y only), those pressed at least `min_depth_fraction` of the deepest bin's depth, then at
     most `points_per_contact`.
@@ -47,8 +41,7 @@ def contact_samples(
     of the gel by its noisy depth (which points a voxel keeps shifts its mean), and choosing single points by their
     noisy depth keeps, along the chosen patch's edge, those whose noise made them deeper; both are errors fixed on
     the pad or the contact that move the registrations as the contact slides. Bins are chosen by their depth
-    averaged with their neighbours'. With `config.predicted_selection` (and the object's `model` at the predicted
-    `T_object_sensor`) they are chosen by the press the object should make there instead (`predicted_press_m`)."""
+    averaged with their neighbours'."""
     step = max(1, len(points_sensor) // (40 * config.points_per_contact))  # thin huge clouds before binning
     thinned = points_sensor[::step]
     cells = np.floor(thinned[:, :2] / config.voxel_m).astype(np.int64)
@@ -65,46 +58,12 @@ def contact_samples(
     )
     depth = depth[occupied]
     deepest = float(depth.min())
-    if config.predicted_selection and model is not None and T_object_sensor is not None and deepest < 0:
-        pressed = predicted_press_m(model, T_object_sensor, means[:, :2], config.voxel_m)
-        # the object's shape lowered to the frame's own deepest read: a prediction off along the pad's normal, or a
-        # frame read a share too shallow, moves the level, not which bins the shape puts near the rim
-        known = np.isfinite(pressed)
-        level = pressed[known].max() + (1.0 - config.min_depth_fraction) * deepest if known.any() else np.inf
-        points = means[known & (np.where(known, pressed, -np.inf) >= level)]
-    else:
-        points = means[depth <= config.min_depth_fraction * deepest] if deepest < 0 else means
+    points = means[depth <= config.min_depth_fraction * deepest] if deepest < 0 else means
     if len(points) < MIN_TACTILE_POINTS:  # a shallow, noisy frame: keep what there is
         points = means
     if len(points) > config.points_per_contact:
         points = points[np.random.default_rng(0).choice(len(points), config.points_per_contact, replace=False)]
     return points
-
-
-def predicted_press_m(
-    model: ObjectModel, T_object_sensor: np.ndarray, xy_sensor: np.ndarray, radius_m: float
-) -> np.ndarray:
-    """(N,) how deep the object, placed at T_object_sensor, reaches below the gel's rest surface at each sensor-frame
-    (x, y) in `xy_sensor` (N, 2): the lowest of its surface points facing the pad within `radius_m` of (x, y) in the
-    pad's plane, each carried to (x, y) along its tangent plane (negative: the gap above it); nan where no facing
-    surface lies that near. Chooses a frame's registered points by where the object should press, which the frame's
-    own reading errors do not move."""
-    half = np.array(MINI_PAD_M) / 2.0 + radius_m
-    near = model.kdtree.query_ball_point(T_object_sensor[:3, 3], float(np.hypot(*half)))
-    T_sensor_object = invert_transform(T_object_sensor)
-    points = transform_points(T_sensor_object, model.points_object[near].astype(np.float64))
-    normals = model.normals_object[near].astype(np.float64) @ T_sensor_object[:3, :3].T
-    facing = normals[:, 2] < -0.2  # against the sensor's z, and not so steep that the tangent plane runs off
-    points, normals = points[facing], normals[facing]
-    lowest = np.full(len(xy_sensor), np.inf)
-    if len(points):
-        candidates = cKDTree(points[:, :2]).query_ball_point(xy_sensor, radius_m)
-        rows = np.repeat(np.arange(len(xy_sensor)), [len(c) for c in candidates])
-        near = np.fromiter((i for c in candidates for i in c), dtype=np.int64, count=len(rows))
-        offset = xy_sensor[rows] - points[near, :2]
-        z = points[near, 2] - np.einsum("ij,ij->i", normals[near, :2], offset) / normals[near, 2]
-        np.minimum.at(lowest, rows, z)
-    return np.where(np.isfinite(lowest), -lowest, np.nan)
 
 
 def frame_indentation_m(points_sensor: np.ndarray) -> float:
