@@ -61,7 +61,8 @@ Printed with every run: the frames used and refused (why), the time per instant 
 and the open loop's final drift.
 
 `--without bias scale pixel` tracks each cached trajectory simulated again with those parts of the tactile frames'
-reconstruction error switched off (the pad's smooth field, the depth scale error, the per-frame pixel noise): the same
+reconstruction error switched off (the pad's smooth field, the depth scale error, the per-frame pixel noise), each
+drawn as the cached run drew it and not applied, so every other error (the other pad's too) is the same draw: the same
 seed, path, slip and sensor streams, the cached touch estimate and its pinning (the touch's own clouds keep their
 errors), so the drift's change is what those errors did to the frames during the motion (~5 CPU s more a trajectory,
 not cached).
@@ -205,7 +206,6 @@ def same_path(again: Any, trajectory: Any, job: tuple[int, str, int, int]) -> An
 
 
 RELEASE_FIELDS = {field.name for field in dataclasses.fields(ReleaseConfig)}  # `--correction` takes these too
-NOISE_FIELDS = {"bias": "bias_std_m", "scale": "scale_std", "pixel": "pixel_std_m"}  # --without -> the press's noise
 
 
 def without_errors(trajectory: Any, job: tuple[int, str, int, int], args: argparse.Namespace) -> Any:
@@ -215,7 +215,8 @@ def without_errors(trajectory: Any, job: tuple[int, str, int, int], args: argpar
 
     seed, name, length, index = job
     scenario = TrackBenchConfig().trajectory.scenario
-    noise = dataclasses.replace(scenario.press.noise, **{NOISE_FIELDS[part]: 0.0 for part in args.without})
+    # drawn and not applied: the errors left on (the other pad's too) are the very draws the cached run had
+    noise = dataclasses.replace(scenario.press.noise, not_applied=tuple(args.without))
     scenario = dataclasses.replace(scenario, press=dataclasses.replace(scenario.press, noise=noise))
     config = scaled_trajectory(dataclasses.replace(TrackBenchConfig().trajectory, scenario=scenario), length / 1e3)
     again = TrajectorySimulator(_model(object_spec(name, args.meshes), args.workspace), config).trajectory(seed, index)
@@ -796,7 +797,7 @@ def main() -> None:
         "--without",
         nargs="*",
         default=[],
-        choices=sorted(NOISE_FIELDS),
+        choices=["bias", "pixel", "scale"],
         help="track the trajectories simulated again without these reconstruction errors (the cached touch kept)",
     )
     parser.add_argument("--lengths", nargs="*", type=int, help="only these path lengths (mm) of the seeds' sets")

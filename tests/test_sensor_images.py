@@ -609,6 +609,6 @@ def test_image_pairs_search_and_screen_with_the_image_budget(image_pair, builtin
     for pairs in (clean, through_images):
         spec = bench.MethodSpec("match", "match", via_images=pairs is through_images)
         model = builtin_models["fruit"]
-        bench._evaluate_pairs(spec, model, model, None, pairs, None, replace(config, pose_stages=("full",)), None)
+        bench._evaluate_pairs(spec, model, model, None, pairs, None, replace(config, pose_stages=("full",)), None, None)
     full = config.pose_config("full")
     assert seen == [full, full.for_pair(through_images[0].pair)] and seen[1] != full

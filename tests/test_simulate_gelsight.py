@@ -237,6 +237,36 @@ def test_noise_components_have_their_configured_size(sphere, rng):
     assert (noisy_mask & ~mask).sum() < 0.3 * mask.sum()
 
 
+def test_an_error_drawn_but_not_applied_leaves_the_other_draws_as_they_were(sphere, rng):
+    """`not_applied` (the tracking benchmark's `--without`): the part is drawn and left out, so the errors left on are
+    the very draws of the run with every part on (a standard deviation of 0 would skip the draw and change them)."""
+    from dataclasses import replace
+
+    press, _ = sphere_press(sphere, rng, 0.0015)
+    clean, mask = press.height_map_m, press.contact_mask
+    exact = ReconstructionNoise(mask_threshold_m=-1.0, mask_margin_px=0)  # every contact pixel kept, in order
+
+    def error(noise: ReconstructionNoise) -> np.ndarray:
+        points, _ = reconstruct_points(clean, mask, noise, np.random.default_rng(5))
+        return points[:, 2] - clean[mask]
+
+    every = error(exact)
+    no_pixel, no_bias, no_scale = (error(replace(exact, not_applied=(part,))) for part in ("pixel", "bias", "scale"))
+    pixel = every - no_pixel  # the pixel noise alone: white, of its configured size
+    assert pixel.std() == pytest.approx(exact.pixel_std_m, rel=0.05)
+    # without the smooth field: the same scale error and pixel noise, so what it takes off is smooth (neighbouring
+    # pixels within a few percent of its size; any other pixel noise would leave white noise of 15 um in it)
+    bias = every - no_bias
+    assert 0.3 * exact.bias_std_m < bias.std() < 3.0 * exact.bias_std_m
+    assert np.median(np.abs(np.diff(bias))) < 0.05 * exact.bias_std_m
+    # without the scale error: exactly the scale's share taken off, field and pixel noise as they were
+    scale = every - no_scale
+    np.testing.assert_allclose(scale, clean[mask] * (scale / clean[mask]).mean(), atol=1e-15)
+    # a zero standard deviation skips the draw instead: the pixel noise then comes from other draws
+    zeroed = error(replace(exact, bias_std_m=0.0))
+    assert not np.allclose(zeroed, no_bias, atol=1e-7)
+
+
 def test_reconstruct_hook_receives_the_noise_free_height_map(builtin_models, rng):
     model = builtin_models["fruit"]
     simulator = PressSimulator(model.mesh_object)

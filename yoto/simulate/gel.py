@@ -50,6 +50,12 @@ class ReconstructionNoise:
     scale_std: float = 0.03  # relative depth scale error, drawn once per press
     mask_threshold_m: float = 6e-5  # the noisy reconstruction's contact threshold on gel depth
     mask_margin_px: int = 8  # noisy contact pixels count only within this distance of the true contact
+    not_applied: tuple[str, ...] = ()  # of "scale", "bias", "pixel": drawn as usual but not applied, so every later
+    # draw stays what it was (a controlled comparison; a standard deviation of 0 draws nothing and shifts them)
+
+    def applied(self, part: str) -> float:
+        """1.0 where the error `part` ("scale", "bias", "pixel") is applied, 0.0 where it is drawn only."""
+        return 0.0 if part in self.not_applied else 1.0
 
     @classmethod
     def none(cls) -> ReconstructionNoise:
@@ -105,12 +111,12 @@ def reconstruct_points(
     """
     if noise.is_noise_free:
         return spec.height_map_to_points(height_map_m, contact_mask), {"scale_error": 0.0}
-    scale_error = float(rng.normal() * noise.scale_std)
+    scale_error = float(rng.normal() * noise.scale_std) * noise.applied("scale")
     noisy = height_map_m * (1.0 + scale_error)
     if noise.bias_std_m > 0:
-        noisy = noisy + bias_field(noise.bias_std_m, noise.bias_length_m, rng, spec)
+        noisy = noisy + bias_field(noise.bias_std_m, noise.bias_length_m, rng, spec) * noise.applied("bias")
     if noise.pixel_std_m > 0:
-        noisy = noisy + rng.normal(scale=noise.pixel_std_m, size=noisy.shape)
+        noisy = noisy + rng.normal(scale=noise.pixel_std_m, size=noisy.shape) * noise.applied("pixel")
     region = contact_mask
     if noise.mask_margin_px > 0:
         region = ndimage.maximum_filter(contact_mask, size=2 * noise.mask_margin_px + 1)

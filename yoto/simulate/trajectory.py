@@ -463,8 +463,9 @@ class TrajectorySimulator:
             # drawn once per sensor, fixed on its pad (a sliding contact sees other parts of the bias field).
             # Pixel noise is new every frame.
             calibration_error = (
-                float(rng["tactile"].normal() * noise.scale_std),
+                float(rng["tactile"].normal() * noise.scale_std) * noise.applied("scale"),
                 bias_field(noise.bias_std_m, noise.bias_length_m, rng["tactile"], config.scenario.press.spec)
+                * noise.applied("bias")
                 if noise.bias_std_m > 0
                 else 0.0,
             )
