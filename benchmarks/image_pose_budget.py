@@ -146,6 +146,12 @@ def main() -> None:
         help="read each object's pickle from this --cache folder, localize its image pairs again with this tree's "
         "localizer (the clean pairs as they are) and keep the result in --cache",
     )
+    parser.add_argument(
+        "--depth-scales",
+        type=float,
+        nargs="+",
+        help="the matched filter's MatchConfig.image_depth_scales for image contacts (default: the config's)",
+    )
     args = parser.parse_args()
     if args.relocalize and not args.cache:
         raise SystemExit("--relocalize needs --cache (where the re-localized pairs are kept)")
@@ -159,6 +165,11 @@ def main() -> None:
     base = bench.pose_config("full")
     variants = [parse_variant(text, base) for text in args.variants]
     localizer = make_localizer("match")
+    if args.depth_scales:
+        from yoto.localize.match import MatchConfig
+        from yoto.localize.scaled_match import ScaledMatchLocalizer
+
+        localizer = ScaledMatchLocalizer(MatchConfig(image_depth_scales=tuple(args.depth_scales)))
 
     def localized(pair, model):
         """(pair, candidates, world) of one pair, or (pair, None, None) where the localizer refuses it."""
