@@ -78,6 +78,29 @@ def test_a_clean_cloud_is_matched_as_before(fruit_contacts):
     assert len(localize_cloud(Fixed(), points_sensor, model, depth_scale_sigma=0.05)) == 1
 
 
+def test_the_pipeline_tells_the_localizer_which_contacts_come_from_images(builtin_models):
+    """`localize_contacts` passes each side's `depth_scale_sigma` to a localizer that reads it, and only where it is
+    positive (a clean side is localized as before)."""
+    from dataclasses import replace
+
+    from yoto.pose.pipeline import localize_contacts
+
+    model = builtin_models["fruit"]
+    pair = PairSimulator(model).pair(seed=11, index=0).pair
+    pair = replace(pair, right=replace(pair.right, depth_scale_sigma=0.05))
+    seen = []
+
+    class Recording:
+        name, needs_ground_truth, reads_depth_scale = "recording", False, True
+
+        def localize(self, points_sensor, model, truth_p_object=None, **keywords):
+            seen.append(keywords)
+            return [ContactEstimate(np.zeros(3), np.array([0.0, 0.0, 1.0]))]
+
+    localize_contacts(pair, model, Recording())
+    assert seen == [{}, {"depth_scale_sigma": 0.05}]
+
+
 def test_depth_scales_must_be_positive():
     for scales in ((), (1.0, 0.0)):
         with pytest.raises(InputError, match="image_depth_scales"):
