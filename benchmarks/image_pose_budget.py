@@ -10,6 +10,11 @@ against the first variant, and the pose stage's CPU seconds (median and sum over
 thread); with `--errors`, each row's pose error on every pair the rows disagree on. With `--cache DIR`, each
 object's pairs and localizations (clean and through images) are kept in DIR as a pickle and reused by later runs
 (only the pose stage runs again: a variant costs seconds per object); `benchmarks/image_rescue.py` reads them.
+With `--relocalize FOLDER`, each object's pickle is read from that cache folder instead, its image pairs localized
+again by the working tree's localizer (the clean pairs kept), and the result kept in `--cache` (a localizer change
+measured without rendering again; the localizer's median CPU per image contact is printed). Every object's rows
+begin with the localization of its clean and image contacts: the first candidate within 5 mm of the true contact,
+and any of them.
 With `--draws N`, every row is also run with N - 1 other draws of the points the pose stage's fit reads
 (`RefineConfig.seed` + 1 ... N - 1: which 120 of a contact's points) and each row prints the poses right per draw and
 their mean: one draw moves a row by 1-5 pairs in 40 (docs/journal/sensor.md, stop 13), as much as the 5-point target.
@@ -100,6 +105,27 @@ def pose_outcome(pair, model, candidates, world, config) -> tuple[bool, bool, fl
     return bool(right), among, seconds, f"{errors['translation_mm']:.1f} mm / {errors['rotation_deg']:.1f} deg"
 
 
+LOCATED_MM = 5.0  # a candidate within this of the true contact location locates the contact
+
+
+def localization_hits(model, localized_pairs) -> tuple[int, int, int]:
+    """(top-1 candidates within `LOCATED_MM` of the true contact, contacts with one among their candidates, contacts)
+    of localized pairs (pair, candidates, world); a pair the localizer refused counts as missed."""
+    from yoto.contacts import SIDES
+    from yoto.geometry import transform_points
+
+    top1 = top10 = 0
+    for pair, candidates, _ in localized_pairs:
+        for side in SIDES:
+            if candidates is None:
+                continue
+            truth = transform_points(model.T_object_mesh, pair.p_mesh_true[side][None])[0]
+            distances = np.array([np.linalg.norm(c.p_object - truth) for c in candidates[side]])
+            top1 += bool(distances[0] < LOCATED_MM / 1000.0)
+            top10 += bool(np.any(distances < LOCATED_MM / 1000.0))
+    return top1, top10, 2 * len(localized_pairs)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--renderer", required=True, help="calibration file, shading[:SEED] or table:FOLDER")
@@ -114,7 +140,21 @@ def main() -> None:
     parser.add_argument(
         "--cache", help="folder to keep each object's pairs and localizations in (pickles; reused when present)"
     )
+    parser.add_argument(
+        "--relocalize",
+        metavar="FOLDER",
+        help="read each object's pickle from this --cache folder, localize its image pairs again with this tree's "
+        "localizer (the clean pairs as they are) and keep the result in --cache",
+    )
+    parser.add_argument(
+        "--depth-scales",
+        type=float,
+        nargs="+",
+        help="the matched filter's MatchConfig.image_depth_scales for image contacts (default: the config's)",
+    )
     args = parser.parse_args()
+    if args.relocalize and not args.cache:
+        raise SystemExit("--relocalize needs --cache (where the re-localized pairs are kept)")
 
     from yoto.errors import YotoError
     from yoto.evaluation.bench import BenchConfig, pairs_via_images, resolve_object, simulate_benchmark_pairs
@@ -125,6 +165,11 @@ def main() -> None:
     base = bench.pose_config("full")
     variants = [parse_variant(text, base) for text in args.variants]
     localizer = make_localizer("match")
+    if args.depth_scales:
+        from yoto.localize.match import MatchConfig
+        from yoto.localize.scaled_match import ScaledMatchLocalizer
+
+        localizer = ScaledMatchLocalizer(MatchConfig(image_depth_scales=tuple(args.depth_scales)))
 
     def localized(pair, model):
         """(pair, candidates, world) of one pair, or (pair, None, None) where the localizer refuses it."""
@@ -142,7 +187,17 @@ def main() -> None:
             if args.renderer.startswith("table:"):  # table:FOLDER
                 renderer = "table_" + Path(args.renderer.partition(":")[2]).name
             cache = Path(args.cache) / f"{model.name}_{renderer}_seed{args.seed}_n{args.n}.pkl"
-        if cache is not None and cache.exists():
+        localize_seconds: list[float] = []  # CPU seconds per image contact localized in this run
+        if cache is not None and args.relocalize and not cache.exists():
+            with open(Path(args.relocalize) / cache.name, "rb") as file:
+                cases = pickle.load(file)
+            for k, (clean_case, (pair, _, _)) in enumerate(cases):
+                start = time.process_time()
+                cases[k] = (clean_case, localized(pair, model))
+                localize_seconds.append((time.process_time() - start) / 2.0)
+            with open(cache, "wb") as file:
+                pickle.dump(cases, file)
+        elif cache is not None and cache.exists():
             with open(cache, "rb") as file:
                 cases = pickle.load(file)
         else:
@@ -174,6 +229,11 @@ def main() -> None:
         clean_right = sum(outcome[0] for outcome in rows["clean"])
         first = [outcome[0] for outcome in rows[variants[0][0]]]
         print(f"{model.name} ({args.renderer}, {args.n} pairs)")
+        for label, index in (("clean", 0), ("images", 1)):
+            top1, top10, contacts = localization_hits(model, [case[index] for case in cases])
+            print(f"  localization {label:>6}: top-1 within {LOCATED_MM:.0f} mm {top1}/{contacts}, top-10 {top10}")
+        if localize_seconds:
+            print(f"  re-localized image contacts: CPU median {1000 * np.median(localize_seconds):.1f} ms per contact")
         for row, outcomes in rows.items():
             right, among = [outcome[0] for outcome in outcomes], sum(outcome[1] for outcome in outcomes)
             seconds = np.array([outcome[2] for outcome in outcomes])

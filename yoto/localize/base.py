@@ -31,6 +31,21 @@ class ContactLocalizer(Protocol):
         ...
 
 
+def localize_cloud(
+    localizer: ContactLocalizer,
+    points_sensor: np.ndarray,
+    model: ObjectModel,
+    truth_p_object: np.ndarray | None = None,
+    depth_scale_sigma: float = 0.0,
+) -> list[ContactEstimate]:
+    """`localizer.localize` of a tactile cloud; a cloud reconstructed from an image (`depth_scale_sigma` > 0, as
+    `TactileContact.depth_scale_sigma`) tells a localizer that matches over depth scales (`reads_depth_scale`:
+    the matched filter) so."""
+    if depth_scale_sigma > 0 and getattr(localizer, "reads_depth_scale", False):
+        return localizer.localize(points_sensor, model, truth_p_object, depth_scale_sigma=depth_scale_sigma)  # type: ignore[call-arg]
+    return localizer.localize(points_sensor, model, truth_p_object)
+
+
 class OracleLocalizer:
     """The ground-truth contact location with its kNN-aggregated model normal: shows the solver's own floor."""
 

@@ -37,7 +37,7 @@ import numpy as np
 
 from yoto.contacts import TactileContact, contact_in_world
 from yoto.errors import YotoError
-from yoto.localize.base import ContactLocalizer
+from yoto.localize.base import ContactLocalizer, localize_cloud
 from yoto.objects.model import ObjectModel
 
 MODELS_KEPT = 4  # object models the helper keeps by default (the caches of yoto.objects.cache keep as many)
@@ -77,7 +77,9 @@ class LocalizerProcess:
     def submit(self, contact: TactileContact, model: ObjectModel, truth_p_object: np.ndarray | None = None) -> Pending:
         """Localize one contact in the helper. The answer's `result()`: its candidates, its world-side measurement
         (`contact_in_world`) and the helper's time for the candidates (ms)."""
-        return self._request("localize", model, contact.points_sensor, contact.T_world_sensor, truth_p_object)
+        return self._request(
+            "localize", model, contact.points_sensor, contact.T_world_sensor, truth_p_object, contact.depth_scale_sigma
+        )
 
     def call(self, function: Callable[..., Any], model: ObjectModel, *arguments: Any) -> Pending:
         """Run `function(model, *arguments)` in the helper, `model` being its copy there (sent once, as for
@@ -170,8 +172,8 @@ def _run(localizer: ContactLocalizer, kind: str, model: ObjectModel, arguments: 
     if kind == "call":
         function, function_arguments = arguments
         return function(model, *function_arguments)
-    points_sensor, T_world_sensor, truth_p_object = arguments
+    points_sensor, T_world_sensor, truth_p_object, depth_scale_sigma = arguments
     tick = time.perf_counter()
-    candidates = localizer.localize(points_sensor, model, truth_p_object)
+    candidates = localize_cloud(localizer, points_sensor, model, truth_p_object, depth_scale_sigma)
     milliseconds = 1000.0 * (time.perf_counter() - tick)
     return candidates, contact_in_world(TactileContact(points_sensor, T_world_sensor)), milliseconds

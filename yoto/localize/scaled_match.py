@@ -56,6 +56,7 @@ class ScaledMatchLocalizer:
 
     name = "match"
     needs_ground_truth = False
+    reads_depth_scale = True  # `localize` takes a reconstructed cloud's depth_scale_sigma (base.localize_cloud)
 
     def __init__(self, config: MatchConfig = MatchConfig(), scale: ScaleConfig = ScaleConfig()):
         self.config = config
@@ -98,12 +99,18 @@ class ScaledMatchLocalizer:
         return self._levels[level]
 
     def localize(
-        self, points_sensor: np.ndarray, model: ObjectModel, truth_p_object: np.ndarray | None = None
+        self,
+        points_sensor: np.ndarray,
+        model: ObjectModel,
+        truth_p_object: np.ndarray | None = None,
+        depth_scale_sigma: float = 0.0,
     ) -> list[ContactEstimate]:
         """The matched filter's candidates at the level that fits the contact (a finer one if it is still too small).
 
         Below the default level the beliefs are scaled by the contact's area over the smallest area the default
-        level matches: a small patch says little about where it is, and the pose stage's confidence shows it.
+        level matches: a small patch says little about where it is, and the pose stage's confidence shows it. A
+        cloud reconstructed from an image (`depth_scale_sigma` > 0) is matched at several depth scales
+        (`MatchLocalizer.localize_scaled`).
         """
         points_sensor = validate_tactile_points(points_sensor, None)
         localizer, area, candidates = self.default, None, None
@@ -113,7 +120,10 @@ class ScaledMatchLocalizer:
         image = self.default.image(points_sensor, model)
         if np.count_nonzero(image.mask) * image.pixel_m**2 >= self.min_area_m2(0):
             try:
-                candidates = self.default.localize_image(image, model)
+                if self.default.scales_depth(depth_scale_sigma):
+                    candidates = self.default.localize_scaled(points_sensor, model)
+                else:
+                    candidates = self.default.localize_image(image, model)
             except DegenerateGeometryError:
                 pass
         if candidates is None:
@@ -122,7 +132,7 @@ class ScaledMatchLocalizer:
             while True:
                 localizer = self.localizer(level)
                 try:
-                    candidates = localizer.localize(points_sensor, model)
+                    candidates = localizer.localize(points_sensor, model, depth_scale_sigma=depth_scale_sigma)
                     break
                 except DegenerateGeometryError:
                     if level >= self.scale.levels:

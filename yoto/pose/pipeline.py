@@ -39,7 +39,7 @@ from yoto.contacts import (
 )
 from yoto.errors import DegenerateGeometryError, YotoError
 from yoto.geometry import invert_transform, rotate_vectors, se3_exp, se3_log, transform_points
-from yoto.localize.base import ContactLocalizer
+from yoto.localize.base import ContactLocalizer, localize_cloud
 from yoto.localize.helper import LocalizerProcess
 from yoto.objects.model import ObjectModel
 from yoto.objects.symmetry import Symmetry
@@ -280,7 +280,10 @@ def localize_contacts(
     candidates, world, latency = {}, {}, {}
     for side in SIDES if remote is None else ("left",):
         tick = time.perf_counter()
-        candidates[side] = localizer.localize(pair.contact(side).points_sensor, model, truth(side))
+        contact = pair.contact(side)
+        candidates[side] = localize_cloud(
+            localizer, contact.points_sensor, model, truth(side), contact.depth_scale_sigma
+        )
         latency[f"localize_{side}"] = 1000.0 * (time.perf_counter() - tick)
         world[side] = contact_in_world(pair.contact(side))
     if remote is not None:

@@ -66,6 +66,9 @@ class MatchConfig:
     normal_neighbours: int = 20  # k of the aggregated model normal reported with a candidate
     free_space: bool = True  # penalise poses that push the object into the gel where the sensor saw nothing
     refine: bool = True  # refine the candidates by ICP (False: matched-filter poses only)
+    image_depth_scales: tuple[float, ...] = (1.0, 1.1, 1.2)  # a contact reconstructed from an image (its
+    # `depth_scale_sigma` > 0) is matched with its heights times each of these and the candidates ranked together:
+    # reconstructions read curved faces shallow (docs/journal/localization.md, stop 23); (1.0,): as a clean cloud
 
     def __post_init__(self):
         if (
@@ -75,3 +78,5 @@ class MatchConfig:
             or (self.icp_keep is not None and self.icp_keep < 1)
         ):
             raise InputError("rolls, coarse_rolls, refine_candidates and icp_keep must be at least 1")
+        if not self.image_depth_scales or min(self.image_depth_scales) <= 0:
+            raise InputError(f"image_depth_scales must be positive factors, got {self.image_depth_scales!r}")

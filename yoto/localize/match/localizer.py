@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -40,6 +41,7 @@ class MatchLocalizer:
 
     name = "match"
     needs_ground_truth = False
+    reads_depth_scale = True  # `localize` takes a reconstructed cloud's depth_scale_sigma (base.localize_cloud)
 
     def __init__(self, config: MatchConfig = MatchConfig()):
         self.config = config
@@ -137,23 +139,56 @@ class MatchLocalizer:
         return poses
 
     def localize(
-        self, points_sensor: np.ndarray, model: ObjectModel, truth_p_object: np.ndarray | None = None
+        self,
+        points_sensor: np.ndarray,
+        model: ObjectModel,
+        truth_p_object: np.ndarray | None = None,
+        depth_scale_sigma: float = 0.0,
     ) -> list[ContactEstimate]:
         """Ranked candidate contacts (`ContactEstimate`, best first) of a tactile cloud on the model.
 
-        The filter's matrix products are small: BLAS runs them on one thread. (Its threads wait for one another,
-        and on a busy machine a product that takes 2 ms alone took 50 ms on two threads.)
+        A cloud reconstructed from an image (`depth_scale_sigma` > 0, as `TactileContact.depth_scale_sigma`) is
+        matched at each of `image_depth_scales` (`localize_scaled`). The filter's matrix products are small: BLAS
+        runs them on one thread. (Its threads wait for one another, and on a busy machine a product that takes 2 ms
+        alone took 50 ms on two threads.)
         """
         points_sensor = validate_tactile_points(points_sensor, None)
+        if self.scales_depth(depth_scale_sigma):
+            return self.localize_scaled(points_sensor, model)
         return self.localize_image(self.image(points_sensor, model), model)
+
+    def scales_depth(self, depth_scale_sigma: float) -> bool:
+        """Whether a cloud with this `depth_scale_sigma` is matched at several depth scales."""
+        return depth_scale_sigma > 0 and self.config.image_depth_scales != (1.0,)
 
     def localize_image(self, image: ContactImage, model: ObjectModel) -> list[ContactEstimate]:
         """`localize` from the contact's height image (`image`)."""
         with one_blas_thread(), one_openmp_thread():
             return self.refine(self.hypotheses(image, model), model)
 
+    def localize_scaled(self, points_sensor: np.ndarray, model: ObjectModel) -> list[ContactEstimate]:
+        """`localize` of a cloud whose depth is uncertain: its heights below the pad (-z_sensor) times each of
+        `image_depth_scales`, each matched and refined as a cloud of its own, and all their registrations ranked
+        together. Each candidate's `T_object_sensor` is that of its scaled cloud (`match_depth_scale`)."""
+        scales = self.config.image_depth_scales
+        with one_blas_thread(), one_openmp_thread():
+            fits = [
+                self._fitted(self.hypotheses(self.image(scaled_depth(points_sensor, scale), model), model), model)
+                for scale in scales
+            ]
+        merged = _Fitted(
+            *(np.concatenate([getattr(fit, field.name) for fit in fits]) for field in dataclasses.fields(_Fitted))
+        )
+        scale = np.concatenate([np.full(len(fit.residual), s) for fit, s in zip(fits, scales, strict=True)])
+        return self._estimates(merged, model, scale)
+
     def refine(self, found: FilterHypotheses, model: ObjectModel) -> list[ContactEstimate]:
-        """The filter's hypotheses refined by ICP, checked for free space, ranked and given beliefs.
+        """The filter's hypotheses refined by ICP, checked for free space, ranked and given beliefs."""
+        return self._estimates(self._fitted(found, model), model)
+
+    def _fitted(self, found: FilterHypotheses, model: ObjectModel) -> _Fitted:
+        """The filter's hypotheses refined by ICP, their residuals and free-space violations, and where each puts the
+        contact on the surface.
 
         Every hypothesis is refined on `icp_points` tactile points; the best `polish_candidates` distinct ones
         again on `polish_points` (more points average the noise: a more precise location and residual).
@@ -174,8 +209,17 @@ class MatchLocalizer:
             poses[best] = candidate_icp(surface, samples, poses[best], polish, image)
             residual[best], violation[best] = self._fit(model, image, samples, poses[best])
             ranking = self._rank(model, image, poses, residual, violation)
+        return _Fitted(found.anchors, found.rolls, found.filter_cost, poses, residual, violation, ranking.p_object)
+
+    def _estimates(
+        self, fit: _Fitted, model: ObjectModel, depth_scale: np.ndarray | None = None
+    ) -> list[ContactEstimate]:
+        """Ranked distinct candidates with beliefs of refined registrations (with `depth_scale`, each registration's
+        depth scale, reported as `match_depth_scale`)."""
+        config = self.config
+        poses, residual, violation, p_all = fit.poses, fit.residual, fit.violation, fit.p_object
         total = np.sqrt(residual**2 + violation)
-        p_all = ranking.p_object
+        ranking = rank_registrations(p_all, total, config.belief)
         chosen = np.asarray(ranking.indices, dtype=np.int64)
         normals = model.aggregated_normal(p_all[chosen], config.normal_neighbours)
         blocks = model.block_of_points(p_all[chosen])
@@ -189,15 +233,17 @@ class MatchLocalizer:
                     score=float(1.0 - min(total[i], config.residual_tau_m) / config.residual_tau_m),
                     probability=float(probability),
                     details={
-                        "match_anchor": int(found.anchors[i]),
-                        "match_roll_deg": float(np.degrees(2.0 * np.pi * found.rolls[i] / config.rolls)),
-                        "match_filter_rms_mm": 1000.0 * float(np.sqrt(max(found.filter_cost[i], 0.0))),
+                        "match_anchor": int(fit.anchors[i]),
+                        "match_roll_deg": float(np.degrees(2.0 * np.pi * fit.rolls[i] / config.rolls)),
+                        "match_filter_rms_mm": 1000.0 * float(np.sqrt(max(fit.filter_cost[i], 0.0))),
                         "match_residual_mm": 1000.0 * float(residual[i]),
                         "match_free_space_mm": 1000.0 * float(np.sqrt(violation[i])),
                         "match_T_object_sensor": poses[i].tolist(),
                     },
                 )
             )
+            if depth_scale is not None:
+                out[-1].details["match_depth_scale"] = float(depth_scale[i])
         return out
 
     @staticmethod
@@ -248,6 +294,11 @@ class MatchLocalizer:
         p_object = model.nearest_surface_point(centres)
         ranking = rank_registrations(p_object, np.sqrt(residual**2 + violation), self.config.belief)
         return _Ranked(ranking.indices, ranking.probabilities, p_object)
+
+
+def scaled_depth(points_sensor: np.ndarray, scale: float) -> np.ndarray:
+    """The cloud with its heights below the pad plane (-z_sensor) times `scale`."""
+    return points_sensor * np.array([1.0, 1.0, scale])
 
 
 def candidate_icp(
@@ -308,6 +359,19 @@ def candidate_icp(
         if len(active) == 0:
             break
     return poses
+
+
+@dataclass
+class _Fitted:
+    """Refined registrations of one contact (K of each), before ranking."""
+
+    anchors: np.ndarray  # (K,) the filter's anchor of each
+    rolls: np.ndarray  # (K,) its roll index
+    filter_cost: np.ndarray  # (K,) its filter cost, m^2
+    poses: np.ndarray  # (K, 4, 4) T_object_sensor after ICP
+    residual: np.ndarray  # (K,) truncated point-to-plane residual, m
+    violation: np.ndarray  # (K,) free-space violation, m^2
+    p_object: np.ndarray  # (K, 3) the contact's location on the surface
 
 
 @dataclass
