@@ -471,6 +471,8 @@ def test_localize_takes_images_and_says_when_there_is_no_contact(image_pair, tmp
     assert f"{untouched}: no contact" in printed and f"{flat}: no contact" in printed
     results = json.loads(out.read_text())
     assert len(results[0]["candidates"]) >= 1 and results[0]["contact"] is not None
+    # the image's contact is matched at the image depth scales, as in `yoto pose` (a cloud given as a cloud is not)
+    assert {c["match_depth_scale"] for c in results[0]["candidates"]} <= {1.0, 1.1, 1.2}
     assert results[1]["contact"] is None and results[2]["contact"] is None and "no_contact" in results[2]
 
 

@@ -67,16 +67,18 @@ def result_json(estimates: list, model, cloud: str, latency_ms: float) -> dict:
     }
 
 
-def read_tactile_input(path: str, images: ImageSides) -> np.ndarray:
-    """The tactile cloud of a PLY file, or of a GelSight image reconstructed by `images` (ImageSides)."""
+def read_tactile_input(path: str, images: ImageSides) -> tuple[np.ndarray, float]:
+    """The tactile cloud of a PLY file, or of a GelSight image reconstructed by `images` (ImageSides), and its depth
+    scale's uncertainty (`TactileContact.depth_scale_sigma`: 0 for a cloud given as a cloud)."""
     from pathlib import Path
 
     from yoto.contacts import TactileImage, read_tactile_cloud, validate_tactile_points
     from yoto.sensor.presses import IMAGE_SUFFIXES
 
     if Path(path).suffix.lower() in IMAGE_SUFFIXES:
-        return validate_tactile_points(images(TactileImage(Path(path), images.background))[0], path)
-    return read_tactile_cloud(Path(path))
+        points, depth_scale_sigma = images(TactileImage(Path(path), images.background))
+        return validate_tactile_points(points, path), depth_scale_sigma
+    return read_tactile_cloud(Path(path)), 0.0
 
 
 def run(args: argparse.Namespace) -> int:
@@ -86,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
     from yoto.errors import NoContactError
     from yoto.io import write_json_atomic
     from yoto.localize import make_localizer
+    from yoto.localize.base import localize_cloud
     from yoto.objects.build import load_object_model
     from yoto.sensor.pair_images import ImageSides
 
@@ -97,13 +100,13 @@ def run(args: argparse.Namespace) -> int:
     results = []
     for cloud in args.clouds:
         try:
-            points = read_tactile_input(cloud, images)
+            points, depth_scale_sigma = read_tactile_input(cloud, images)
         except NoContactError as exc:
             results.append({"cloud": cloud, "object": model.name, "contact": None, "no_contact": exc.problem})
             print(f"{cloud}: {exc.problem}")
             continue
         tick = time.perf_counter()
-        estimates = localizer.localize(points, model)
+        estimates = localize_cloud(localizer, points, model, depth_scale_sigma=depth_scale_sigma)
         latency = 1000.0 * (time.perf_counter() - tick)
         result = result_json(estimates, model, cloud, latency)
         results.append(result)
