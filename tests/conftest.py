@@ -47,3 +47,25 @@ def builtin_models(tmp_path_factory):
 
     config = ObjectModelConfig(num_points=40_000)
     return {name: build_object_model(builtin_mesh(name), name, config) for name in ("tool", "fruit", "figurine")}
+
+
+@pytest.fixture(scope="session")
+def fruit_contacts(builtin_models):
+    """Six simulated GelSight contacts on the bumpy fruit (seed 11, pairs 0-2): (tactile points, true contact point,
+    true T_object_sensor) each, with the fruit's model."""
+    from yoto.simulate.scenarios import PairSimulator
+
+    model = builtin_models["fruit"]
+    simulator = PairSimulator(model)
+    contacts = []
+    for index in range(3):
+        simulated = simulator.pair(seed=11, index=index)
+        for side, contact in simulated.contacts.items():
+            contacts.append(
+                (
+                    simulated.pair.contact(side).points_sensor,
+                    simulated.p_object_true[side],
+                    contact.press.T_object_sensor,
+                )
+            )
+    return model, contacts

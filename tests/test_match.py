@@ -19,25 +19,6 @@ from yoto.simulate.scenarios import PairSimulator  # noqa: E402
 from yoto.tactile_image import tactile_height_image, tactile_spacing_at_most, tactile_spacing_m  # noqa: E402
 
 
-@pytest.fixture(scope="module")
-def fruit_contacts(builtin_models):
-    """Six simulated GelSight contacts on the bumpy fruit, with their true contact points and sensor poses."""
-    model = builtin_models["fruit"]
-    simulator = PairSimulator(model)
-    contacts = []
-    for index in range(3):
-        simulated = simulator.pair(seed=11, index=index)
-        for side, contact in simulated.contacts.items():
-            contacts.append(
-                (
-                    simulated.pair.contact(side).points_sensor,
-                    simulated.p_object_true[side],
-                    contact.press.T_object_sensor,
-                )
-            )
-    return model, contacts
-
-
 def test_finds_contacts_on_a_distinctive_surface(fruit_contacts):
     """The fruit's bumps make a contact's height map unique: the best candidate is the true place, and its
     sensor pose (a by-product of the match) is the true one."""

@@ -18,19 +18,6 @@ from yoto.simulate.scenarios import PairSimulator  # noqa: E402
 READ_SHALLOW = 0.85  # a reconstruction that reads the contact's heights 15% shallow
 
 
-@pytest.fixture(scope="module")
-def fruit_contacts(builtin_models):
-    """Six simulated contacts on the fruit (its bumps curve differently from place to place) and their true places."""
-    model = builtin_models["fruit"]
-    simulator = PairSimulator(model)
-    contacts = []
-    for index in range(3):
-        simulated = simulator.pair(seed=11, index=index)
-        for side in ("left", "right"):
-            contacts.append((simulated.pair.contact(side).points_sensor, simulated.p_object_true[side]))
-    return model, contacts
-
-
 def test_a_contact_read_shallow_is_placed_right_at_its_depth_scale(fruit_contacts):
     """Heights read 15% shallow make a bump look like a flatter one elsewhere: the filter alone puts at most one of
     six such contacts first at its true place, with the depth-scale nuisance (1.0 / 1.1 / 1.2) five or more, each
@@ -38,7 +25,7 @@ def test_a_contact_read_shallow_is_placed_right_at_its_depth_scale(fruit_contact
     model, contacts = fruit_contacts
     localizer = MatchLocalizer()
     plain = nuisance = 0
-    for points_sensor, p_true in contacts:
+    for points_sensor, p_true, _ in contacts:
         shallow = points_sensor * np.array([1.0, 1.0, READ_SHALLOW])
         first = localizer.localize(shallow, model)[0]
         plain += bool(np.linalg.norm(first.p_object - p_true) < 2.5e-3)
@@ -53,7 +40,7 @@ def test_a_clean_cloud_is_matched_as_before(fruit_contacts):
     """Without a depth-scale sigma (a clean cloud), or with the nuisance off, the candidates are the plain
     filter's, bitwise; `localize_cloud` passes the sigma only to a localizer that reads it."""
     model, contacts = fruit_contacts
-    points_sensor, _ = contacts[0]
+    points_sensor, _, _ = contacts[0]
     plain = MatchLocalizer(MatchConfig(image_depth_scales=(1.0,)))
     reference = plain.localize(points_sensor, model, depth_scale_sigma=0.05)
     for candidates in (
