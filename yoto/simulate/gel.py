@@ -111,10 +111,8 @@ def reconstruct_points(
     """
     if noise.is_noise_free:
         return spec.height_map_to_points(height_map_m, contact_mask), {"scale_error": 0.0}
-    scale_error = float(rng.normal() * noise.scale_std) * noise.applied("scale")
-    noisy = height_map_m * (1.0 + scale_error)
-    if noise.bias_std_m > 0:
-        noisy = noisy + bias_field(noise.bias_std_m, noise.bias_length_m, rng, spec) * noise.applied("bias")
+    scale_error, bias = calibration_errors(noise, rng, spec)
+    noisy = height_map_m * (1.0 + scale_error) + bias
     if noise.pixel_std_m > 0:
         noisy = noisy + rng.normal(scale=noise.pixel_std_m, size=noisy.shape) * noise.applied("pixel")
     region = contact_mask
@@ -122,6 +120,17 @@ def reconstruct_points(
         region = ndimage.maximum_filter(contact_mask, size=2 * noise.mask_margin_px + 1)
     mask = region & (-noisy > noise.mask_threshold_m)
     return spec.height_map_to_points(noisy, mask), {"scale_error": scale_error}
+
+
+def calibration_errors(
+    noise: ReconstructionNoise, rng: np.random.Generator, spec: GelSightSpec = GELSIGHT_MINI
+) -> tuple[float, np.ndarray | float]:
+    """The errors a reconstruction's calibration and lighting put on a whole frame, drawn in this order: the depth
+    scale error (relative) and the smooth bias field ((H, W) metres; 0.0 without one), each 0 where `not_applied`."""
+    scale_error = float(rng.normal() * noise.scale_std) * noise.applied("scale")
+    if noise.bias_std_m <= 0:
+        return scale_error, 0.0
+    return scale_error, bias_field(noise.bias_std_m, noise.bias_length_m, rng, spec) * noise.applied("bias")
 
 
 def bias_field(

@@ -58,7 +58,7 @@ from yoto.geometry import (
 )
 from yoto.io import png_bytes, read_json, settings_changed, write_bytes_atomic, write_json_atomic, write_ply_points
 from yoto.objects.model import ObjectModel
-from yoto.simulate.gel import bias_field, gel_surface, reconstruct_points
+from yoto.simulate.gel import calibration_errors, gel_surface, reconstruct_points
 from yoto.simulate.press import SIMULATOR_VERSION
 from yoto.simulate.scenarios import PairSimulator, ScenarioConfig, SimulatedPair
 from yoto.trajectory import PoseStream, tactile_frame_name, write_tum
@@ -462,13 +462,7 @@ class TrajectorySimulator:
             # The reconstruction's depth scale error and smooth bias come from the sensor's calibration and lighting:
             # drawn once per sensor, fixed on its pad (a sliding contact sees other parts of the bias field).
             # Pixel noise is new every frame.
-            calibration_error = (
-                float(rng["tactile"].normal() * noise.scale_std) * noise.applied("scale"),
-                bias_field(noise.bias_std_m, noise.bias_length_m, rng["tactile"], config.scenario.press.spec)
-                * noise.applied("bias")
-                if noise.bias_std_m > 0
-                else 0.0,
-            )
+            calibration_error = calibration_errors(noise, rng["tactile"], config.scenario.press.spec)
             # The touch's own cloud is this sensor's first frame: the same calibration errors as the ones after it.
             touch_press = touch.contacts[side].press
             touch_cloud, _ = self._reconstruct(
