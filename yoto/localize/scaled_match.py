@@ -121,7 +121,7 @@ class ScaledMatchLocalizer:
         if np.count_nonzero(image.mask) * image.pixel_m**2 >= self.min_area_m2(0):
             try:
                 if self.default.scales_depth(depth_scale_sigma):
-                    candidates = self.default.localize_scaled(points_sensor, model)
+                    candidates = self.default.localize_scaled(points_sensor, model, image)
                 else:
                     candidates = self.default.localize_image(image, model)
             except DegenerateGeometryError:

@@ -166,16 +166,22 @@ class MatchLocalizer:
         with one_blas_thread(), one_openmp_thread():
             return self.refine(self.hypotheses(image, model), model)
 
-    def localize_scaled(self, points_sensor: np.ndarray, model: ObjectModel) -> list[ContactEstimate]:
+    def localize_scaled(
+        self, points_sensor: np.ndarray, model: ObjectModel, image: ContactImage | None = None
+    ) -> list[ContactEstimate]:
         """`localize` of a cloud whose depth is uncertain: its heights below the pad (-z_sensor) times each of
         `image_depth_scales`, each matched and refined as a cloud of its own, and all their registrations ranked
-        together. Each candidate's `T_object_sensor` is that of its scaled cloud (`match_depth_scale`)."""
+        together. Each candidate's `T_object_sensor` is that of its scaled cloud (`match_depth_scale`). `image`: the
+        cloud's own height image (`self.image`), where the caller made it already, serves its scale 1."""
+
+        def scaled_image(scale: float) -> ContactImage:
+            if scale == 1.0 and image is not None:
+                return image
+            return self.image(scaled_depth(points_sensor, scale), model)
+
         scales = self.config.image_depth_scales
         with one_blas_thread(), one_openmp_thread():
-            fits = [
-                self._fitted(self.hypotheses(self.image(scaled_depth(points_sensor, scale), model), model), model)
-                for scale in scales
-            ]
+            fits = [self._fitted(self.hypotheses(scaled_image(scale), model), model) for scale in scales]
         merged = _Fitted(
             *(np.concatenate([getattr(fit, field.name) for fit in fits]) for field in dataclasses.fields(_Fitted))
         )
